@@ -1,0 +1,378 @@
+"""Scene and render configuration: TOML in, validated dataclass-like dicts out.
+
+Every key is declared once below with its type, range and default.  Loading
+rejects unknown keys (suggesting the nearest valid one), wrong types, values
+out of range and files that do not exist, with one :class:`ConfigError` whose
+message names the file, the key and the value.  No other module reads TOML.
+
+Units at this boundary: millimetres for scene-scale lengths (model size,
+light and camera positions), micrometres for skin-scale lengths (layers,
+voxels, relief), cm^-1 for optical coefficients, nanometres for wavelengths.
+Everything downstream works in micrometres (the volume's unit).
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+import os
+import tomllib
+from dataclasses import dataclass
+from typing import Any, Callable
+
+INF = math.inf
+
+
+class ConfigError(ValueError):
+    """A bad configuration value; ``str()`` is the whole user-facing message."""
+
+    def __init__(self, source: str, key: str, value: Any, why: str):
+        self.source, self.key, self.value, self.why = source, key, value, why
+        super().__init__(f"{source}: {key} = {value!r}: {why}")
+
+
+@dataclass(frozen=True)
+class F:
+    """One config field: type name, default, check."""
+
+    kind: str                       # float int bool str vec2 vec3 ivec2 choice path
+    default: Any = None
+    lo: float | None = None         # inclusive lower bound
+    hi: float | None = None         # inclusive upper bound
+    lo_open: bool = False           # lower bound exclusive
+    hi_open: bool = False
+    choices: tuple = ()
+    inf_ok: bool = False
+    none_ok: bool = False
+    doc: str = ""
+
+
+_RANGE_HELP = {(0, None, True): "> 0", (0, None, False): ">= 0"}
+
+SCHEMA: dict[str, dict[str, F]] = {
+    "model": {
+        "name": F("str", "skin"),
+        "size_mm": F("vec2", [10.0, 10.0], lo=0, lo_open=True, hi=1000, doc="lateral extent"),
+        "voxel_um": F("float", 5.0, lo=0, lo_open=True, hi=1000, doc="voxel thickness (z)"),
+        "lateral_voxel_um": F("float", 5.0, lo=0.05, hi=10000, doc="lateral voxel (column) size"),
+        "lateral": F("choice", "open", choices=("open", "periodic", "infinite")),
+        "quantize": F("bool", True, doc="snap interfaces to the voxel grid in z"),
+        "n_outside": F("float", 1.0, lo=1.0, hi=3.0),
+        "n_below": F("float", 1.0, lo=1.0, hi=3.0, doc="index below a finite bottom layer"),
+    },
+    "spectrum": {
+        "start_nm": F("float", 380.0, lo=250, hi=1000),
+        "stop_nm": F("float", 780.0, lo=250, hi=1000),
+        "step_nm": F("float", 5.0, lo=0, lo_open=True, hi=200),
+    },
+    "relief": {
+        "kind": F("choice", "flat", choices=("flat", "generated", "file")),
+        "depth_um": F("float", 20.0, lo=0, hi=500, doc="furrow depth"),
+        "spacing_um": F("float", 250.0, lo=1, hi=1e5, doc="mean furrow spacing"),
+        "width_um": F("float", 20.0, lo=0.1, hi=1e4, doc="furrow width"),
+        "seed": F("int", 7, lo=0, hi=2**31 - 1),
+        "file": F("path", None, none_ok=True, doc=".npy, 16-bit PNG or EXR height map"),
+        "pixel_um": F("float", 5.0, lo=0, lo_open=True, hi=1e5),
+        "height_scale_um": F("float", 1.0, lo=0, lo_open=True, hi=1e6, doc="µm per stored unit"),
+    },
+    "papillae": {
+        "amplitude_um": F("float", 0.0, lo=0, hi=500),
+        "period_um": F("float", 100.0, lo=1, hi=1e5),
+    },
+    "light": {
+        "kind": F("choice", "point", choices=("point", "pencil", "wide")),
+        "position_mm": F("vec3", [0.0, 10.0, 10.0], lo=-1e4, hi=1e4, doc="point light position"),
+        "direction": F("vec3", [0.0, 0.0, -1.0], lo=-1, hi=1, doc="collimated beam direction"),
+        "center_mm": F("vec2", [5.0, 5.0], lo=-1e4, hi=1e4, doc="beam centre on the surface"),
+        "width_mm": F("vec2", [10.0, 10.0], lo=0, lo_open=True, hi=1e4, doc="wide beam full width"),
+        "power_w": F("float", 1.0, lo=0, hi=1e9),
+        "spectrum": F("choice", "D65", choices=("D65", "flat")),
+        "band_nm": F("float", None, none_ok=True, lo=250, hi=1000, doc="emit in this band only"),
+    },
+    "camera": {
+        "position_mm": F("vec3", [5.0, 5.0, 30.0], lo=-1e4, hi=1e4),
+        "look_at_mm": F("vec3", [5.0, 5.0, 0.0], lo=-1e4, hi=1e4),
+        "up": F("vec3", [0.0, 1.0, 0.0], lo=-1, hi=1),
+        "fov_deg": F("float", 19.0, lo=0, lo_open=True, hi=170),
+        "resolution": F("ivec2", [320, 240], lo=1, hi=16384),
+        "spp": F("int", 1, lo=1, hi=1024, doc="jittered eye rays per pixel"),
+    },
+    "render": {
+        "method": F("choice", "e", choices=tuple("abcdef")),
+        "spacing_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e4,
+                        doc="equal spacing; overrides a/b/c"),
+        "threshold": F("float", 1e-3, lo=0, hi=1, hi_open=True,
+                       doc="transmittance cut for sample points"),
+        "merge": F("choice", "voxel", choices=("voxel", "none")),
+        "photons": F("int", 810_000, lo=1, hi=2**30, doc="stored photons per pass"),
+        "initial_photons": F("int", 810, lo=1, hi=10**6, doc="photons in the first search"),
+        "passes": F("int", 200, lo=1, hi=10**7),
+        "alpha": F("float", 0.7, lo=0, hi=1, lo_open=True, hi_open=True),
+        "radius": F("choice", "ppm", choices=("ppm", "global")),
+        "seed": F("int", 1, lo=0, hi=2**63 - 1),
+        "specular": F("bool", True),
+        "roughness": F("float", 0.35, lo=0.01, hi=1.0),
+        "preview_every": F("int", 0, lo=0, hi=10**7),
+        "checkpoint_every": F("int", 10, lo=0, hi=10**7),
+        "exposure": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e12,
+                      doc="PNG scale; default: a white diffuser at the image centre = 1"),
+        "store_depth_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e6,
+                            doc="store photons only this deep (default: all)"),
+    },
+}
+
+LAYER_SCHEMA: dict[str, F] = {
+    "name": F("str", None),
+    "thickness_um": F("float", None, lo=0, lo_open=True, hi=1e6, inf_ok=True),
+    "n": F("float", 1.4, lo=1.0, hi=3.0),
+    "melanin": F("float", 0.0, lo=0, hi=1),
+    "blood": F("float", 0.0, lo=0, hi=1),
+    "saturation": F("float", 0.8, lo=0, hi=1),
+    "baseline": F("float", 0.0, lo=0, hi=1),
+    "scattering": F("choice", "jacques", choices=("jacques", "powerlaw", "none")),
+    "k": F("float", 1.0, lo=0, hi=1e4),
+    "a": F("float", 0.0, lo=0, hi=1e5),
+    "b": F("float", 0.0, lo=-10, hi=10),
+    "g": F("float", None, none_ok=True, lo=-1, hi=1, lo_open=True, hi_open=True),
+    "bottom": F("choice", "flat", choices=("flat", "surface", "papillae")),
+    "mua": F("float", None, none_ok=True, lo=0, hi=1e6, doc="homogeneous override, cm^-1"),
+    "mus": F("float", None, none_ok=True, lo=0, hi=1e6, doc="homogeneous override, cm^-1"),
+}
+
+MAX_LAYERS = 16
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _check(src: str, key: str, v: Any, f: F, base_dir: str) -> Any:
+    def bad(why):
+        raise ConfigError(src, key, v, why)
+
+    if v is None:
+        if f.none_ok:
+            return None
+        bad("a value is required")
+    k = f.kind
+    if k == "str":
+        if not isinstance(v, str) or not v.strip():
+            bad("must be a non-empty string")
+        return v
+    if k == "bool":
+        if not isinstance(v, bool):
+            bad("must be true or false")
+        return v
+    if k == "choice":
+        if v not in f.choices:
+            near = difflib.get_close_matches(str(v), [str(c) for c in f.choices], 1)
+            bad(f"must be one of {', '.join(map(str, f.choices))}"
+                + (f" (did you mean '{near[0]}'?)" if near else ""))
+        return v
+    if k == "path":
+        if not isinstance(v, str) or not v:
+            bad("must be a file path")
+        p = v if os.path.isabs(v) else os.path.join(base_dir, v)
+        if not os.path.isfile(p):
+            bad(f"file not found ({p})")
+        return p
+    if k in ("vec2", "vec3", "ivec2"):
+        n = 3 if k == "vec3" else 2
+        if not isinstance(v, (list, tuple)) or len(v) != n:
+            bad(f"must be a list of {n} numbers")
+        out = []
+        for i, x in enumerate(v):
+            if k == "ivec2":
+                if not isinstance(x, int) or isinstance(x, bool):
+                    bad(f"item {i} must be an integer")
+            elif not _is_num(x):
+                bad(f"item {i} must be a number")
+            out.append(_range(src, f"{key}[{i}]", x, f, bad_whole=v))
+        return out
+    if k == "int":
+        if not isinstance(v, int) or isinstance(v, bool):
+            bad("must be an integer")
+        return _range(src, key, v, f)
+    if k == "float":
+        if not _is_num(v):
+            bad("must be a number")
+        return _range(src, key, float(v), f)
+    raise AssertionError(k)
+
+
+def _range(src, key, x, f: F, bad_whole=None):
+    def bad(why):
+        raise ConfigError(src, key, x, why)
+
+    if isinstance(x, float) and math.isnan(x):
+        bad("must not be NaN")
+    if isinstance(x, float) and math.isinf(x):
+        if f.inf_ok and x > 0:
+            return x
+        bad("must be finite")
+    if f.lo is not None and (x < f.lo or (f.lo_open and x == f.lo)):
+        bad(f"must be {'>' if f.lo_open else '>='} {f.lo:g}")
+    if f.hi is not None and (x > f.hi or (f.hi_open and x == f.hi)):
+        bad(f"must be {'<' if f.hi_open else '<='} {f.hi:g}")
+    return x
+
+
+def _unknown(src: str, where: str, key: str, valid) -> ConfigError:
+    near = difflib.get_close_matches(key, list(valid), 1, 0.5)
+    hint = f" (did you mean '{near[0]}'?)" if near else f"; valid keys: {', '.join(sorted(valid))}"
+    name = f"{where}.{key}" if where else key
+    return ConfigError(src, name, "...", f"unknown key{hint}")
+
+
+def _section(src, name, raw, schema, base_dir):
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ConfigError(src, name, raw, "must be a table")
+    out = {}
+    for key in raw:
+        if key not in schema:
+            raise _unknown(src, name, key, schema)
+    for key, f in schema.items():
+        v = raw.get(key, copy.deepcopy(f.default))
+        if key not in raw and f.default is None and not f.none_ok:
+            raise ConfigError(src, f"{name}.{key}", None, "missing required key")
+        out[key] = _check(src, f"{name}.{key}", v, f, base_dir)
+    return out
+
+
+def validate(raw: dict, source: str = "<config>", base_dir: str = ".") -> dict:
+    """Validate a parsed TOML dict; return a complete config with defaults filled."""
+    if not isinstance(raw, dict):
+        raise ConfigError(source, "<top>", raw, "must be a table")
+    valid_top = list(SCHEMA) + ["layer"]
+    for key in raw:
+        if key not in valid_top:
+            raise _unknown(source, "", key, valid_top)
+    cfg = {name: _section(source, name, raw.get(name), schema, base_dir)
+           for name, schema in SCHEMA.items()}
+    layers = raw.get("layer")
+    if not isinstance(layers, list) or not layers:
+        raise ConfigError(source, "layer", layers, "at least one [[layer]] table is required")
+    if len(layers) > MAX_LAYERS:
+        raise ConfigError(source, "layer", f"{len(layers)} layers", f"at most {MAX_LAYERS} layers")
+    cfg["layer"] = [_section(source, f"layer[{i}]", t, LAYER_SCHEMA, base_dir)
+                    for i, t in enumerate(layers)]
+    _cross_checks(source, cfg)
+    return cfg
+
+
+def _cross_checks(src: str, cfg: dict) -> None:
+    sp = cfg["spectrum"]
+    if sp["stop_nm"] < sp["start_nm"]:
+        raise ConfigError(src, "spectrum.stop_nm", sp["stop_nm"], "must be >= spectrum.start_nm")
+    nb = int(round((sp["stop_nm"] - sp["start_nm"]) / sp["step_nm"])) + 1
+    if nb > 512:
+        raise ConfigError(src, "spectrum.step_nm", sp["step_nm"], f"gives {nb} bands; at most 512")
+    layers = cfg["layer"]
+    for i, L in enumerate(layers[:-1]):
+        if math.isinf(L["thickness_um"]):
+            raise ConfigError(src, f"layer[{i}].thickness_um", L["thickness_um"],
+                              "only the last layer may be semi-infinite")
+    for i, L in enumerate(layers):
+        if L["scattering"] == "powerlaw" and L["mus"] is None and L["a"] <= 0:
+            raise ConfigError(src, f"layer[{i}].a", L["a"], "powerlaw scattering needs a > 0")
+        if (L["mua"] is None) != (L["mus"] is None):
+            which = "mus" if L["mus"] is None else "mua"
+            raise ConfigError(src, f"layer[{i}].{which}", None,
+                              "mua and mus override together (homogeneous layer)")
+    m = cfg["model"]
+    varying = cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0
+    if m["lateral"] == "infinite" and varying:
+        raise ConfigError(src, "model.lateral", "infinite",
+                          "needs a flat model (relief.kind = 'flat', papillae.amplitude_um = 0); "
+                          "use 'periodic' or 'open'")
+    if cfg["relief"]["kind"] == "file" and cfg["relief"]["file"] is None:
+        raise ConfigError(src, "relief.file", None, "relief.kind = 'file' needs relief.file")
+    cam = cfg["camera"]
+    d = [a - b for a, b in zip(cam["look_at_mm"], cam["position_mm"])]
+    if math.sqrt(sum(x * x for x in d)) == 0:
+        raise ConfigError(src, "camera.look_at_mm", cam["look_at_mm"], "equals camera.position_mm")
+    for key in ("up",):
+        if sum(x * x for x in cam[key]) == 0:
+            raise ConfigError(src, f"camera.{key}", cam[key], "must not be zero")
+    if sum(x * x for x in cfg["light"]["direction"]) == 0:
+        raise ConfigError(src, "light.direction", cfg["light"]["direction"], "must not be zero")
+    if cfg["light"]["kind"] != "point" and cfg["light"]["direction"][2] >= 0:
+        raise ConfigError(src, "light.direction", cfg["light"]["direction"],
+                          "a collimated beam must point down (z component < 0)")
+    b = cfg["light"]["band_nm"]
+    if b is not None and not (sp["start_nm"] - 1e-9 <= b <= sp["stop_nm"] + 1e-9):
+        raise ConfigError(src, "light.band_nm", b, "outside the spectrum range")
+    if cfg["render"]["initial_photons"] > cfg["render"]["photons"]:
+        raise ConfigError(src, "render.initial_photons", cfg["render"]["initial_photons"],
+                          "must not exceed render.photons")
+
+
+def load(path: str) -> dict:
+    """Read and validate a TOML config file."""
+    src = os.path.basename(path)
+    try:
+        with open(path, "rb") as f:
+            raw = tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(src, "<file>", path, "file not found") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(src, "<toml>", str(e), "not valid TOML") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(src, "<file>", path, f"cannot be read ({e})") from None
+    return validate(raw, src, os.path.dirname(os.path.abspath(path)))
+
+
+def override(cfg: dict, section: str, key: str, value: Any, source: str = "command line") -> dict:
+    """Set one validated value (used by command-line flags)."""
+    schema = SCHEMA[section]
+    if key not in schema:
+        raise _unknown(source, section, key, schema)
+    out = copy.deepcopy(cfg)
+    out[section][key] = _check(source, f"{section}.{key}", value, schema[key], ".")
+    _cross_checks(source, out)
+    return out
+
+
+def wavelengths(cfg: dict):
+    import numpy as np
+    sp = cfg["spectrum"]
+    nb = int(round((sp["stop_nm"] - sp["start_nm"]) / sp["step_nm"])) + 1
+    return sp["start_nm"] + sp["step_nm"] * np.arange(nb)
+
+
+def slab_config(spec: str, source: str = "--slab") -> dict:
+    """A homogeneous slab from ``mua=10,mus=90,g=0.75,n=1.0,d=0.02`` (cm^-1, cm).
+
+    Leaving out ``d`` gives a semi-infinite medium.  Normal collimated pencil
+    beam, air outside, one band.
+    """
+    vals: dict[str, float] = {}
+    allowed = ("mua", "mus", "g", "n", "d")
+    for item in filter(None, (s.strip() for s in spec.split(","))):
+        if "=" not in item:
+            raise ConfigError(source, item, item, "expected key=value")
+        k, v = (s.strip() for s in item.split("=", 1))
+        if k not in allowed:
+            near = difflib.get_close_matches(k, allowed, 1)
+            raise ConfigError(source, k, v, "unknown key" + (f" (did you mean '{near[0]}'?)" if near
+                                                            else f"; valid: {', '.join(allowed)}"))
+        try:
+            vals[k] = float(v)
+        except ValueError:
+            raise ConfigError(source, k, v, "must be a number") from None
+    for k in ("mua", "mus", "g"):
+        if k not in vals:
+            raise ConfigError(source, k, None, "missing required key")
+    d_um = vals["d"] * 1e4 if "d" in vals else INF
+    raw = {
+        "model": {"name": "slab", "lateral": "infinite", "quantize": False},
+        "spectrum": {"start_nm": 500.0, "stop_nm": 500.0, "step_nm": 5.0},
+        "light": {"kind": "pencil", "direction": [0.0, 0.0, -1.0], "spectrum": "flat",
+                  "center_mm": [0.0, 0.0]},
+        "layer": [{"name": "slab", "thickness_um": d_um, "n": vals.get("n", 1.0),
+                   "mua": vals["mua"], "mus": vals["mus"], "g": vals["g"],
+                   "scattering": "none"}],
+    }
+    return validate(raw, source)

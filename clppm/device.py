@@ -1,0 +1,185 @@
+"""OpenCL devices and kernel programs.
+
+One place that picks a device (``--device`` or ``PYOPENCL_CTX``), finds the
+kernel sources of an installed clppm, and builds them with ``-D`` options
+through pyopencl's program cache.  Errors here are :class:`DeviceError` with a
+message a user can act on (no traceback).
+"""
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass
+from importlib import resources
+
+import numpy as np
+
+
+class DeviceError(RuntimeError):
+    """No usable OpenCL platform/device, or a kernel failed to build."""
+
+
+NO_PLATFORM_HELP = (
+    "no OpenCL platform found. clppm needs an OpenCL driver; the CPU driver PoCL "
+    "installs from pip:  pip install 'clppm[pocl]'  (or: pip install pocl-binary-distribution)"
+)
+
+
+def kernel_dir() -> str:
+    """Folder holding ``*.cl`` kernel sources (works for an installed package)."""
+    return str(resources.files("clppm.kernels"))
+
+
+def _cl():
+    try:
+        import pyopencl as cl
+    except ImportError as e:  # pragma: no cover - dependency missing
+        raise DeviceError(f"pyopencl is not installed ({e}); pip install clppm") from None
+    return cl
+
+
+def list_devices() -> list[tuple[int, int, "object", "object"]]:
+    """All (platform index, device index, platform, device)."""
+    cl = _cl()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error:
+        platforms = []
+    out = []
+    for ip, p in enumerate(platforms):
+        try:
+            devs = p.get_devices()
+        except cl.Error:
+            devs = []
+        for idev, d in enumerate(devs):
+            out.append((ip, idev, p, d))
+    return out
+
+
+def describe(device) -> dict:
+    cl = _cl()
+    return {
+        "name": device.name.strip(),
+        "platform": device.platform.name.strip(),
+        "version": device.version.strip(),
+        "type": cl.device_type.to_string(device.type),
+        "compute_units": int(device.max_compute_units),
+        "global_mem_bytes": int(device.global_mem_size),
+        "max_alloc_bytes": int(device.max_mem_alloc_size),
+        "fp64": "cl_khr_fp64" in device.extensions,
+        "int64_atomics": "cl_khr_int64_base_atomics" in device.extensions,
+    }
+
+
+def select_device(spec: str | None = None):
+    """Pick a device.
+
+    ``spec`` is ``"P:D"`` (platform and device index, as ``clppm devices``
+    prints), ``"P"``, or a case-insensitive substring of the device name.
+    Without ``spec``, ``PYOPENCL_CTX`` is honoured, else the first GPU, else
+    the first device.
+    """
+    devs = list_devices()
+    if not devs:
+        raise DeviceError(NO_PLATFORM_HELP)
+    if spec is None:
+        spec = os.environ.get("PYOPENCL_CTX") or None
+    if spec is None:
+        cl = _cl()
+        gpus = [d for d in devs if d[3].type & cl.device_type.GPU]
+        return (gpus or devs)[0][3]
+    spec = str(spec).strip()
+    parts = spec.split(":")
+    if all(p.isdigit() for p in parts if p != "") and parts[0] != "":
+        ip = int(parts[0])
+        idev = int(parts[1]) if len(parts) > 1 and parts[1] != "" else 0
+        for p_, d_, _, dev in devs:
+            if p_ == ip and d_ == idev:
+                return dev
+        raise DeviceError(f"device '{spec}' not found; `clppm devices` lists "
+                          + ", ".join(f"{a}:{b}" for a, b, _, _ in devs))
+    for _, _, _, dev in devs:
+        if spec.lower() in dev.name.lower():
+            return dev
+    raise DeviceError(f"no device name contains '{spec}'; `clppm devices` lists them")
+
+
+@dataclass
+class Device:
+    """A context + queue on one device, and the program builder for it."""
+
+    ctx: object
+    queue: object
+    device: object
+
+    @property
+    def name(self) -> str:
+        return self.device.name.strip()
+
+    def info(self) -> dict:
+        return describe(self.device)
+
+    def build(self, filename: str, defines: dict | None = None) -> object:
+        """Build ``kernels/filename`` with ``-D`` defines (cached per device and options)."""
+        return _build(self.ctx, filename, tuple(sorted((defines or {}).items())))
+
+
+@functools.lru_cache(maxsize=None)
+def _build(ctx, filename: str, defines: tuple):
+    cl = _cl()
+    kdir = kernel_dir()
+    path = os.path.join(kdir, filename)
+    with open(path, encoding="utf-8") as f:
+        src = f.read()
+    opts = [f"-I{kdir}"]
+    for k, v in defines:
+        if isinstance(v, bool):
+            if v:
+                opts.append(f"-D{k}=1")
+        elif isinstance(v, float):
+            opts.append(f"-D{k}={v!r}f")
+        else:
+            opts.append(f"-D{k}={v}")
+    try:
+        return cl.Program(ctx, src).build(options=opts)
+    except cl.RuntimeError as e:  # build failure: device name and the build log
+        dev = ctx.devices[0].name.strip()
+        raise DeviceError(f"kernel build of {filename} failed on device '{dev}' "
+                          f"with options {' '.join(opts)}:\n{e}") from None
+
+
+@functools.lru_cache(maxsize=None)
+def _open(spec: str | None) -> Device:
+    cl = _cl()
+    dev = select_device(spec)
+    ctx = cl.Context([dev])
+    queue = cl.CommandQueue(ctx)
+    return Device(ctx=ctx, queue=queue, device=dev)
+
+
+def open_device(spec: str | None = None) -> Device:
+    """Context and queue on the selected device (one per process and spec)."""
+    if spec is None:
+        spec = os.environ.get("PYOPENCL_CTX") or None
+    return _open(spec)
+
+
+def check_alloc(dev: Device, needs: dict[str, int]) -> None:
+    """Raise :class:`DeviceError` if buffers in ``needs`` (name -> bytes) do not fit."""
+    info = dev.info()
+    total = sum(needs.values())
+    big = max(needs.items(), key=lambda kv: kv[1]) if needs else ("", 0)
+    if big[1] > info["max_alloc_bytes"] or total > info["global_mem_bytes"]:
+        lines = "\n".join(f"  {k}: {v / 2**20:.1f} MiB" for k, v in sorted(needs.items()))
+        raise DeviceError(
+            f"this render needs {total / 2**20:.1f} MiB of device memory "
+            f"(largest buffer '{big[0]}' {big[1] / 2**20:.1f} MiB) but device '{dev.name}' "
+            f"has {info['global_mem_bytes'] / 2**20:.0f} MiB global memory and a "
+            f"{info['max_alloc_bytes'] / 2**20:.0f} MiB largest single allocation:\n{lines}\n"
+            "options: fewer stored photons per pass (--photons), a lower resolution "
+            "(--resolution), or a sparser sampling method (--method c/f)")
+
+
+def as_struct_buffer(dev: Device, arr: np.ndarray):
+    cl = _cl()
+    return cl.Buffer(dev.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=arr)

@@ -1,0 +1,50 @@
+"""The kernel parameter struct (``Params`` in kernels/common.h) as a numpy dtype.
+
+Only 4-byte fields, in the C order, so the layout needs no padding rules.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+_FIELDS = [
+    ("x0", "f4"), ("y0", "f4"), ("dx", "f4"), ("dy", "f4"),
+    ("xw", "f4"), ("yw", "f4"),
+    ("nx", "i4"), ("ny", "i4"),
+    ("lateral", "i4"),
+    ("n_above", "f4"), ("n_below", "f4"),
+    ("z_top", "f4"),
+    ("src_kind", "i4"),
+    ("sx", "f4"), ("sy", "f4"), ("sz", "f4"),
+    ("sdx", "f4"), ("sdy", "f4"), ("sdz", "f4"),
+    ("swx", "f4"), ("swy", "f4"),
+    ("cone_cos", "f4"),
+    ("cax", "f4"), ("cay", "f4"), ("caz", "f4"),
+    ("fixed_band", "i4"),
+    ("seed_lo", "u4"), ("seed_hi", "u4"), ("pass_", "u4"), ("photon_offset", "u4"),
+    ("capacity", "u4"),
+    ("store_zmin", "f4"),
+    ("rr_threshold", "f4"),
+    ("rr_m", "f4"),
+    ("max_events", "i4"),
+    ("pad0", "i4"), ("pad1", "i4"), ("pad2", "i4"),
+]
+PARAMS_DTYPE = np.dtype(_FIELDS)
+assert PARAMS_DTYPE.itemsize == 4 * len(_FIELDS)
+
+LATERAL = {"infinite": 0, "open": 1, "periodic": 2}
+SOURCE = {"pencil": 0, "wide": 1, "point": 2}
+
+
+def new_params() -> np.ndarray:
+    p = np.zeros(1, PARAMS_DTYPE)
+    p["fixed_band"] = -1
+    p["rr_threshold"] = 1e-4
+    p["rr_m"] = 10.0
+    p["max_events"] = 1_000_000
+    p["store_zmin"] = -3.0e38
+    return p
+
+
+def split_seed(seed: int) -> tuple[int, int]:
+    seed = int(seed) & 0xFFFFFFFFFFFFFFFF
+    return seed & 0xFFFFFFFF, seed >> 32

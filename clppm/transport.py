@@ -1,0 +1,325 @@
+"""Photon pass (kernels/photon.cl): launch, stored photons, exact tallies.
+
+Determinism.  Photon i of pass p draws its numbers from Philox keyed by (seed, p, i), so its
+path is fixed.  A pass emits photons in launches of consecutive ids until the device counter
+of stored events reaches the target; each launch size is a function of counts that are
+themselves deterministic, so the set of photons of a pass, the number emitted and the set of
+stored events are the same on every run (the order of events in the buffer is not, and
+nothing downstream depends on it: sums over photons are integer fixed point).
+
+Tallies are int64 fixed point on the device (2^38 per photon weight), read after every
+launch into Python integers and reset: exact and unbounded.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import params as P_
+from .config import wavelengths
+from .device import Device
+from .volume import Volume
+
+W0 = 2 ** 38
+CATEGORIES = ["specular", "diffuse", "transmitted", "lost", "rr_gain", "rr_loss", "missed"]
+MAX_LAUNCH = 1 << 20          # photons per launch: tallies stay far below 2^63
+
+
+def source_spectrum(cfg: dict, wl: np.ndarray) -> np.ndarray:
+    """Relative spectral power of the light per band (sums to 1)."""
+    if cfg["light"]["spectrum"] == "D65":
+        from .spectra import d65
+        s = np.asarray(d65(wl), float)
+    else:
+        s = np.ones(len(wl))
+    return s / s.sum()
+
+
+def fixed_band(cfg: dict, wl: np.ndarray) -> int:
+    b = cfg["light"]["band_nm"]
+    if b is None:
+        return 0 if len(wl) == 1 else -1
+    return int(np.argmin(np.abs(wl - b)))
+
+
+def source_params(p: np.ndarray, cfg: dict, vol: Volume) -> float:
+    """Fill the source fields; return the fraction of the light's power the sampling covers."""
+    L = cfg["light"]
+    p["src_kind"] = P_.SOURCE[L["kind"]]
+    d = np.asarray(L["direction"], float)
+    d /= np.linalg.norm(d)
+    p["sdx"], p["sdy"], p["sdz"] = d
+    if L["kind"] == "point":
+        pos = np.asarray(L["position_mm"], float) * 1000.0
+        p["sx"], p["sy"], p["sz"] = pos
+        # cone around the model's top face, seen from the light
+        x0, y0 = vol.x0, vol.y0
+        x1, y1 = vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy
+        corners = np.array([[x, y, vol.z_top] for x in (x0, x1) for y in (y0, y1)])
+        vecs = corners - pos
+        vecs /= np.linalg.norm(vecs, axis=1)[:, None]
+        axis = vecs.sum(0)
+        axis /= np.linalg.norm(axis)
+        cosmin = float(np.min(vecs @ axis))
+        if pos[2] <= vol.z_top:
+            axis = np.array([0.0, 0.0, -1.0]); cosmin = -1.0    # below the surface plane: all
+        cosmin = max(-1.0, min(cosmin, 1.0)) - 1e-6
+        p["cone_cos"] = cosmin
+        p["cax"], p["cay"], p["caz"] = axis
+        return (1.0 - cosmin) / 2.0                              # solid angle / 4 pi
+    c = np.asarray(L["center_mm"], float) * 1000.0
+    p["sx"], p["sy"] = c
+    if L["kind"] == "wide":
+        p["swx"], p["swy"] = np.asarray(L["width_mm"], float) * 1000.0
+    return 1.0
+
+
+def volume_params(p: np.ndarray, vol: Volume) -> None:
+    p["x0"], p["y0"], p["dx"], p["dy"] = vol.x0, vol.y0, vol.dx, vol.dy
+    p["xw"], p["yw"] = vol.nx * vol.dx, vol.ny * vol.dy
+    p["nx"], p["ny"] = vol.nx, vol.ny
+    p["lateral"] = P_.LATERAL[vol.lateral]
+    p["n_above"], p["n_below"] = vol.n_above, vol.n_below
+    p["z_top"] = vol.z_top
+
+
+def defines(vol: Volume) -> dict:
+    return {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat}
+
+
+@dataclass
+class VolumeBuffers:
+    """The volume on the device (shared by the photon and eye passes)."""
+
+    iface: object
+    layer_n: object
+    optics: object
+    heights: object
+    normals: object
+
+    def args(self):
+        return [self.iface, self.layer_n, self.optics, self.heights, self.normals]
+
+
+def upload_volume(dev: Device, vol: Volume) -> VolumeBuffers:
+    import pyopencl as cl
+    mf = cl.mem_flags
+
+    def buf(a):
+        a = np.ascontiguousarray(a)
+        return cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+    iface = vol.iface.copy()
+    iface[:, 0] = np.where(np.abs(iface[:, 0]) >= 1e29, -1e30, iface[:, 0])
+    return VolumeBuffers(iface=buf(iface.astype(np.float32)),
+                         layer_n=buf(vol.n.astype(np.float32)),
+                         optics=buf(vol.optics_table()),
+                         heights=buf(vol.heights.astype(np.float32)),
+                         normals=buf(vol.normals.astype(np.float16)))
+
+
+@dataclass
+class Tallies:
+    """Exact integer tallies, per band, in units of W0 per photon."""
+
+    nb: int
+    nl: int
+    counts: list = field(default_factory=list)   # [band][category] python ints
+    emitted: int = 0
+
+    def __post_init__(self):
+        if not self.counts:
+            self.counts = [[0] * (len(CATEGORIES) + self.nl) for _ in range(self.nb)]
+
+    def add(self, arr: np.ndarray, emitted: int) -> None:
+        for b in range(self.nb):
+            row = self.counts[b]
+            for c, v in enumerate(arr[b].tolist()):
+                row[c] += int(v)
+        self.emitted += emitted
+
+    def total(self) -> np.ndarray:
+        """(categories,) totals over bands as float fractions of the emitted weight."""
+        tot = [sum(self.counts[b][c] for b in range(self.nb)) for c in range(len(self.counts[0]))]
+        return np.array([t / (W0 * max(self.emitted, 1)) for t in tot])
+
+    def balance_error(self) -> float:
+        """Exact bookkeeping: all categories minus roulette gains equals the emitted weight."""
+        n = len(CATEGORIES)
+        tot = sum(sum(self.counts[b][c] for c in range(n + self.nl)) for b in range(self.nb))
+        gain = sum(self.counts[b][4] for b in range(self.nb))
+        tot -= 2 * gain                             # gains were counted once in 'tot'
+        return abs(tot - W0 * self.emitted) / (W0 * max(self.emitted, 1))
+
+
+class PhotonPass:
+    """Device state for photon passes of one scene."""
+
+    def __init__(self, dev: Device, vol: Volume, cfg: dict, capacity: int = 0,
+                 vbuf: VolumeBuffers | None = None, seed: int | None = None):
+        import pyopencl as cl
+        self.dev, self.vol, self.cfg = dev, vol, cfg
+        self.prg = dev.build("photon.cl", defines(vol))
+        import pyopencl as _cl
+        self.kernel = _cl.Kernel(self.prg, "photon_pass")
+        self.vbuf = vbuf or upload_volume(dev, vol)
+        wl = vol.wl
+        self.spectrum = source_spectrum(cfg, wl)
+        self.band = fixed_band(cfg, wl)
+        cdf = np.cumsum(self.spectrum).astype(np.float32)
+        cdf[-1] = 1.0
+        mf = cl.mem_flags
+        self.cdf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cdf)
+        p = P_.new_params()
+        volume_params(p, vol)
+        self.power_fraction = source_params(p, cfg, vol)
+        s = cfg["render"]["seed"] if seed is None else seed
+        p["seed_lo"], p["seed_hi"] = P_.split_seed(s)
+        p["fixed_band"] = self.band
+        sd = cfg["render"]["store_depth_um"]
+        if sd is not None:
+            p["store_zmin"] = -sd
+        self.p = p
+        self.nc = len(CATEGORIES) + vol.nl
+        self.tally_host = np.zeros((vol.nb, self.nc), np.int64)
+        self.tally_buf = cl.Buffer(dev.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=self.tally_host)
+        self.count_buf = cl.Buffer(dev.ctx, mf.READ_WRITE, 4)
+        self.capacity = int(capacity)
+        cap = max(self.capacity, 1)
+        self.pos_w = cl.Buffer(dev.ctx, mf.READ_WRITE, 16 * cap)
+        self.dir_b = cl.Buffer(dev.ctx, mf.READ_WRITE, 16 * cap)
+        self.tallies = Tallies(vol.nb, vol.nl)
+        self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY, P_.PARAMS_DTYPE.itemsize)
+
+    def _launch(self, n: int, offset: int, pass_index: int, capacity: int) -> None:
+        import pyopencl as cl
+        q = self.dev.queue
+        self.p["photon_offset"] = offset
+        self.p["pass_"] = pass_index
+        self.p["capacity"] = capacity
+        cl.enqueue_copy(q, self.pbuf, self.p)
+        self.kernel(q, (int(n),), None, self.pbuf, *self.vbuf.args(), self.cdf,
+                    self.pos_w, self.dir_b, self.count_buf, self.tally_buf)
+
+    def _flush(self, emitted: int, into: Tallies | None = None) -> np.ndarray:
+        import pyopencl as cl
+        q = self.dev.queue
+        cl.enqueue_copy(q, self.tally_host, self.tally_buf)
+        arr = self.tally_host.copy()
+        (into or self.tallies).add(arr, emitted)
+        self.tally_host[:] = 0
+        cl.enqueue_copy(q, self.tally_buf, self.tally_host)
+        return arr
+
+    def _count(self) -> int:
+        import pyopencl as cl
+        c = np.zeros(1, np.uint32)
+        cl.enqueue_copy(self.dev.queue, c, self.count_buf)
+        return int(c[0])
+
+    def _set_count(self, v: int) -> None:
+        import pyopencl as cl
+        cl.enqueue_copy(self.dev.queue, self.count_buf, np.array([v], np.uint32))
+
+    def trace(self, n_photons: int, pass_index: int = 0, batches: int = 1) -> list[np.ndarray]:
+        """Trace ``n_photons`` without storing; return per-batch tally arrays (for errors)."""
+        out = []
+        per = [n_photons // batches + (1 if i < n_photons % batches else 0) for i in range(batches)]
+        offset = 0
+        for nb_ in per:
+            acc = np.zeros((self.vol.nb, self.nc), np.int64)
+            done = 0
+            while done < nb_:
+                n = min(MAX_LAUNCH, nb_ - done)
+                self._set_count(0)
+                self._launch(n, offset, pass_index, 0)
+                acc += self._flush(n)
+                offset += n; done += n
+            out.append(acc)
+        return out
+
+    def run_pass(self, pass_index: int, target: int) -> dict:
+        """Emit photons until at least ``target`` scattering events are stored.
+
+        Returns emitted and stored counts; the stored photons are in ``pos_w``/``dir_b``.
+        """
+        cap = self.capacity
+        if target > cap:
+            raise ValueError(f"target {target} exceeds capacity {cap}")
+        self._set_count(0)
+        stored, emitted, launches = 0, 0, 0
+        per_photon = None
+        while stored < target:
+            if per_photon is None:
+                n = 256
+            else:
+                n = int(math.ceil((target - stored) / max(per_photon, 1e-3) * 1.05)) + 16
+            room = cap - stored
+            if per_photon is not None:
+                n = min(n, max(1, int(room / max(per_photon, 1e-3) * 0.5)))
+            n = max(1, min(n, MAX_LAUNCH))
+            while True:
+                self._launch(n, emitted, pass_index, cap)
+                c = self._count()
+                if c <= cap:
+                    break
+                # overflow: the batch is deterministic, so halve it and redo it
+                self._set_count(stored)
+                self.tally_host[:] = 0
+                import pyopencl as cl
+                cl.enqueue_copy(self.dev.queue, self.tally_buf, self.tally_host)
+                if n == 1:
+                    raise RuntimeError("one photon overflowed the photon buffer; raise capacity")
+                n = max(1, n // 2)
+            self._flush(n)
+            emitted += n
+            stored = c
+            launches += 1
+            per_photon = stored / emitted
+            if emitted > 2**31 and stored == 0:
+                break
+            if per_photon == 0 and emitted >= 1 << 22:
+                break                     # no photon reaches the stored region
+        return {"emitted": emitted, "stored": stored, "launches": launches}
+
+
+def trace_report(pp: PhotonPass, n_photons: int, batches: int = 10) -> dict:
+    """Tallies with standard errors (batch means), per band and integrated."""
+    arrs = pp.trace(n_photons, batches=batches)
+    sizes = [n_photons // batches + (1 if i < n_photons % batches else 0) for i in range(batches)]
+    fr = np.array([a.sum(0) / (W0 * s) for a, s in zip(arrs, sizes)])      # (batches, nc)
+    tot = sum(a.sum(0).astype(object) for a in arrs)
+    mean = np.array([int(t) / (W0 * n_photons) for t in tot])
+    se = fr.std(0, ddof=1) / math.sqrt(len(arrs)) if len(arrs) > 1 else np.zeros_like(mean)
+    nl = pp.vol.nl
+    names = CATEGORIES + [f"absorbed[{n}]" for n in pp.vol.names]
+    band_tot = sum(a.astype(object) for a in arrs)
+    # per band, as fraction of the photons emitted in that band (expected count for D65)
+    per_band = {}
+    for b, wl in enumerate(pp.vol.wl):
+        row = band_tot[b]
+        w = sum(int(v) for v in row) - 2 * int(row[4])
+        n_b = max(w / W0, 1e-300)
+        per_band[f"{wl:g}"] = {
+            "photons": round(n_b, 3),
+            "specular": int(row[0]) / W0 / n_b, "Rd": int(row[1]) / W0 / n_b,
+            "Tt": int(row[2]) / W0 / n_b,
+            "A": sum(int(row[7 + i]) for i in range(nl)) / W0 / n_b,
+        }
+    A = float(mean[7:].sum())
+    A_se = float(np.sqrt((se[7:] ** 2).sum()))
+    total_bal = sum(int(t) for t in tot) - 2 * int(tot[4])
+    return {
+        "photons": n_photons,
+        "specular": float(mean[0]), "specular_se": float(se[0]),
+        "Rd": float(mean[1]), "Rd_se": float(se[1]),
+        "Tt": float(mean[2]), "Tt_se": float(se[2]),
+        "A": A, "A_se": A_se,
+        "lost": float(mean[3]), "missed": float(mean[6]),
+        "roulette_net": float(mean[4] - mean[5]),
+        "energy_balance_error": abs(total_bal - W0 * n_photons) / (W0 * n_photons),
+        "absorbed_per_layer": {n: float(v) for n, v in zip(pp.vol.names, mean[7:])},
+        "per_band": per_band,
+        "categories": dict(zip(names, map(float, mean))),
+    }

@@ -1,0 +1,266 @@
+"""The skin volume: layers, surface relief, papillae, interface heights and normals.
+
+The paper's model is a grid of 5 um voxels, each with a layer's optical properties.  A
+layered model needs no per-voxel storage: for each interface between layers we keep one
+height per lateral voxel column (snapped to the voxel thickness, so voxel membership is
+exactly the paper's), and only for interfaces that are not planes.  Optical properties are
+one table per layer (NB bands).  Below the last interface the last layer may extend to
+infinity, so depth from which no light returns costs nothing.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import skin
+from .config import ConfigError, wavelengths
+
+BIG = 1e30
+
+
+@dataclass
+class Volume:
+    wl: np.ndarray                  # band centres, nm
+    names: list[str]
+    n: np.ndarray                   # (NL,) refractive index
+    thickness: np.ndarray           # (NL,) um (inf for a semi-infinite last layer)
+    mua: np.ndarray                 # (NL, NB) um^-1
+    mus: np.ndarray                 # (NL, NB) um^-1
+    g: np.ndarray                   # (NL, NB)
+    iface: np.ndarray               # (NL+1, 4) float32: z if flat, zmin, zmax, var index (-1 flat)
+    heights: np.ndarray             # (nvar, ny, nx) float32 heights of the varying interfaces
+    normals: np.ndarray             # (ny, nx, 2) float16 relief normal x, y components
+    x0: float = 0.0
+    y0: float = 0.0
+    dx: float = 5.0
+    dy: float = 5.0
+    nx: int = 1
+    ny: int = 1
+    dz: float = 5.0
+    lateral: str = "infinite"
+    n_above: float = 1.0
+    n_below: float = 1.0
+    info: dict = field(default_factory=dict)
+
+    @property
+    def nl(self) -> int:
+        return len(self.names)
+
+    @property
+    def nb(self) -> int:
+        return len(self.wl)
+
+    @property
+    def flat(self) -> bool:
+        return bool(np.all(self.iface[:, 3] < 0))
+
+    @property
+    def z_top(self) -> float:
+        return float(self.iface[0, 2])
+
+    @property
+    def mut(self) -> np.ndarray:
+        return self.mua + self.mus
+
+    def optics_table(self) -> np.ndarray:
+        """(NL*NB, 4) float32: mua, mus, g, mut in um^-1 (the kernels' ``optics``)."""
+        t = np.stack([self.mua, self.mus, self.g, self.mua + self.mus], axis=-1)
+        return np.ascontiguousarray(t.reshape(-1, 4), dtype=np.float32)
+
+    def device_bytes(self) -> dict[str, int]:
+        return {
+            "interface heights": int(self.heights.nbytes),
+            "relief normals": int(self.normals.nbytes),
+            "layer optics": int(self.optics_table().nbytes),
+            "interfaces": int(self.iface.nbytes),
+        }
+
+    def layer_depths(self) -> np.ndarray:
+        """Nominal depth of each interface below the surface (um)."""
+        return np.concatenate([[0.0], np.cumsum(self.thickness)])
+
+
+# ----------------------------------------------------------------------------- optics
+def layer_optics(layers: list[dict], wl: np.ndarray, source: str = "<config>"):
+    """(mua, mus, g) arrays (NL, NB) in cm^-1 from validated layer dicts."""
+    mua, mus, g = [], [], []
+    for i, L in enumerate(layers):
+        if L["mua"] is not None:
+            if L["g"] is None:
+                raise ConfigError(source, f"layer[{i}].g", None,
+                                  "a homogeneous layer (mua, mus) needs g")
+            a = np.full(len(wl), L["mua"]); s = np.full(len(wl), L["mus"]); gg = np.full(len(wl), L["g"])
+        else:
+            lay = skin.Layer(**{k: L[k] for k in (
+                "name", "thickness_um", "n", "melanin", "blood", "saturation", "baseline",
+                "scattering", "k", "a", "b", "g", "bottom")})
+            try:
+                a, s, gg = skin.optics(lay, wl)
+            except ValueError as e:
+                raise ConfigError(source, f"layer[{i}]", L["name"], str(e)) from None
+        mua.append(a); mus.append(s); g.append(gg)
+    return np.array(mua, float), np.array(mus, float), np.array(g, float)
+
+
+# ----------------------------------------------------------------------------- relief
+def _worley_edges(x, y, spacing, seed, period=None):
+    """Distance to the nearest edge of a jittered-grid Voronoi diagram ((F2-F1)/2)."""
+    rng = np.random.default_rng(seed)
+    ncx = max(1, int(round(period[0] / spacing))) if period else None
+    ncy = max(1, int(round(period[1] / spacing))) if period else None
+    sx = period[0] / ncx if period else spacing
+    sy = period[1] / ncy if period else spacing
+    cx = np.floor(x / sx).astype(np.int64)
+    cy = np.floor(y / sy).astype(np.int64)
+    # one seed per grid cell, hashed from the cell index so any extent works
+    f1 = np.full(x.shape, np.inf); f2 = np.full(x.shape, np.inf)
+    key = rng.integers(1, 2**31 - 1)
+    for ox in (-1, 0, 1):
+        for oy in (-1, 0, 1):
+            gx, gy = cx + ox, cy + oy
+            hx = gx % ncx if period else gx
+            hy = gy % ncy if period else gy
+            h = (hx * 73856093) ^ (hy * 19349663) ^ key
+            h = (h * 2654435761) & 0xFFFFFFFF
+            jx = (h & 0xFFFF) / 65536.0
+            jy = (h >> 16) / 65536.0
+            px = (gx + 0.1 + 0.8 * jx) * sx
+            py = (gy + 0.1 + 0.8 * jy) * sy
+            d = np.hypot(x - px, y - py)
+            nf1 = np.minimum(f1, d)
+            f2 = np.where(d < f1, f1, np.minimum(f2, d))
+            f1 = nf1
+    return 0.5 * (f2 - f1)
+
+
+def generated_relief(nx, ny, dx, dy, depth, spacing, width, seed, periodic):
+    """Skin-like furrows: primary lines on a Voronoi network plus finer secondary lines.
+
+    Heights in um, 0 on the plateaus, down to about -depth in the primary furrows.
+    """
+    h = np.zeros((ny, nx))
+    xs = (np.arange(nx) + 0.5) * dx
+    period = (nx * dx, ny * dy) if periodic else None
+    for j0 in range(0, ny, 256):
+        j1 = min(ny, j0 + 256)
+        y = ((np.arange(j0, j1) + 0.5) * dy)[:, None] * np.ones((1, nx))
+        x = np.ones((j1 - j0, 1)) * xs[None, :]
+        e1 = _worley_edges(x, y, spacing, seed, period)
+        e2 = _worley_edges(x, y, spacing / 3.0, seed + 1, period)
+        h[j0:j1] = -depth * np.exp(-(e1 / (0.5 * width)) ** 2) \
+                   - 0.4 * depth * np.exp(-(e2 / (0.3 * width)) ** 2)
+    return h - h.max()
+
+
+def file_relief(path, pixel_um, scale_um, nx, ny, dx, dy, periodic):
+    from .image import load_heightmap
+    raw = load_heightmap(path) * scale_um
+    hy, hx = raw.shape
+    xs = (np.arange(nx) + 0.5) * dx / pixel_um - 0.5
+    ys = (np.arange(ny) + 0.5) * dy / pixel_um - 0.5
+    if periodic:
+        xi = np.floor(xs).astype(int); yi = np.floor(ys).astype(int)
+        fx = xs - xi; fy = ys - yi
+        x0, x1 = xi % hx, (xi + 1) % hx; y0, y1 = yi % hy, (yi + 1) % hy
+    else:
+        xs = np.clip(xs, 0, hx - 1); ys = np.clip(ys, 0, hy - 1)
+        xi = np.minimum(np.floor(xs).astype(int), hx - 2 if hx > 1 else 0)
+        yi = np.minimum(np.floor(ys).astype(int), hy - 2 if hy > 1 else 0)
+        fx = xs - xi; fy = ys - yi
+        x0, x1 = xi, np.minimum(xi + 1, hx - 1); y0, y1 = yi, np.minimum(yi + 1, hy - 1)
+    a = raw[np.ix_(y0, x0)]; b = raw[np.ix_(y0, x1)]; c = raw[np.ix_(y1, x0)]; d = raw[np.ix_(y1, x1)]
+    fx = fx[None, :]; fy = fy[:, None]
+    h = (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+    return h - h.max()
+
+
+def papillae(nx, ny, dx, dy, amplitude, period):
+    """Wavy dermal-epidermal junction: an egg-crate of dermal papillae (zero mean)."""
+    x = (np.arange(nx) + 0.5) * dx
+    y = (np.arange(ny) + 0.5) * dy
+    return amplitude * np.sin(2 * np.pi * y / period)[:, None] * np.sin(2 * np.pi * x / period)[None, :]
+
+
+def relief_normals(h, dx, dy, periodic):
+    if periodic:
+        hx = (np.roll(h, -1, 1) - np.roll(h, 1, 1)) / (2 * dx)
+        hy = (np.roll(h, -1, 0) - np.roll(h, 1, 0)) / (2 * dy)
+    else:
+        hy, hx = np.gradient(h, dy, dx) if min(h.shape) > 1 else (np.zeros_like(h), np.zeros_like(h))
+    inv = 1.0 / np.sqrt(1.0 + hx * hx + hy * hy)
+    return np.stack([-hx * inv, -hy * inv], axis=-1).astype(np.float16)
+
+
+# ----------------------------------------------------------------------------- build
+def build(cfg: dict, source: str = "<config>") -> Volume:
+    wl = wavelengths(cfg)
+    layers = cfg["layer"]
+    mua, mus, g = layer_optics(layers, wl, source)
+    m = cfg["model"]
+    thickness = np.array([L["thickness_um"] for L in layers], float)
+    depth = np.concatenate([[0.0], np.cumsum(thickness)])
+    rel, pap = cfg["relief"], cfg["papillae"]
+    varying = rel["kind"] != "flat" or pap["amplitude_um"] > 0
+    dz = m["voxel_um"]
+    W, H = m["size_mm"][0] * 1000.0, m["size_mm"][1] * 1000.0
+    if varying:
+        dx = dy = m["lateral_voxel_um"]
+        nx, ny = max(1, int(round(W / dx))), max(1, int(round(H / dy)))
+        if nx * ny > 64_000_000:
+            raise ConfigError(source, "model.lateral_voxel_um", dx,
+                              f"gives {nx}x{ny} columns; at most 64 million")
+    else:
+        nx = ny = 1
+        dx, dy = W, H
+    periodic = m["lateral"] == "periodic"
+    s = np.zeros((ny, nx))
+    if rel["kind"] == "generated":
+        s = generated_relief(nx, ny, dx, dy, rel["depth_um"], rel["spacing_um"], rel["width_um"],
+                             rel["seed"], periodic)
+    elif rel["kind"] == "file":
+        try:
+            s = file_relief(rel["file"], rel["pixel_um"], rel["height_scale_um"], nx, ny, dx, dy, periodic)
+        except ValueError as e:
+            raise ConfigError(source, "relief.file", rel["file"], str(e)) from None
+    w = papillae(nx, ny, dx, dy, pap["amplitude_um"], pap["period_um"]) if pap["amplitude_um"] > 0 \
+        else np.zeros((ny, nx))
+    nl = len(layers)
+    z = np.empty((nl + 1, ny, nx))
+    z[0] = s
+    for i, L in enumerate(layers):
+        base = -depth[i + 1]
+        if math.isinf(base):
+            z[i + 1] = -BIG
+            continue
+        shape = {"flat": 0.0, "surface": s, "papillae": w}[L["bottom"]]
+        z[i + 1] = base + shape
+    if m["quantize"]:
+        fin = np.abs(z) < BIG / 2
+        z[fin] = np.round(z[fin] / dz) * dz
+    for k in range(1, nl + 1):                     # layers never overlap
+        z[k] = np.minimum(z[k], z[k - 1])
+    iface = np.zeros((nl + 1, 4), np.float32)
+    var = []
+    for k in range(nl + 1):
+        lo, hi = float(z[k].min()), float(z[k].max())
+        if hi - lo > 1e-6:
+            iface[k] = (np.nan, lo, hi, len(var))
+            var.append(z[k].astype(np.float32))
+        else:
+            iface[k] = (hi, hi, hi, -1)
+    iface[:, 0] = np.where(np.isnan(iface[:, 0]), 0.0, iface[:, 0])
+    heights = np.stack(var) if var else np.zeros((1, 1, 1), np.float32)
+    normals = relief_normals(s, dx, dy, periodic) if rel["kind"] != "flat" \
+        else np.zeros((ny, nx, 2), np.float16)
+    if not var:
+        normals = np.zeros((1, 1, 2), np.float16)
+    vol = Volume(wl=wl, names=[L["name"] for L in layers], n=np.array([L["n"] for L in layers]),
+                 thickness=thickness, mua=mua * 1e-4, mus=mus * 1e-4, g=g,
+                 iface=iface, heights=np.ascontiguousarray(heights, np.float32),
+                 normals=np.ascontiguousarray(normals), x0=0.0, y0=0.0, dx=dx, dy=dy, nx=nx, ny=ny,
+                 dz=dz, lateral=m["lateral"], n_above=m["n_outside"], n_below=m["n_below"])
+    vol.info = {"columns": [nx, ny], "varying_interfaces": len(var),
+                "device_bytes": sum(vol.device_bytes().values())}
+    return vol

@@ -1,0 +1,380 @@
+/* clppm shared kernel code: parameters, random numbers, optics, volume geometry.
+ *
+ * Compile-time switches (-D):
+ *   NB    number of wavelength bands          NL   number of layers
+ *   FLAT  every interface is a plane (no per-column heights, no lateral stepping)
+ *
+ * Units: micrometres, coefficients in um^-1, z axis up, the mean skin surface at z = 0.
+ *
+ * The volume.  Layer L (0 = stratum corneum) occupies z_{L+1}(col) < z <= z_L(col) in the
+ * column col; interface k = 0 is the surface, k = NL the bottom of the last layer (-inf for a
+ * semi-infinite one).  Columns are the lateral voxels (lateral_voxel_um); interface heights
+ * are snapped to the voxel thickness in z on the host, so this is exactly the paper's voxel
+ * model, stored as one height per varying interface per column instead of a layer id per voxel.
+ * Flat interfaces cost one float in total.
+ *
+ * Free flight: per-layer stepping with a residual optical depth.  The medium is piecewise
+ * constant, so the exact free path is found by walking the boundaries of constant regions and
+ * spending tau = -ln(u) at mu_t of each region: no majorant, no null collisions, and every
+ * interface crossing is seen (Fresnel between layers of different n needs that; delta tracking
+ * would miss crossings).  Lateral column walls are visited only inside the depth band where
+ * some column's interface differs from another's ("column mode"); in the core of a layer
+ * (above the lowest point of the interface below and below the highest point of the one above)
+ * the photon moves between two planes ("core mode").  A flat layered slab therefore costs no
+ * lateral steps at all.
+ */
+#ifndef CLPPM_COMMON_H
+#define CLPPM_COMMON_H
+
+#include <pyopencl-random123/philox.cl>
+
+#ifndef NB
+#error "NB (number of bands) must be defined"
+#endif
+#ifndef NL
+#error "NL (number of layers) must be defined"
+#endif
+
+#define PI_F 3.14159265358979f
+#define BIG 1e30f
+
+/* Mirrors clppm/params.py PARAMS_DTYPE: 4-byte fields only, in this order. */
+typedef struct {
+    /* volume */
+    float x0, y0, dx, dy;       /* column grid origin and pitch */
+    float xw, yw;               /* domain width nx*dx, ny*dy */
+    int nx, ny;
+    int lateral;                /* 0 infinite, 1 open, 2 periodic */
+    float n_above, n_below;
+    float z_top;                /* highest surface point */
+    /* source */
+    int src_kind;               /* 0 pencil, 1 wide, 2 point */
+    float sx, sy, sz;           /* point position, or beam centre (z unused) */
+    float sdx, sdy, sdz;        /* collimated direction */
+    float swx, swy;             /* wide beam full widths */
+    float cone_cos;             /* point light: cos of the sampling cone half angle */
+    float cax, cay, caz;        /* cone axis */
+    int fixed_band;             /* -1: draw from band_cdf */
+    /* pass */
+    uint seed_lo, seed_hi, pass, photon_offset;
+    uint capacity;
+    float store_zmin;           /* store scattering events only above this z */
+    float rr_threshold;         /* Russian roulette below this weight (fraction of W0) */
+    float rr_m;                 /* survive with probability 1/rr_m */
+    int max_events;             /* safety bound on boundary + collision events per photon */
+    int pad0, pad1, pad2;
+} Params;
+
+/* Interface k: (z if flat, zmin, zmax, var index as float; -1 = flat). */
+#define IF_Z(k)    (iface[(k)].x)
+#define IF_ZMIN(k) (iface[(k)].y)
+#define IF_ZMAX(k) (iface[(k)].z)
+#define IF_VAR(k)  ((int)iface[(k)].w)
+
+#define VOLUME_ARGS __constant const Params* P, __constant const float4* iface, \
+    __constant const float* layer_n, __global const float4* optics, \
+    __global const float* heights, __global const half* normals
+#define VOLUME_PASS P, iface, layer_n, optics, heights, normals
+
+/* ---------------------------------------------------------------- random numbers */
+/* Philox4x32-10 (Random123, via pyopencl): counter = (stream id, draw, pass, domain),
+ * key = seed.  Same seed, pass and id -> same numbers on any device. */
+typedef struct {
+    philox4x32_ctr_t c;
+    philox4x32_key_t k;
+    philox4x32_ctr_t r;
+    int used;
+} Rng;
+
+inline void rng_init(Rng* g, uint id, uint pass, uint domain, uint seed_lo, uint seed_hi) {
+    g->c.v[0] = id; g->c.v[1] = 0u; g->c.v[2] = pass; g->c.v[3] = domain;
+    g->k.v[0] = seed_lo; g->k.v[1] = seed_hi;
+    g->used = 4;
+}
+
+/* uniform in (0, 1]: never 0, so -log(u) is finite */
+inline float rng_u01(Rng* g) {
+    if (g->used == 4) {
+        g->r = philox4x32(g->c, g->k);
+        g->c.v[1] += 1u;
+        g->used = 0;
+    }
+    uint x = g->r.v[g->used++];
+    return ((float)(x >> 8) + 1.0f) * (1.0f / 16777216.0f);
+}
+
+/* ---------------------------------------------------------------- optics */
+/* Unpolarised Fresnel reflectance from n1 into n2 at incidence cosine cos_i (> 0). */
+inline float fresnel_R(float n1, float n2, float cos_i, float* cos_t_out) {
+    cos_i = fmin(fabs(cos_i), 1.0f);
+    if (n1 == n2) { *cos_t_out = cos_i; return 0.0f; }
+    float eta = n1 / n2;
+    float sin2_t = eta * eta * fmax(0.0f, 1.0f - cos_i * cos_i);
+    if (sin2_t >= 1.0f) { *cos_t_out = 0.0f; return 1.0f; }      /* total internal reflection */
+    float cos_t = sqrt(1.0f - sin2_t);
+    *cos_t_out = cos_t;
+    float rs = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t);
+    float rp = (n1 * cos_t - n2 * cos_i) / (n1 * cos_t + n2 * cos_i);
+    return 0.5f * (rs * rs + rp * rp);
+}
+
+/* Henyey-Greenstein: cosine of the scattering angle. */
+inline float hg_sample_cos(float g, float u) {
+    if (fabs(g) < 1e-4f) return 2.0f * u - 1.0f;
+    float t = (1.0f - g * g) / (1.0f - g + 2.0f * g * u);
+    float c = (1.0f + g * g - t * t) / (2.0f * g);
+    return clamp(c, -1.0f, 1.0f);
+}
+
+inline float hg_eval(float g, float cos_t) {
+    float d = 1.0f + g * g - 2.0f * g * cos_t;
+    return (1.0f - g * g) / (4.0f * PI_F * d * sqrt(d));
+}
+
+/* Rotate direction d by polar cosine ct and azimuth phi (MCML's formula). */
+inline float3 rotate_dir(float3 d, float ct, float phi) {
+    float st = sqrt(fmax(0.0f, 1.0f - ct * ct));
+    float cp = cos(phi), sp = sin(phi);
+    float3 o;
+    if (fabs(d.z) > 0.99999f) {
+        o = (float3)(st * cp, st * sp, d.z > 0.0f ? ct : -ct);
+    } else {
+        float tmp = sqrt(1.0f - d.z * d.z);
+        o.x = st * (d.x * d.z * cp - d.y * sp) / tmp + d.x * ct;
+        o.y = st * (d.y * d.z * cp + d.x * sp) / tmp + d.y * ct;
+        o.z = -st * cp * tmp + d.z * ct;
+    }
+    return normalize(o);
+}
+
+/* Mirror d about unit normal n. */
+inline float3 reflect3(float3 d, float3 n) { return d - 2.0f * dot(d, n) * n; }
+
+/* Refract d through the interface with unit normal n facing the incoming side (dot(d,n) < 0). */
+inline float3 refract3(float3 d, float3 n, float eta, float cos_i, float cos_t) {
+    return normalize(eta * d + (eta * cos_i - cos_t) * n);
+}
+
+/* ---------------------------------------------------------------- volume geometry */
+inline int col_index(__constant const Params* P, int ix, int iy) { return iy * P->nx + ix; }
+
+inline float iface_z(__constant const float4* iface, __global const float* heights,
+                     __constant const Params* P, int k, int col) {
+#ifdef FLAT
+    return IF_Z(k);
+#else
+    int v = IF_VAR(k);
+    return v < 0 ? IF_Z(k) : heights[(size_t)v * (size_t)(P->nx * P->ny) + (size_t)col];
+#endif
+}
+
+/* Smooth relief normal of a surface column (unit, pointing up/out of the skin). */
+inline float3 relief_normal(__constant const Params* P, __global const half* normals, int col) {
+#ifdef FLAT
+    return (float3)(0.0f, 0.0f, 1.0f);
+#else
+    float2 t = vload_half2(col, normals);
+    float nz = sqrt(fmax(1e-6f, 1.0f - t.x * t.x - t.y * t.y));
+    return (float3)(t.x, t.y, nz);
+#endif
+}
+
+/* Layer containing height z in column col: -1 above the surface, NL below the bottom.
+ * Starts from a guess and walks, since neighbouring columns differ by little. */
+inline int layer_at(__constant const float4* iface, __global const float* heights,
+                    __constant const Params* P, int col, float z, int guess) {
+    int L = clamp(guess, -1, NL);
+    while (L >= 0 && z > iface_z(iface, heights, P, L, col)) L--;
+    while (L < NL && z <= iface_z(iface, heights, P, L + 1, col)) L++;
+    return L;
+}
+
+/* Tracking state shared by photons and eye rays. */
+typedef struct {
+    float3 pos, dir;
+    int L;          /* current layer */
+    int ix, iy;     /* current column (unused with FLAT and lateral infinite) */
+} Track;
+
+enum { EV_NONE = 0, EV_TOP, EV_BOTTOM, EV_WALL_X, EV_WALL_Y, EV_ZONE, EV_DOMAIN_X, EV_DOMAIN_Y };
+
+/* Distance along t->dir to the next boundary of the constant region around t->pos and its kind. */
+inline float next_boundary(const Track* t, __constant const Params* P,
+                           __constant const float4* iface, __global const float* heights,
+                           int* ev) {
+    float best = BIG;
+    int e = EV_NONE;
+    const float3 d = t->dir;
+    const float z = t->pos.z;
+    const int L = t->L;
+#ifdef FLAT
+    if (d.z > 0.0f) { best = (IF_Z(L) - z) / d.z; e = EV_TOP; }
+    else if (d.z < 0.0f && L + 1 <= NL && IF_Z(L + 1) > -BIG) { best = (IF_Z(L + 1) - z) / d.z; e = EV_BOTTOM; }
+    if (P->lateral != 0) {
+        if (d.x != 0.0f) {
+            float w = d.x > 0.0f ? P->x0 + P->xw : P->x0;
+            float s = (w - t->pos.x) / d.x;
+            if (s < best) { best = s; e = EV_DOMAIN_X; }
+        }
+        if (d.y != 0.0f) {
+            float w = d.y > 0.0f ? P->y0 + P->yw : P->y0;
+            float s = (w - t->pos.y) / d.y;
+            if (s < best) { best = s; e = EV_DOMAIN_Y; }
+        }
+    }
+#else
+    const float ztop_core = IF_ZMIN(L);           /* lowest point of the interface above */
+    const float zbot_core = IF_ZMAX(L + 1);       /* highest point of the interface below */
+    if (z <= ztop_core && z >= zbot_core) {
+        /* core mode: only two planes and the domain sides */
+        if (d.z > 0.0f) {
+            best = (ztop_core - z) / d.z;
+            e = (IF_VAR(L) < 0) ? EV_TOP : EV_ZONE;
+        } else if (d.z < 0.0f && zbot_core > -BIG) {
+            best = (zbot_core - z) / d.z;
+            e = (IF_VAR(L + 1) < 0) ? EV_BOTTOM : EV_ZONE;
+        }
+        if (d.x != 0.0f) {
+            float w = d.x > 0.0f ? P->x0 + P->xw : P->x0;
+            float s = (w - t->pos.x) / d.x;
+            if (s < best) { best = s; e = EV_DOMAIN_X; }
+        }
+        if (d.y != 0.0f) {
+            float w = d.y > 0.0f ? P->y0 + P->yw : P->y0;
+            float s = (w - t->pos.y) / d.y;
+            if (s < best) { best = s; e = EV_DOMAIN_Y; }
+        }
+    } else {
+        /* column mode: this column's two interfaces and its four walls */
+        const int col = col_index(P, t->ix, t->iy);
+        if (d.z > 0.0f) {
+            best = (iface_z(iface, heights, P, L, col) - z) / d.z; e = EV_TOP;
+        } else if (d.z < 0.0f) {
+            float zb = iface_z(iface, heights, P, L + 1, col);
+            if (zb > -BIG) { best = (zb - z) / d.z; e = EV_BOTTOM; }
+        }
+        if (d.x != 0.0f) {
+            float w = P->x0 + P->dx * (float)(t->ix + (d.x > 0.0f ? 1 : 0));
+            float s = (w - t->pos.x) / d.x;
+            if (s < best) { best = s; e = EV_WALL_X; }
+        }
+        if (d.y != 0.0f) {
+            float w = P->y0 + P->dy * (float)(t->iy + (d.y > 0.0f ? 1 : 0));
+            float s = (w - t->pos.y) / d.y;
+            if (s < best) { best = s; e = EV_WALL_Y; }
+        }
+    }
+#endif
+    *ev = e;
+    return fmax(best, 0.0f);
+}
+
+/* Column of a position (clamped into the grid). */
+inline void locate_column(Track* t, __constant const Params* P) {
+#ifndef FLAT
+    t->ix = clamp((int)floor((t->pos.x - P->x0) / P->dx), 0, P->nx - 1);
+    t->iy = clamp((int)floor((t->pos.y - P->y0) / P->dy), 0, P->ny - 1);
+#endif
+}
+
+/* Result of moving across a lateral wall: 0 = stays inside, 1 = left the domain (open). */
+inline int cross_wall(Track* t, __constant const Params* P, int axis, int domain_only) {
+    float3 d = t->dir;
+    if (axis == 0) {
+        int step = d.x > 0.0f ? 1 : -1;
+        int nix = t->ix + step;
+        int at_edge = domain_only || nix < 0 || nix >= P->nx;
+        if (!domain_only) t->pos.x = P->x0 + P->dx * (float)(t->ix + (step > 0 ? 1 : 0));
+        if (at_edge) {
+            if (P->lateral != 2) return 1;
+            /* periodic: re-enter at the opposite side */
+            if (step > 0) { t->pos.x = P->x0; nix = 0; } else { t->pos.x = P->x0 + P->xw; nix = P->nx - 1; }
+        }
+        t->ix = nix;
+    } else {
+        int step = d.y > 0.0f ? 1 : -1;
+        int niy = t->iy + step;
+        int at_edge = domain_only || niy < 0 || niy >= P->ny;
+        if (!domain_only) t->pos.y = P->y0 + P->dy * (float)(t->iy + (step > 0 ? 1 : 0));
+        if (at_edge) {
+            if (P->lateral != 2) return 1;
+            if (step > 0) { t->pos.y = P->y0; niy = 0; } else { t->pos.y = P->y0 + P->yw; niy = P->ny - 1; }
+        }
+        t->iy = niy;
+    }
+    return 0;
+}
+
+/* First hit of a ray coming from above with the skin surface (the top of layer 0).
+ * On a hit, t->pos is the hit point, t->ix/iy its column, *geo_n the geometric face normal
+ * (z for a column top, x or y for a column side).  Returns 0 on a miss. */
+inline int hit_surface(Track* t, __constant const Params* P, __constant const float4* iface,
+                       __global const float* heights, float3* geo_n) {
+    float3 d = t->dir;
+    if (d.z >= 0.0f && t->pos.z > P->z_top) return 0;
+    /* advance to the plane of the highest surface point */
+    if (t->pos.z > P->z_top) {
+        float s = (P->z_top - t->pos.z) / d.z;
+        t->pos += s * d;
+        t->pos.z = P->z_top;
+    }
+    *geo_n = (float3)(0.0f, 0.0f, 1.0f);
+    if (P->lateral != 0) {
+        if (t->pos.x < P->x0 || t->pos.x > P->x0 + P->xw || t->pos.y < P->y0 || t->pos.y > P->y0 + P->yw) {
+            /* outside the model's footprint on that plane: march to the footprint if heading to it */
+            float tmin = 0.0f, tmax = BIG;
+            float lo[2] = {P->x0, P->y0}, hi[2] = {P->x0 + P->xw, P->y0 + P->yw};
+            float o[2] = {t->pos.x, t->pos.y}, dd[2] = {d.x, d.y};
+            for (int a = 0; a < 2; ++a) {
+                if (dd[a] == 0.0f) { if (o[a] < lo[a] || o[a] > hi[a]) return 0; continue; }
+                float t1 = (lo[a] - o[a]) / dd[a], t2 = (hi[a] - o[a]) / dd[a];
+                tmin = fmax(tmin, fmin(t1, t2)); tmax = fmin(tmax, fmax(t1, t2));
+            }
+            if (tmin > tmax || d.z >= 0.0f) return 0;
+#ifdef FLAT
+            return 0;   /* flat surface: the footprint plane is the surface; missed it */
+#else
+            /* entering through the side of the model below z_top */
+            t->pos += tmin * d;
+            locate_column(t, P);
+            int col = col_index(P, t->ix, t->iy);
+            if (t->pos.z <= iface_z(iface, heights, P, 0, col)) {
+                /* side hit: treated as leaving nothing; outside light entering the side is ignored */
+                return 0;
+            }
+#endif
+        }
+    }
+    locate_column(t, P);
+#ifdef FLAT
+    t->L = 0;
+    return 1;
+#else
+    if (IF_VAR(0) < 0) { t->L = 0; return 1; }
+    /* 2-D walk over columns until the ray is below the column top */
+    for (int guard = 0; guard < 4 * (P->nx + P->ny) + 8; ++guard) {
+        int col = col_index(P, t->ix, t->iy);
+        float zs = iface_z(iface, heights, P, 0, col);
+        if (t->pos.z <= zs) { t->L = 0; return 1; }         /* came in through a side wall */
+        float sx = BIG, sy = BIG;
+        if (d.x != 0.0f) sx = (P->x0 + P->dx * (float)(t->ix + (d.x > 0.0f)) - t->pos.x) / d.x;
+        if (d.y != 0.0f) sy = (P->y0 + P->dy * (float)(t->iy + (d.y > 0.0f)) - t->pos.y) / d.y;
+        float sw = fmin(sx, sy);
+        float sz = (d.z < 0.0f) ? (zs - t->pos.z) / d.z : BIG;
+        if (sz <= sw) {
+            t->pos += sz * d; t->pos.z = zs;
+            *geo_n = (float3)(0.0f, 0.0f, 1.0f);
+            t->L = 0;
+            return 1;
+        }
+        t->pos += sw * d;
+        int axis = (sx <= sy) ? 0 : 1;
+        if (cross_wall(t, P, axis, 0)) return 0;
+        *geo_n = axis == 0 ? (float3)(d.x > 0.0f ? -1.0f : 1.0f, 0.0f, 0.0f)
+                           : (float3)(0.0f, d.y > 0.0f ? -1.0f : 1.0f, 0.0f);
+    }
+    return 0;
+#endif
+}
+
+#endif

@@ -1,0 +1,212 @@
+/* Photon pass: one work item traces one photon of one wavelength band through the layered
+ * voxel volume and stores every scattering event inside the skin.
+ *
+ * Weights are 64-bit fixed point (W0 = 2^38 per emitted photon).  Absorption removes an
+ * integer part of the weight, so the bookkeeping specular + Rd + Tt + lost + missed + A
+ * + roulette losses - roulette gains = W0 holds exactly for every photon, and the tallies
+ * (atomic 64-bit integer adds, flushed to Python integers by the host after every launch)
+ * lose nothing however many photons are traced.  Russian roulette is the unbiased kind: below
+ * rr_threshold a photon survives with probability 1/rr_m and is multiplied by rr_m.
+ */
+#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
+#include "common.h"
+
+#define W0F 274877906944.0f           /* 2^38 */
+#define W0L ((long)274877906944L)
+
+/* tally categories (per band); NC = T_ABS0 + NL */
+enum { T_SPEC = 0, T_RD, T_TT, T_LOST, T_RRGAIN, T_RRLOSS, T_MISS, T_ABS0 };
+#define NC (T_ABS0 + NL)
+
+inline int sample_band(__global const float* cdf, float u) {
+    int lo = 0, hi = NB - 1;
+    while (lo < hi) {
+        int mid = (lo + hi) >> 1;
+        if (cdf[mid] >= u) hi = mid; else lo = mid + 1;
+    }
+    return lo;
+}
+
+/* Fresnel decision at a face: gn geometric normal and sn shading normal, both pointing from
+ * the current medium into the next.  Returns 1 (transmitted, dir refracted) or 0 (reflected). */
+inline int fresnel_cross(float3* dir, float3 gn, float3 sn, float n1, float n2, float u) {
+    float ci = dot(*dir, sn);
+    if (ci <= 1e-6f) { sn = gn; ci = dot(*dir, gn); }
+    float ct;
+    float R = fresnel_R(n1, n2, ci, &ct);
+    if (u < R) {
+        float3 r = reflect3(*dir, sn);
+        if (dot(r, gn) > 0.0f) r = reflect3(r, gn);   /* a reflection must stay on this side */
+        *dir = normalize(r);
+        return 0;
+    }
+    float3 t = refract3(*dir, -sn, n1 / n2, ci, ct);
+    if (dot(t, gn) <= 0.0f) t = reflect3(t, gn);       /* a transmission must cross the face */
+    *dir = normalize(t);
+    return 1;
+}
+
+__kernel void photon_pass(VOLUME_ARGS,
+                          __global const float* band_cdf,
+                          __global float4* store_pos_w,
+                          __global float4* store_dir_b,
+                          __global volatile uint* store_count,
+                          __global long* tallies)
+{
+    const uint id = P->photon_offset + (uint)get_global_id(0);
+    Rng rng;
+    rng_init(&rng, id, P->pass, 0u, P->seed_lo, P->seed_hi);
+
+    const int b = P->fixed_band >= 0 ? P->fixed_band : sample_band(band_cdf, rng_u01(&rng));
+    __global long* tal = tallies + (size_t)b * NC;
+
+    Track t;
+    /* ---- launch */
+    if (P->src_kind == 2) {                       /* isotropic point light, cone-sampled */
+        float ct = 1.0f - rng_u01(&rng) * (1.0f - P->cone_cos);
+        float phi = 2.0f * PI_F * rng_u01(&rng);
+        t.dir = rotate_dir((float3)(P->cax, P->cay, P->caz), ct, phi);
+        t.pos = (float3)(P->sx, P->sy, P->sz);
+    } else {
+        float3 d = (float3)(P->sdx, P->sdy, P->sdz);
+        float fx = P->sx, fy = P->sy;
+        if (P->src_kind == 1) {
+            fx += (rng_u01(&rng) - 0.5f) * P->swx;
+            fy += (rng_u01(&rng) - 0.5f) * P->swy;
+        }
+        /* start above the relief on the line through the footprint point (fx, fy, 0) */
+        float back = (P->z_top + 1.0f) / (-d.z);
+        t.pos = (float3)(fx, fy, 0.0f) - back * d;
+        t.dir = d;
+    }
+    t.L = -1; t.ix = 0; t.iy = 0;
+    float3 gn;
+    if (!hit_surface(&t, P, iface, heights, &gn)) {
+        atom_add(tal + T_MISS, W0L);
+        return;
+    }
+
+    long W = W0L;
+    long spec = 0, rd = 0, tt = 0, lost = 0, gain = 0, loss = 0;
+    long absorbed[NL];
+    for (int i = 0; i < NL; ++i) absorbed[i] = 0;
+
+    /* ---- enter: deterministic Fresnel split at the relief normal */
+    {
+        int col = col_index(P, t.ix, t.iy);
+        float3 sn = relief_normal(P, normals, col);
+        float ci = -dot(t.dir, sn);
+        if (ci <= 1e-6f) { sn = gn; ci = -dot(t.dir, gn); }
+        float ct;
+        float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
+        long ws = convert_long_rte((float)W * R);
+        ws = clamp(ws, 0L, W);
+        spec += ws; W -= ws;
+        if (W > 0) {
+            float3 d = refract3(t.dir, sn, P->n_above / layer_n[0], ci, ct);
+            if (dot(d, gn) >= 0.0f) d = reflect3(d, gn);
+            t.dir = normalize(d);
+        }
+    }
+
+    const long rr_w = (long)(P->rr_threshold * W0F);
+    float tau = -log(rng_u01(&rng));
+    int events = 0;
+    while (W > 0) {
+        if (++events > P->max_events) { lost += W; W = 0; break; }
+        const float4 op = optics[t.L * NB + b];     /* mua, mus, g, mut in um^-1 */
+        const float mut = op.w;
+        int ev;
+        const float db = next_boundary(&t, P, iface, heights, &ev);
+        const float s = mut > 0.0f ? tau / mut : BIG;
+        if (s < db) {
+            /* ---- collision: absorb by weight, store, scatter, roulette */
+            t.pos += s * t.dir;
+            long dw = convert_long_rte((float)W * (op.x / mut));
+            dw = clamp(dw, 0L, W);
+            absorbed[t.L] += dw; W -= dw;
+            if (W > 0 && op.y > 0.0f) {
+                if (P->capacity > 0u && t.pos.z > P->store_zmin) {
+                    uint i = atomic_inc(store_count);
+                    if (i < P->capacity) {
+                        store_pos_w[i] = (float4)(t.pos, (float)W * (1.0f / W0F));
+                        store_dir_b[i] = (float4)(t.dir, (float)b);
+                    }
+                }
+                float ct = hg_sample_cos(op.z, rng_u01(&rng));
+                t.dir = rotate_dir(t.dir, ct, 2.0f * PI_F * rng_u01(&rng));
+                if (W < rr_w) {
+                    if (rng_u01(&rng) * P->rr_m <= 1.0f) {
+                        long g2 = W * (long)(P->rr_m) - W;
+                        gain += g2; W += g2;
+                    } else {
+                        loss += W; W = 0;
+                    }
+                }
+            } else if (W > 0) {
+                /* pure absorber reached here only when mus = 0 and mua > 0: all absorbed */
+                absorbed[t.L] += W; W = 0;
+            }
+            tau = -log(rng_u01(&rng));
+            continue;
+        }
+        /* ---- boundary */
+        t.pos += db * t.dir;
+        if (mut > 0.0f) tau = fmax(0.0f, tau - db * mut);
+        if (ev == EV_NONE) { lost += W; W = 0; break; }   /* semi-infinite, direction flat */
+        if (ev == EV_TOP || ev == EV_BOTTOM) {
+            const int up = (ev == EV_TOP);
+            const int L2 = up ? t.L - 1 : t.L + 1;
+            /* snap onto the interface (in core mode only flat interfaces raise TOP/BOTTOM) */
+            t.pos.z = iface_z(iface, heights, P, up ? t.L : t.L + 1, col_index(P, t.ix, t.iy));
+            const float n1 = layer_n[t.L];
+            const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+            float3 gn2 = (float3)(0.0f, 0.0f, up ? 1.0f : -1.0f);
+            float3 sn2 = gn2;
+            if (L2 < 0) sn2 = relief_normal(P, normals, col_index(P, t.ix, t.iy));
+            if (fresnel_cross(&t.dir, gn2, sn2, n1, n2, rng_u01(&rng))) {
+                if (L2 < 0) { rd += W; W = 0; break; }
+                if (L2 >= NL) { tt += W; W = 0; break; }
+                t.L = L2;
+            }
+            continue;
+        }
+        if (ev == EV_ZONE) { locate_column(&t, P); continue; }
+        /* lateral: column wall or domain side */
+        const int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
+        const int domain_only = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
+#ifndef FLAT
+        const int oix = t.ix, oiy = t.iy;
+        const float3 opos = t.pos;
+#endif
+        if (cross_wall(&t, P, axis, domain_only)) { lost += W; W = 0; break; }
+#ifdef FLAT
+        continue;
+#else
+        if (domain_only) { locate_column(&t, P); }
+        const int col = col_index(P, t.ix, t.iy);
+        const int L2 = layer_at(iface, heights, P, col, t.pos.z, t.L);
+        if (L2 == t.L) continue;
+        const float n1 = layer_n[t.L];
+        const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+        float3 gnw = axis == 0 ? (float3)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
+                               : (float3)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f);
+        if (fresnel_cross(&t.dir, gnw, gnw, n1, n2, rng_u01(&rng))) {
+            if (L2 < 0) { rd += W; W = 0; break; }
+            if (L2 >= NL) { tt += W; W = 0; break; }
+            t.L = L2;
+        } else {
+            t.ix = oix; t.iy = oiy; t.pos = opos;      /* reflected back into the old column */
+        }
+#endif
+    }
+
+    if (spec) atom_add(tal + T_SPEC, spec);
+    if (rd) atom_add(tal + T_RD, rd);
+    if (tt) atom_add(tal + T_TT, tt);
+    if (lost) atom_add(tal + T_LOST, lost);
+    if (gain) atom_add(tal + T_RRGAIN, gain);
+    if (loss) atom_add(tal + T_RRLOSS, loss);
+    for (int i = 0; i < NL; ++i)
+        if (absorbed[i]) atom_add(tal + T_ABS0 + i, absorbed[i]);
+}
