@@ -150,7 +150,7 @@ def generated_relief(nx, ny, dx, dy, depth, spacing, width, seed, periodic):
         e1 = _worley_edges(x, y, spacing, seed, period)
         e2 = _worley_edges(x, y, spacing / 3.0, seed + 1, period)
         h[j0:j1] = -depth * np.exp(-(e1 / (0.5 * width)) ** 2) \
-                   - 0.4 * depth * np.exp(-(e2 / (0.3 * width)) ** 2)
+                   - 0.4 * depth * np.exp(-(e2 / (0.4 * width)) ** 2)
     return h - h.max()
 
 
@@ -234,7 +234,7 @@ def build(cfg: dict, source: str = "<config>") -> Volume:
         if math.isinf(base):
             z[i + 1] = -BIG
             continue
-        shape = {"flat": 0.0, "surface": s, "papillae": w}[L["bottom"]]
+        shape = {"flat": 0.0, "surface": s, "papillae": s + w}[L["bottom"]]   # papillae ride on the relief
         z[i + 1] = base + shape
     if m["quantize"]:
         fin = np.abs(z) < BIG / 2

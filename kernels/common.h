@@ -225,7 +225,10 @@ inline float next_boundary(const Track* t, __constant const Params* P,
 #else
     const float ztop_core = IF_ZMIN(L);           /* lowest point of the interface above */
     const float zbot_core = IF_ZMAX(L + 1);       /* highest point of the interface below */
-    if (z <= ztop_core && z >= zbot_core) {
+    /* in the core unless on a core plane and moving out through it (then: column mode) */
+    const int in_core = (d.z > 0.0f ? z < ztop_core : z <= ztop_core) &&
+                        (d.z < 0.0f ? z > zbot_core : z >= zbot_core);
+    if (in_core) {
         /* core mode: only two planes and the domain sides */
         if (d.z > 0.0f) {
             best = (ztop_core - z) / d.z;

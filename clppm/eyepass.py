@@ -1,0 +1,201 @@
+"""Eye-ray pass (kernels/eye.cl): camera rays, refraction, sample points by scheme a-f.
+
+Schemes (paper section 5):
+  a, b, c   equal spacing 4, 7, 14 um (or any ``spacing_um``), cut where the
+            transmittance from the entry point falls below the threshold;
+  d, e, f   Poisson points with mean spacing 1/extinction of the current layer, the
+            extinction being the layer's maximum, mean or minimum over the bands; a layer
+            visit without a point gets its exit point; same cut.
+
+Sample-point storage on the device (bytes per point, and why):
+  pt_pos    16  position (3 x f32) + Fresnel/n^2 throughput factor to the camera
+  pt_dir    16  direction to the eye (3 x f32) + layer index (for g of the phase function)
+  pt_piece   4  index of the point's first path piece
+  pt_R, pt_N 8  progressive radius and accumulated photon count
+  pieces    ~9  (8 per piece, ~1.1 pieces per point): the layer lengths of the point's path
+                interval, from which the gather kernel evaluates the per-band weight
+                integral of T over the interval exactly
+  = about 53 bytes.  The paper's per-point rho(lambda) and Phi(lambda) (2 x 81 floats) are
+  not needed: rho is recomputed from the pieces, and Phi/V only ever grows by the pass's
+  F/V, which goes straight into the pixel (see kernels/gather.cl).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import params as P_
+from .camera import Camera, from_config
+from .device import Device
+from .transport import VolumeBuffers, defines, volume_params
+from .volume import Volume
+
+SPACING = {"a": 4.0, "b": 7.0, "c": 14.0}
+EXTINCTION_STAT = {"d": "max", "e": "mean", "f": "min"}
+
+EYE_DTYPE = np.dtype([
+    ("cpx", "f4"), ("cpy", "f4"), ("cpz", "f4"),
+    ("fx", "f4"), ("fy", "f4"), ("fz", "f4"),
+    ("rx", "f4"), ("ry", "f4"), ("rz", "f4"),
+    ("ux", "f4"), ("uy", "f4"), ("uz", "f4"),
+    ("tan_half", "f4"), ("aspect", "f4"),
+    ("width", "i4"), ("height", "i4"), ("spp", "i4"),
+    ("scheme", "i4"), ("spacing", "f4"), ("od_cut", "f4"), ("merge", "i4"),
+    ("vox_dx", "f4"), ("vox_dz", "f4"), ("max_points", "i4"), ("max_len", "f4"),
+    ("light_kind", "i4"), ("lx", "f4"), ("ly", "f4"), ("lz", "f4"), ("alpha", "f4"),
+    ("seed_lo", "u4"), ("seed_hi", "u4"), ("jitter", "i4"),
+])
+
+
+@dataclass(frozen=True)
+class Scheme:
+    method: str            # a..f or 's' for a custom spacing
+    kind: str              # "equal" | "extinction"
+    spacing: float = 0.0   # um (equal)
+    stat: str = ""         # max | mean | min (extinction)
+
+    def label(self) -> str:
+        if self.kind == "equal":
+            return f"{self.method}) equal spacing {self.spacing:g} um"
+        return f"{self.method}) extinction-based ({self.stat})"
+
+
+def scheme(method: str, spacing_um: float | None = None) -> Scheme:
+    if spacing_um is not None:
+        return Scheme(method=method if method in SPACING else "s", kind="equal", spacing=float(spacing_um))
+    if method in SPACING:
+        return Scheme(method=method, kind="equal", spacing=SPACING[method])
+    return Scheme(method=method, kind="extinction", stat=EXTINCTION_STAT[method])
+
+
+def layer_rates(vol: Volume, stat: str) -> np.ndarray:
+    """Per-layer Poisson rate (um^-1): the layer's extinction statistic over bands."""
+    mut = vol.mua + vol.mus
+    f = {"max": np.max, "mean": np.mean, "min": np.min}[stat]
+    return f(mut, axis=1).astype(np.float32)
+
+
+@dataclass
+class EyeData:
+    camera: Camera
+    scheme: Scheme
+    nrays: int
+    npoints: int
+    npieces: int
+    ray_start: object      # cl arrays
+    pt_pos: object
+    pt_dir: object
+    pt_piece: object
+    pieces: object
+    ray_spec: np.ndarray   # host, per ray
+    ray_hit: np.ndarray    # host, per ray
+    counts: np.ndarray     # host, points per ray
+    layers: np.ndarray     # host, layer of each point
+    depth: np.ndarray      # host, depth below z=0 of each point (um)
+
+    def device_bytes(self) -> int:
+        return self.npoints * (16 + 16 + 4 + 8) + self.npieces * 8 + (self.nrays + 1) * 4
+
+    def per_layer(self, nl: int) -> np.ndarray:
+        """Mean sample points per eye ray in each layer, over rays that hit the skin."""
+        hits = max(int(self.ray_hit.sum()), 1)
+        return np.bincount(self.layers.astype(int), minlength=nl)[:nl] / hits
+
+
+def light_fields(e: np.ndarray, cfg: dict) -> None:
+    L = cfg["light"]
+    if L["kind"] == "point":
+        e["light_kind"] = 2
+        e["lx"], e["ly"], e["lz"] = np.asarray(L["position_mm"], float) * 1000.0
+    else:
+        d = -np.asarray(L["direction"], float)
+        d /= np.linalg.norm(d)
+        e["light_kind"] = 1 if L["kind"] == "wide" else 0
+        e["lx"], e["ly"], e["lz"] = d
+
+
+def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
+        sch: Scheme | None = None, max_points: int = 1 << 16) -> EyeData:
+    import pyopencl as cl
+    import pyopencl.array as cla
+    from pyopencl.scan import ExclusiveScanKernel
+
+    rc = cfg["render"]
+    sch = sch or scheme(rc["method"], rc["spacing_um"])
+    cam = from_config(cfg["camera"])
+    nrays = cam.width * cam.height * cam.spp
+    e = np.zeros(1, EYE_DTYPE)
+    e["cpx"], e["cpy"], e["cpz"] = cam.position
+    e["fx"], e["fy"], e["fz"] = cam.forward
+    e["rx"], e["ry"], e["rz"] = cam.right
+    e["ux"], e["uy"], e["uz"] = cam.up
+    e["tan_half"], e["aspect"] = cam.tan_half, cam.aspect
+    e["width"], e["height"], e["spp"] = cam.width, cam.height, cam.spp
+    e["scheme"] = 0 if sch.kind == "equal" else 1
+    e["spacing"] = sch.spacing if sch.kind == "equal" else 1.0
+    e["od_cut"] = -math.log(rc["threshold"]) if rc["threshold"] > 0 else 1e30
+    e["merge"] = 1 if rc["merge"] == "voxel" else 0
+    e["vox_dx"] = cfg["model"]["lateral_voxel_um"]
+    e["vox_dz"] = cfg["model"]["voxel_um"]
+    e["max_points"] = max_points
+    e["max_len"] = 1e5
+    e["alpha"] = rc["roughness"]
+    e["seed_lo"], e["seed_hi"] = P_.split_seed(rc["seed"])
+    e["jitter"] = 1 if cam.spp > 1 else 0
+    light_fields(e, cfg)
+    rates = layer_rates(vol, sch.stat) if sch.kind == "extinction" else np.zeros(vol.nl, np.float32)
+
+    p = P_.new_params()
+    volume_params(p, vol)
+    mf = cl.mem_flags
+    ctx, q = dev.ctx, dev.queue
+    pbuf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
+    ebuf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=e)
+    rbuf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rates)
+    prg = dev.build("eye.cl", defines(vol))
+    knl = cl.Kernel(prg, "eye_pass")
+
+    npts_a = cla.zeros(q, nrays + 1, np.uint32)
+    npcs_a = cla.zeros(q, nrays + 1, np.uint32)
+    dummy4 = cl.Buffer(ctx, mf.READ_WRITE, 16)
+    dummyf = cl.Buffer(ctx, mf.READ_WRITE, 16)
+    common = [pbuf, *vbuf.args(), ebuf, rbuf]
+    knl(q, (nrays,), None, *common, np.int32(0), npts_a.data, npcs_a.data,
+        npts_a.data, npcs_a.data, dummy4, dummy4, dummy4, dummy4, dummyf, dummyf)
+    counts = npts_a.get()[:nrays].copy()
+    npoints = int(counts.astype(np.int64).sum())
+    npieces = int(npcs_a.get()[:nrays].astype(np.int64).sum())
+    if npoints >= 2**32 or npieces >= 2**32:
+        raise RuntimeError("too many sample points for 32-bit indices")
+    scan = _scan_kernel(ctx)
+    scan(npts_a)            # in place: exclusive prefix sums, entry nrays = total
+    scan(npcs_a)
+    pt_pos = cla.empty(q, max(npoints, 1), cla.vec.float4)
+    pt_dir = cla.empty(q, max(npoints, 1), cla.vec.float4)
+    pt_piece = cla.empty(q, npoints + 1, np.uint32)
+    pieces = cla.empty(q, max(npieces, 1), cla.vec.float2)
+    ray_spec = cla.empty(q, nrays, np.float32)
+    ray_hit = cla.empty(q, nrays, np.float32)
+    knl(q, (nrays,), None, *common, np.int32(1), npts_a.data, npcs_a.data,
+        npts_a.data, npcs_a.data, pt_pos.data, pt_dir.data, pt_piece.data, pieces.data,
+        ray_spec.data, ray_hit.data)
+    cl.enqueue_copy(q, pt_piece.data, np.array([npieces], np.uint32), dst_offset=4 * npoints)
+    pos = pt_pos.get()[:npoints] if npoints else np.zeros(0, cla.vec.float4)
+    dirs = pt_dir.get()[:npoints] if npoints else np.zeros(0, cla.vec.float4)
+    return EyeData(camera=cam, scheme=sch, nrays=nrays, npoints=npoints, npieces=npieces,
+                   ray_start=npts_a, pt_pos=pt_pos, pt_dir=pt_dir, pt_piece=pt_piece,
+                   pieces=pieces, ray_spec=ray_spec.get(), ray_hit=ray_hit.get(),
+                   counts=counts, layers=np.asarray(dirs["w"], np.int32) if npoints else np.zeros(0, np.int32),
+                   depth=-np.asarray(pos["z"], float) if npoints else np.zeros(0))
+
+
+_SCANS: dict = {}
+
+
+def _scan_kernel(ctx):
+    from pyopencl.scan import ExclusiveScanKernel
+    if ctx not in _SCANS:
+        _SCANS[ctx] = ExclusiveScanKernel(ctx, np.uint32, "a+b", "0")
+    return _SCANS[ctx]

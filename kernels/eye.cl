@@ -1,0 +1,283 @@
+/* Eye-ray pass: one work item per eye ray.  Run twice with the same random numbers: WRITE = 0
+ * counts sample points and path pieces per ray (the host scans the counts), WRITE = 1 writes them.
+ *
+ * Sample points (paper section 5).  The refracted ray is walked through the constant regions
+ * of the volume; candidates are placed
+ *   scheme 0 (a-c, any spacing s): at path length k*s from the entry point, k = 1, 2, ...
+ *   scheme 1 (d-f): as a Poisson process whose rate is the current layer's extinction
+ *                   statistic (max / mean / min over bands), restarted at every region
+ *                   boundary (memoryless, so this is one Poisson process of piecewise rate);
+ *                   a layer visit that gets no point gets a point at its exit.
+ * A candidate is kept only while the transmittance from the entry point, in the most
+ * transparent band, is above the threshold (max_b T_b >= threshold, i.e. the cut is where the
+ * last band falls below it).  With merge on, a candidate in the voxel of the previous point is
+ * merged into it (one sample point per voxel, as the paper's 4 um spacing implies).
+ *
+ * Radiance weights.  Point i owns the path interval from the previous point to itself (the last
+ * point also owns the tail up to the cut or exit).  The intervals tile the sampled path, and the
+ * pixel radiance is sum_i S_i * tw_i * integral over i's interval of T(l, lambda) dl, where S_i is
+ * the in-scattered radiance density at point i.  For equal spacing this is the paper's rho and dx;
+ * for random points it is the same partition estimator (exact where S is constant on each
+ * interval).  The interval is stored as pieces (length, layer) so the gather kernel evaluates
+ * the integral per band exactly (no 81 floats per point).
+ */
+#include "common.h"
+
+typedef struct {
+    float cpx, cpy, cpz;
+    float fx, fy, fz;
+    float rx, ry, rz;
+    float ux, uy, uz;
+    float tan_half, aspect;
+    int width, height, spp;
+    int scheme;                 /* 0 equal spacing, 1 extinction-based */
+    float spacing;
+    float od_cut;               /* -ln(threshold) */
+    int merge;
+    float vox_dx, vox_dz;
+    int max_points;
+    float max_len;
+    int light_kind;             /* 0 pencil, 1 wide, 2 point */
+    float lx, ly, lz;           /* point: position; collimated: unit vector toward the light */
+    float alpha;                /* GGX roughness */
+    uint seed_lo, seed_hi;
+    int jitter;
+} EyeParams;
+
+#define MAXPEND (2 * NL + 4)
+
+typedef struct {
+    uint npts, npcs;            /* counts so far */
+    uint pt_base, pc_base;      /* output offsets (WRITE) */
+    int npend;
+    float pend_len[MAXPEND];
+    int pend_layer[MAXPEND];
+    int4 last_vox;
+    int have_point;
+} Emit;
+
+inline void pend_add(Emit* e, int L, float len) {
+    if (len <= 0.0f) return;
+    if (e->npend > 0 && e->pend_layer[e->npend - 1] == L) { e->pend_len[e->npend - 1] += len; return; }
+    if (e->npend == MAXPEND) { e->pend_len[MAXPEND - 1] += len; return; }
+    e->pend_len[e->npend] = len; e->pend_layer[e->npend] = L; e->npend++;
+}
+
+inline int4 voxel_of(float3 p, __constant const EyeParams* E) {
+    return (int4)((int)floor(p.x / E->vox_dx), (int)floor(p.y / E->vox_dx), (int)floor(p.z / E->vox_dz), 0);
+}
+
+inline void flush_pieces(Emit* e, __global float2* pieces, int write) {
+    if (write)
+        for (int k = 0; k < e->npend; ++k)
+            pieces[e->pc_base + e->npcs + k] = (float2)(e->pend_len[k], (float)e->pend_layer[k]);
+    e->npcs += e->npend;
+    e->npend = 0;
+}
+
+/* place a candidate at p (layer L); returns 1 if a new point was made */
+inline int place(Emit* e, float3 p, float3 to_eye, int L, float tw, __constant const EyeParams* E,
+                 __global float4* pt_pos, __global float4* pt_dir, __global uint* pt_piece,
+                 __global float2* pieces, int write) {
+    int4 v = voxel_of(p, E);
+    if (E->merge && e->have_point && all(v.xyz == e->last_vox.xyz)) return 0;
+    if (e->npts >= (uint)E->max_points) return 0;
+    if (write) {
+        uint i = e->pt_base + e->npts;
+        pt_pos[i] = (float4)(p, tw);
+        pt_dir[i] = (float4)(to_eye, (float)L);
+        pt_piece[i] = e->pc_base + e->npcs;
+    }
+    flush_pieces(e, pieces, write);
+    e->npts++;
+    e->last_vox = v;
+    e->have_point = 1;
+    return 1;
+}
+
+/* GGX microfacet specular (Walter et al. 2007) times cos(light): the host multiplies by the
+ * light's radiant intensity / d^2 (point) or irradiance (collimated). */
+inline float specular_geo(float3 n, float3 v, float3 l, float alpha, float n1, float n2) {
+    float nl = dot(n, l), nv = dot(n, v);
+    if (nl <= 0.0f || nv <= 0.0f) return 0.0f;
+    float3 h = normalize(l + v);
+    float nh = dot(n, h);
+    float a2 = alpha * alpha;
+    float den = nh * nh * (a2 - 1.0f) + 1.0f;
+    float D = a2 / (PI_F * den * den);
+    float g1l = 2.0f * nl / (nl + sqrt(a2 + (1.0f - a2) * nl * nl));
+    float g1v = 2.0f * nv / (nv + sqrt(a2 + (1.0f - a2) * nv * nv));
+    float ct;
+    float F = fresnel_R(n1, n2, dot(h, l), &ct);
+    return D * g1l * g1v * F / (4.0f * nl * nv) * nl;
+}
+
+__kernel void eye_pass(VOLUME_ARGS,
+                       __constant const EyeParams* E,
+                       __constant const float* rate,            /* per layer, um^-1 */
+                       int write,
+                       __global uint* n_points, __global uint* n_pieces,
+                       __global const uint* pt_start, __global const uint* pc_start,
+                       __global float4* pt_pos, __global float4* pt_dir, __global uint* pt_piece,
+                       __global float2* pieces, __global float* ray_spec, __global float* ray_hit)
+{
+    const uint r = (uint)get_global_id(0);
+    const uint npix = (uint)(E->width * E->height);
+    if (r >= npix * (uint)E->spp) return;
+    const uint pix = r / (uint)E->spp;
+    const int px = (int)(pix % (uint)E->width), py = (int)(pix / (uint)E->width);
+    Rng rng;
+    rng_init(&rng, r, 0u, 1u, E->seed_lo, E->seed_hi);
+    float jx = 0.5f, jy = 0.5f;
+    if (E->jitter) { jx = rng_u01(&rng); jy = rng_u01(&rng); }
+    float sx = (2.0f * ((float)px + jx) / (float)E->width - 1.0f) * E->tan_half * E->aspect;
+    float sy = (1.0f - 2.0f * ((float)py + jy) / (float)E->height) * E->tan_half;
+    float3 fwd = (float3)(E->fx, E->fy, E->fz), right = (float3)(E->rx, E->ry, E->rz), up = (float3)(E->ux, E->uy, E->uz);
+
+    Track t;
+    t.pos = (float3)(E->cpx, E->cpy, E->cpz);
+    t.dir = normalize(fwd + sx * right + sy * up);
+    t.L = -1; t.ix = 0; t.iy = 0;
+
+    Emit e;
+    e.npts = 0; e.npcs = 0; e.npend = 0; e.have_point = 0; e.last_vox = (int4)(0);
+    e.pt_base = write ? pt_start[r] : 0u;
+    e.pc_base = write ? pc_start[r] : 0u;
+
+    float3 gn;
+    float spec = 0.0f;
+    if (!hit_surface(&t, P, iface, heights, &gn)) {
+        if (write) { ray_spec[r] = 0.0f; ray_hit[r] = 0.0f; }
+        else { n_points[r] = 0u; n_pieces[r] = 0u; }
+        return;
+    }
+    /* ---- surface: specular term and refraction, weighted by the Fresnel transmittance */
+    float tw;
+    {
+        int col = col_index(P, t.ix, t.iy);
+        float3 sn = relief_normal(P, normals, col);
+        float ci = -dot(t.dir, sn);
+        if (ci <= 1e-6f) { sn = gn; ci = -dot(t.dir, gn); }
+        float3 v = -t.dir;
+        float3 l;
+        float inv_d2 = 1.0f;
+        if (E->light_kind == 2) {
+            float3 lp = (float3)(E->lx, E->ly, E->lz) - t.pos;
+            float d2 = dot(lp, lp);
+            l = lp * rsqrt(d2);
+            inv_d2 = 1.0f / d2;
+        } else {
+            l = (float3)(E->lx, E->ly, E->lz);
+        }
+        spec = specular_geo(sn, v, l, E->alpha, P->n_above, layer_n[0]) * inv_d2;
+        float ct;
+        float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
+        tw = 1.0f - R;
+        float3 d = refract3(t.dir, sn, P->n_above / layer_n[0], ci, ct);
+        if (dot(d, gn) >= 0.0f) d = reflect3(d, gn);
+        t.dir = normalize(d);
+    }
+
+    float od[NB];
+    for (int b = 0; b < NB; ++b) od[b] = 0.0f;
+    float ell = 0.0f;                   /* path length from the entry */
+    float next_eq = E->spacing;         /* next equal-spacing candidate */
+    float nfac = P->n_above / layer_n[0];
+    nfac *= nfac;                       /* radiance n^2 law, (n_outside / n_layer)^2 */
+    int visit_pts = 0;
+    int done = 0;
+    int guard = 0;
+    while (!done && ++guard < 1000000) {
+        int ev;
+        const int L = t.L;
+        float db = next_boundary(&t, P, iface, heights, &ev);
+        if (ev == EV_NONE) db = E->max_len;
+        /* where the most transparent band falls below the threshold inside this region */
+        float s_cut = BIG;
+        {
+            float smax = 0.0f;
+            int never = 0;
+            for (int b = 0; b < NB; ++b) {
+                float m = optics[L * NB + b].w;
+                float rem = E->od_cut - od[b];
+                if (m <= 0.0f) { if (rem > 0.0f) never = 1; continue; }
+                smax = fmax(smax, rem / m);
+            }
+            s_cut = never ? BIG : smax;
+        }
+        if (ell + db > E->max_len) { db = fmax(0.0f, E->max_len - ell); s_cut = fmin(s_cut, db); }
+        const float seg = fmin(db, fmax(s_cut, 0.0f));
+        const float3 to_eye = -t.dir;
+        const float twp = tw * nfac;
+        float x = 0.0f;                 /* position of the last placement in this region */
+        if (E->scheme == 0) {
+            while (next_eq <= ell + seg) {
+                float xc = next_eq - ell;
+                pend_add(&e, L, xc - x); x = xc;
+                visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, write);
+                next_eq += E->spacing;
+            }
+        } else {
+            float rt = rate[L];
+            if (rt > 0.0f) {
+                float xc = x;
+                while (1) {
+                    xc += -log(rng_u01(&rng)) / rt;
+                    if (xc > seg) break;
+                    pend_add(&e, L, xc - x); x = xc;
+                    visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, write);
+                }
+            }
+        }
+        pend_add(&e, L, seg - x);
+        for (int b = 0; b < NB; ++b) od[b] += optics[L * NB + b].w * seg;
+        if (seg < db || ev == EV_NONE) { done = 1; break; }        /* cut by the threshold */
+        t.pos += db * t.dir;
+        ell += db;
+
+        /* ---- boundary events: the eye ray takes the transmitted branch only */
+        int L2 = L;
+        if (ev == EV_TOP || ev == EV_BOTTOM) {
+            L2 = ev == EV_TOP ? L - 1 : L + 1;
+            t.pos.z = iface_z(iface, heights, P, ev == EV_TOP ? L : L + 1, col_index(P, t.ix, t.iy));
+        } else if (ev == EV_ZONE) {
+            locate_column(&t, P);
+            continue;
+        } else {
+            int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
+            int donly = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
+            if (cross_wall(&t, P, axis, donly)) { done = 1; break; }
+#ifndef FLAT
+            if (donly) locate_column(&t, P);
+            L2 = layer_at(iface, heights, P, col_index(P, t.ix, t.iy), t.pos.z, L);
+#endif
+        }
+        if (L2 == L) continue;
+        /* leaving layer L: extinction-based schemes give an empty visit its exit point */
+        if (E->scheme == 1 && visit_pts == 0) {
+            visit_pts += place(&e, t.pos - 1e-3f * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, write);
+        }
+        visit_pts = 0;
+        if (L2 < 0 || L2 >= NL) { done = 1; break; }
+        /* refraction into L2 with its Fresnel transmittance */
+        float3 gnn = (ev == EV_TOP) ? (float3)(0.0f, 0.0f, 1.0f) : (ev == EV_BOTTOM) ? (float3)(0.0f, 0.0f, -1.0f)
+                   : ((ev == EV_WALL_X || ev == EV_DOMAIN_X) ? (float3)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
+                                                             : (float3)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f));
+        float n1 = layer_n[L], n2 = layer_n[L2];
+        if (n1 != n2) {
+            float ci = dot(t.dir, gnn), ct;
+            float R = fresnel_R(n1, n2, ci, &ct);
+            if (R >= 1.0f) { done = 1; break; }                    /* total internal reflection */
+            tw *= 1.0f - R;
+            t.dir = refract3(t.dir, -gnn, n1 / n2, ci, ct);
+            nfac = P->n_above / n2;
+            nfac *= nfac;
+        }
+        t.L = L2;
+    }
+    /* the tail after the last point belongs to the last point */
+    if (e.have_point) flush_pieces(&e, pieces, write);
+    else e.npend = 0;
+    if (write) { ray_spec[r] = spec; ray_hit[r] = 1.0f; }
+    else { n_points[r] = e.npts; n_pieces[r] = e.npcs; }
+}

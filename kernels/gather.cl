@@ -1,0 +1,146 @@
+/* Gather and radiance: one work item per pixel walks its eye rays' sample points in order.
+ *
+ * Per sample point i and pass: gather the stored photons within R_i from the grid,
+ *   M_i = number found,  F_i(b) = sum over found photons of band b of  w_p * HG(g_L(b), w_p . w_eye)
+ * (w_p the photon's travel direction, w_eye toward the camera, L the point's layer), then the
+ * progressive update of Hachisuka, Ogaki & Jensen (2008) in 3-D:
+ *   N' = N + alpha M,  R'^3 = R^3 (N + alpha M)/(N + M),  Phi' = (Phi + F)(N + alpha M)/(N + M).
+ * Since Phi and V = 4/3 pi R^3 shrink by the same factor, Phi'/V' = Phi/V + F/V: the radiance
+ * estimate Phi/(V N_emitted) of every point only ever grows by F/V of each pass.  So no per-point
+ * spectral flux is stored: F/V, weighted by the point's path weight integral of T over its
+ * interval (per band, exact for the layered extinction), is added straight into the pixel's
+ * spectral accumulator.  The per-point state is just R and N.  (The global-radius variant of
+ * Knaus & Zwicker 2011 scales every R by the same schedule and averages per-pass estimates.)
+ *
+ * Determinism: F is summed in 64-bit fixed point (order-independent: photons inside a grid
+ * cell come in arbitrary order), the per-pixel float sums run in a fixed order, and the pixel
+ * accumulators are doubles added once per pass.  The same photons give the same bits.
+ */
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#include "common.h"
+#include "grid.h"
+
+#define FIX 4294967296.0f               /* 2^32 per unit of weight x phase */
+#define INV_FIX (1.0f / 4294967296.0f)
+
+__kernel void gather(const GridParams gp,
+                     __global const uint* cell_start,
+                     __global const float4* spos_w,
+                     __global const float4* sdir_b,
+                     __global const float4* hgtab,          /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
+                     __global const float4* optics,         /* [NL*NB]: mua, mus, g, mut (um^-1) */
+                     __global const uint* ray_start,        /* [nrays+1] first point of each ray */
+                     __global const float4* pt_pos,         /* xyz, tw */
+                     __global const float4* pt_dir,         /* toward the eye, layer */
+                     __global const uint* pt_piece,         /* [npts+1] */
+                     __global const float2* pieces,         /* length (um), layer */
+                     __global float* pt_R,
+                     __global float* pt_N,
+                     __global double* pix_acc,              /* [npix*NB] */
+                     __global ulong* pix_pairs,             /* [npix] photon-point pairs found */
+                     const int npix, const int spp,
+                     const float alpha, const int global_radius, const float radius_factor,
+                     const double pass_scale)
+{
+    const int pix = get_global_id(0);
+    if (pix >= npix) return;
+    float accp[NB];
+    for (int b = 0; b < NB; ++b) accp[b] = 0.0f;
+    ulong pairs = 0;
+    for (int s = 0; s < spp; ++s) {
+        const uint r = (uint)pix * (uint)spp + (uint)s;
+        const uint i0 = ray_start[r], i1 = ray_start[r + 1];
+        float T[NB];
+        for (int b = 0; b < NB; ++b) T[b] = 1.0f;
+        for (uint i = i0; i < i1; ++i) {
+            const float4 pp = pt_pos[i];
+            const float4 pd = pt_dir[i];
+            const int L = (int)pd.w;
+            const float R = pt_R[i];
+            const float3 x = pp.xyz;
+            long acc[NB];
+            for (int b = 0; b < NB; ++b) acc[b] = 0;
+            uint M = 0;
+            if (R > 0.0f) {
+                const float R2 = R * R;
+                __global const float4* hg = hgtab + L * NB;
+                GRID_FOR_EACH_ROW(gp, cell_start, x, R, jb, je) {
+                    for (uint j = jb; j < je; ++j) {
+                        const float4 p = spos_w[j];
+                        if (grid_within(p.xyz, x, R2)) {
+                            const float4 d = sdir_b[j];
+                            const int b = (int)d.w;
+                            const float4 h = hg[b];
+                            const float q = h.x - h.y * dot(d.xyz, pd.xyz);
+                            const float rq = rsqrt(q);
+                            acc[b] += convert_long_rte(h.z * rq * rq * rq * p.w * FIX);
+                            ++M;
+                        }
+                    }
+                } GRID_END_ROWS
+            }
+            /* path weight integral of T over the point's interval, per band */
+            const uint k0 = pt_piece[i], k1 = pt_piece[i + 1];
+            const float f = (R > 0.0f) ? pp.w / (4.0f / 3.0f * PI_F * R * R * R) * INV_FIX : 0.0f;
+            for (int b = 0; b < NB; ++b) {
+                float Tb = T[b], Wb = 0.0f;
+                for (uint k = k0; k < k1; ++k) {
+                    const float2 pc = pieces[k];
+                    const float m = optics[(int)pc.y * NB + b].w;
+                    const float ml = m * pc.x;
+                    Wb += Tb * (ml > 1e-6f ? -expm1(-ml) / m : pc.x);
+                    Tb *= exp(-ml);
+                }
+                T[b] = Tb;
+                if (acc[b] != 0) accp[b] += Wb * f * (float)acc[b];
+            }
+            /* progressive radius update */
+            if (global_radius) {
+                pt_R[i] = R * radius_factor;
+            } else if (M > 0u) {
+                const float N = pt_N[i];
+                const float Nn = N + alpha * (float)M;
+                pt_N[i] = Nn;
+                pt_R[i] = R * cbrt(Nn / (N + (float)M));
+            }
+            pairs += M;
+        }
+    }
+    __global double* out = pix_acc + (size_t)pix * NB;
+    for (int b = 0; b < NB; ++b) out[b] += (double)accp[b] * pass_scale;
+    pix_pairs[pix] += pairs;
+}
+
+/* Initial radius: the radius at which the first search finds K photons, estimated from the
+ * grid's cell counts (photons per unit volume in the block of cells around the sphere), a few
+ * fixed-point iterations R = (3K / (4 pi rho))^(1/3).  Costs cells, not photons. */
+__kernel void init_radius(const GridParams gp,
+                          __global const uint* cell_start,
+                          __global const float4* pt_pos,
+                          __global float* pt_R,
+                          const uint npts, const float K, const float R0, const float Rmax,
+                          const int iters)
+{
+    const uint i = get_global_id(0);
+    if (i >= npts) return;
+    const float3 x = pt_pos[i].xyz;
+    float R = R0;
+    for (int it = 0; it < iters; ++it) {
+        int4 c0, c1;
+        grid_query_range(gp, x, R, &c0, &c1);
+        ulong n = 0;
+        for (int iz = c0.z; iz <= c1.z; ++iz)
+            for (int iy = c0.y; iy <= c1.y; ++iy) {
+                uint row = grid_cell_index(gp, c0.x, iy, iz);
+                n += cell_start[row + (uint)(c1.x - c0.x) + 1u] - cell_start[row];
+            }
+        const float vol = (float)(c1.x - c0.x + 1) * (float)(c1.y - c0.y + 1) * (float)(c1.z - c0.z + 1)
+                          * gp.h * gp.h * gp.h;
+        float Rn;
+        if (n == 0) Rn = 2.0f * R;
+        else Rn = cbrt(3.0f * K * vol / (4.0f * PI_F * (float)n));
+        R = clamp(Rn, 0.25f * R, 4.0f * R);
+        R = fmin(R, Rmax);
+    }
+    pt_R[i] = R;
+}

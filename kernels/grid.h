@@ -1,0 +1,140 @@
+/* grid.h -- the device photon lookup grid (uniform grid, cells x-fastest).
+ *
+ * Built every pass by clppm/hashgrid.py (kernels in hashgrid.cl): a uniform
+ * grid over the box [lo, lo + h*(nx,ny,nz)) with cubic cells of edge h (µm).
+ * Cell (ix, iy, iz) has the linear index  c = ix + nx*(iy + ny*iz)  (x fastest):
+ * a collision-free spatial hash, so a query visits every photon at most once
+ * and needs no per-candidate cell check.  Points outside the box are clamped
+ * to the boundary cells (lookups stay exact: the distance test decides).
+ *
+ * After a build the photons are stored cell-sorted, CSR style:
+ *   cell_start[c] .. cell_start[c+1]-1   are the photons of cell c
+ *   (cell_start has ncells+1 entries, cell_start[ncells] == number of photons)
+ *   spos_w[j] = (x, y, z [µm], weight),  sdir_b[j] = (dx, dy, dz, band as float)
+ * Inside a cell the order is arbitrary (counting sort with atomics): accumulate
+ * order-independently (integer fixed point).
+ *
+ * Because cells are x-fastest, cells ix0..ix1 of one (iy, iz) row are one
+ * contiguous photon range [cell_start[c(ix0,iy,iz)], cell_start[c(ix1,iy,iz)+1]).
+ *
+ * API
+ * ---
+ *   GridParams                     plain struct, 4-byte fields only, 48 bytes;
+ *                                  mirrored by clppm.hashgrid.GRID_PARAMS_DTYPE.
+ *                                  Pass it by value as a kernel argument (or read
+ *                                  it from a __constant/__global buffer into a
+ *                                  private copy: the macros take a VALUE).
+ *   int  grid_axis(v, lo, inv_h, n)   cell coordinate of one axis, clamped to [0, n-1]
+ *   int4 grid_coords(gp, p)           (ix, iy, iz, 0) of float3 p, clamped
+ *   uint grid_cell_of(gp, p)          linear cell index of float3 p
+ *   uint grid_cell_index(gp, ix, iy, iz)
+ *   void grid_query_range(gp, x, R, &c0, &c1)
+ *                                  inclusive cell-coordinate range (int4) of all
+ *                                  cells that can hold a photon p with
+ *                                  grid_within(p, x, R*R)
+ *   int  grid_within(p, x, R2)     the distance test |p - x|^2 < R2 (float3),
+ *                                  evaluated with FP_CONTRACT OFF so every kernel
+ *                                  that uses it gets bit-identical results
+ *
+ *   GRID_FOR_EACH_ROW(gp, cell_start, x, R, begin, end) { ... } GRID_END_ROWS
+ *       Loops over the (iy, iz) rows of cells overlapping the query sphere
+ *       (centre float3 x, radius float R); in the body, `begin` and `end`
+ *       (const uint, names chosen by the caller) bound the contiguous range of
+ *       sorted photon indices of that row.  Example:
+ *
+ *         const float R2 = R * R;
+ *         GRID_FOR_EACH_ROW(gp, cell_start, x, R, b, e) {
+ *             for (uint j = b; j < e; ++j) {
+ *                 const float4 p = spos_w[j];
+ *                 if (grid_within(p.xyz, x, R2)) { ... }
+ *             }
+ *         } GRID_END_ROWS
+ *
+ *       The body sits inside two nested for loops (iz, iy): `continue` goes to
+ *       the next row, but `break` only ends the current iy loop (the search
+ *       goes on with the next iz plane); to stop the whole search use a flag
+ *       checked in the body, or goto.  gp, cell_start, x and R are evaluated
+ *       more than once: pass plain names.
+ *
+ * Exactness: the query range is computed for R*(1 + GRID_R_PAD) (default 1e-4).
+ * If grid_within(p, x, R*R) holds in float arithmetic, then |p.x - x.x| <
+ * R*(1 + 1e-6) in exact arithmetic (each rounding is relative, u = 2^-24), so
+ * fl(x.x - R') <= p.x by monotone rounding, and since grid_axis is monotone
+ * (sub, mul, floor, clamp) the photon's cell lies inside the visited range.
+ * A visit therefore finds exactly the photons a brute-force test finds.
+ */
+#ifndef CLPPM_GRID_H
+#define CLPPM_GRID_H
+
+typedef struct {
+    float lo_x, lo_y, lo_z;   /* box corner (µm) */
+    float h;                  /* cell edge (µm) */
+    float inv_h;              /* 1/h as float32, the factor every kernel uses */
+    int nx, ny, nz;           /* cells per axis */
+    uint ncells;              /* nx*ny*nz */
+    uint pad0, pad1, pad2;    /* 48 bytes in all */
+} GridParams;
+
+#ifndef GRID_R_PAD
+#define GRID_R_PAD 1.0e-4f
+#endif
+
+/* cell coordinate along one axis, clamped; NaN goes to cell 0 */
+inline int grid_axis(const float v, const float lo, const float inv_h, const int n)
+{
+#pragma OPENCL FP_CONTRACT OFF
+    float t = floor((v - lo) * inv_h);
+    t = fmin(fmax(t, 0.0f), (float)(n - 1));
+    return (int)t;
+}
+
+inline int4 grid_coords(const GridParams gp, const float3 p)
+{
+    return (int4)(grid_axis(p.x, gp.lo_x, gp.inv_h, gp.nx),
+                  grid_axis(p.y, gp.lo_y, gp.inv_h, gp.ny),
+                  grid_axis(p.z, gp.lo_z, gp.inv_h, gp.nz), 0);
+}
+
+inline uint grid_cell_index(const GridParams gp, const int ix, const int iy, const int iz)
+{
+    return (uint)ix + (uint)gp.nx * ((uint)iy + (uint)gp.ny * (uint)iz);
+}
+
+inline uint grid_cell_of(const GridParams gp, const float3 p)
+{
+    const int4 c = grid_coords(gp, p);
+    return grid_cell_index(gp, c.x, c.y, c.z);
+}
+
+inline void grid_query_range(const GridParams gp, const float3 x, const float R,
+                             int4 *c0, int4 *c1)
+{
+#pragma OPENCL FP_CONTRACT OFF
+    const float Rp = R * (1.0f + GRID_R_PAD);
+    *c0 = grid_coords(gp, x - Rp);
+    *c1 = grid_coords(gp, x + Rp);
+}
+
+inline int grid_within(const float3 p, const float3 x, const float R2)
+{
+#pragma OPENCL FP_CONTRACT OFF
+    const float dx = p.x - x.x, dy = p.y - x.y, dz = p.z - x.z;
+    const float d2 = dx * dx + dy * dy + dz * dz;
+    return d2 < R2;
+}
+
+#define GRID_FOR_EACH_ROW(gp, cell_start, x, R, begin, end)                      \
+    {                                                                            \
+        int4 grid_c0_, grid_c1_;                                                 \
+        grid_query_range((gp), (x), (R), &grid_c0_, &grid_c1_);                  \
+        for (int grid_iz_ = grid_c0_.z; grid_iz_ <= grid_c1_.z; ++grid_iz_)      \
+        for (int grid_iy_ = grid_c0_.y; grid_iy_ <= grid_c1_.y; ++grid_iy_) {    \
+            const uint grid_row_ = grid_cell_index((gp), grid_c0_.x, grid_iy_, grid_iz_); \
+            const uint begin = (cell_start)[grid_row_];                          \
+            const uint end = (cell_start)[grid_row_ + (uint)(grid_c1_.x - grid_c0_.x) + 1u];
+
+#define GRID_END_ROWS                                                            \
+        }                                                                        \
+    }
+
+#endif /* CLPPM_GRID_H */
