@@ -162,7 +162,7 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     dummy4 = cl.Buffer(ctx, mf.READ_WRITE, 16)
     dummyf = cl.Buffer(ctx, mf.READ_WRITE, 16)
     common = [pbuf, *vbuf.args(), ebuf, rbuf]
-    knl(q, (nrays,), None, *common, np.int32(0), npts_a.data, npcs_a.data,
+    knl(q, (P_.global_size(nrays),), (P_.WG,), *common, np.int32(0), npts_a.data, npcs_a.data,
         npts_a.data, npcs_a.data, dummy4, dummy4, dummy4, dummy4, dummyf, dummyf)
     counts = npts_a.get()[:nrays].copy()
     npoints = int(counts.astype(np.int64).sum())
@@ -178,7 +178,7 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     pieces = cla.empty(q, max(npieces, 1), cla.vec.float2)
     ray_spec = cla.empty(q, nrays, np.float32)
     ray_hit = cla.empty(q, nrays, np.float32)
-    knl(q, (nrays,), None, *common, np.int32(1), npts_a.data, npcs_a.data,
+    knl(q, (P_.global_size(nrays),), (P_.WG,), *common, np.int32(1), npts_a.data, npcs_a.data,
         npts_a.data, npcs_a.data, pt_pos.data, pt_dir.data, pt_piece.data, pieces.data,
         ray_spec.data, ray_hit.data)
     cl.enqueue_copy(q, pt_piece.data, np.array([npieces], np.uint32), dst_offset=4 * npoints)

@@ -314,31 +314,31 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
         rank = bufs.get("rank", n, np.uint32)
         cell_start.fill(0)
         stage("clear")
-        k["grid_count"](q, _gsize(n), None, params, un, pos, cell_start.data, rank.data)
+        k["grid_count"](q, _gsize(n), (_WG,), params, un, pos, cell_start.data, rank.data)
         stage("count")
         # in place: counts -> exclusive prefix sums, cell_start[ncells] == n
         _scan(dev)(cell_start, allocator=bufs.pool)
         stage("scan")
         perm = bufs.get("idx", n, np.int32)
-        k["grid_scatter"](q, _gsize(n), None, params, un, pos,
+        k["grid_scatter"](q, _gsize(n), (_WG,), params, un, pos,
                           cell_start.data, rank.data, perm.data)
         stage("scatter")
-        k["grid_permute"](q, _gsize(n), None, un, perm.data, pos, dirb,
+        k["grid_permute"](q, _gsize(n), (_WG,), un, perm.data, pos, dirb,
                           spos.data, sdir.data)
         stage("permute")
     elif method == "radix":
         keys = bufs.get("keys", n, np.uint32)
         idx = bufs.get("idx", n, np.int32)
-        k["grid_keys"](q, _gsize(n), None, params, un, pos, keys.data, idx.data)
+        k["grid_keys"](q, _gsize(n), (_WG,), params, un, pos, keys.data, idx.data)
         stage("keys")
         key_bits = max(1, (ncells - 1).bit_length())
         (skeys, sidx), _ = _radix(dev)(keys, idx, key_bits=key_bits, queue=q,
                                        allocator=bufs.pool)
         stage("sort")
-        k["grid_permute"](q, _gsize(n), None, un, sidx.data, pos, dirb,
+        k["grid_permute"](q, _gsize(n), (_WG,), un, sidx.data, pos, dirb,
                           spos.data, sdir.data)
         stage("permute")
-        k["grid_starts_from_keys"](q, _gsize(n + 1), None, un, np.uint32(ncells),
+        k["grid_starts_from_keys"](q, _gsize(n + 1), (_WG,), un, np.uint32(ncells),
                                    skeys.data, cell_start.data)
         stage("starts")
         del skeys, sidx  # back to the pool once the queue is past them
@@ -387,7 +387,7 @@ def _gather(dev: Device, which: str, head_args: list, queries, radii, nb: int,
     if with_cand:
         ncand = cla.empty(q, m, np.uint32)
         args.append(ncand.data)
-    _kernels(dev, nb)[which](q, _gsize(m), None, *args)
+    _kernels(dev, nb)[which](q, _gsize(m), (_WG,), *args)
     res = GatherResult(count.get(), wsum.get(), band.get().reshape(m, nb),
                        ncand.get() if with_cand else None)
     return res

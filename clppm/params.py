@@ -6,6 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
+WG = 64   # fixed work-group size: PoCL compiles a kernel once per work-group size
+
+
+def global_size(n: int, wg: int = WG) -> int:
+    return max(wg, (int(n) + wg - 1) // wg * wg)
+
 _FIELDS = [
     ("x0", "f4"), ("y0", "f4"), ("dx", "f4"), ("dy", "f4"),
     ("xw", "f4"), ("yw", "f4"),
@@ -26,7 +32,7 @@ _FIELDS = [
     ("rr_threshold", "f4"),
     ("rr_m", "f4"),
     ("max_events", "i4"),
-    ("pad0", "i4"), ("pad1", "i4"), ("pad2", "i4"),
+    ("count", "u4"), ("pad1", "i4"), ("pad2", "i4"),
 ]
 PARAMS_DTYPE = np.dtype(_FIELDS)
 assert PARAMS_DTYPE.itemsize == 4 * len(_FIELDS)

@@ -198,8 +198,9 @@ class PhotonPass:
         self.p["photon_offset"] = offset
         self.p["pass_"] = pass_index
         self.p["capacity"] = capacity
+        self.p["count"] = n
         cl.enqueue_copy(q, self.pbuf, self.p)
-        self.kernel(q, (int(n),), None, self.pbuf, *self.vbuf.args(), self.cdf,
+        self.kernel(q, (P_.global_size(n),), (P_.WG,), self.pbuf, *self.vbuf.args(), self.cdf,
                     self.pos_w, self.dir_b, self.count_buf, self.tally_buf)
 
     def _flush(self, emitted: int, into: Tallies | None = None) -> np.ndarray:

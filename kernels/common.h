@@ -62,7 +62,8 @@ typedef struct {
     float rr_threshold;         /* Russian roulette below this weight (fraction of W0) */
     float rr_m;                 /* survive with probability 1/rr_m */
     int max_events;             /* safety bound on boundary + collision events per photon */
-    int pad0, pad1, pad2;
+    uint count;                 /* work items in this launch (the rest return) */
+    int pad1, pad2;
 } Params;
 
 /* Interface k: (z if flat, zmin, zmax, var index as float; -1 = flat). */

@@ -53,6 +53,7 @@ __kernel void photon_pass(VOLUME_ARGS,
                           __global volatile uint* store_count,
                           __global long* tallies)
 {
+    if ((uint)get_global_id(0) >= P->count) return;
     const uint id = P->photon_offset + (uint)get_global_id(0);
     Rng rng;
     rng_init(&rng, id, P->pass, 0u, P->seed_lo, P->seed_hi);
