@@ -15,12 +15,15 @@ from __future__ import annotations
 import copy
 import difflib
 import math
+import json
 import os
+import re
 import tomllib
 from dataclasses import dataclass
 from typing import Any, Callable
 
 INF = math.inf
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 
 
 class ConfigError(ValueError):
@@ -28,7 +31,13 @@ class ConfigError(ValueError):
 
     def __init__(self, source: str, key: str, value: Any, why: str):
         self.source, self.key, self.value, self.why = source, key, value, why
-        super().__init__(f"{source}: {key} = {value!r}: {why}")
+        super().__init__(f"{source}: {key} = {_short(value)}: {why}")
+
+
+def _short(value: Any, limit: int = 80) -> str:
+    """``repr`` of a value on one line, cut to ``limit`` characters (a whole table can be long)."""
+    r = repr(value)
+    return r if len(r) <= limit else r[:limit - 3] + "..."
 
 
 @dataclass(frozen=True)
@@ -116,6 +125,8 @@ SCHEMA: dict[str, dict[str, F]] = {
         "checkpoint_every": F("int", 10, lo=0, hi=10**7),
         "exposure": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e12,
                       doc="PNG scale; default: a white diffuser at the image centre = 1"),
+        "boundary": F("choice", "clip", choices=("clip", "none"),
+                      doc="sphere volume clipped at the skin surface (clip) or not (paper)"),
         "store_depth_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e6,
                             doc="store photons only this deep (default: all)"),
     },
@@ -140,6 +151,7 @@ LAYER_SCHEMA: dict[str, F] = {
 }
 
 MAX_LAYERS = 16
+D65_RANGE_NM = (300.0, 780.0)     # colour.SDS_ILLUMINANTS["D65"] (spectra.d65)
 
 
 def _is_num(v) -> bool:
@@ -196,7 +208,11 @@ def _check(src: str, key: str, v: Any, f: F, base_dir: str) -> Any:
     if k == "float":
         if not _is_num(v):
             bad("must be a number")
-        return _range(src, key, float(v), f)
+        try:
+            x = float(v)
+        except OverflowError:            # an int beyond the float range
+            bad(f"must be <= {_fmt(f.hi)}" if f.hi is not None and v > 0 else "out of range")
+        return _range(src, key, x, f)
     raise AssertionError(k)
 
 
@@ -211,17 +227,26 @@ def _range(src, key, x, f: F, bad_whole=None):
             return x
         bad("must be finite")
     if f.lo is not None and (x < f.lo or (f.lo_open and x == f.lo)):
-        bad(f"must be {'>' if f.lo_open else '>='} {f.lo:g}")
+        bad(f"must be {'>' if f.lo_open else '>='} {_fmt(f.lo)}")
     if f.hi is not None and (x > f.hi or (f.hi_open and x == f.hi)):
-        bad(f"must be {'<' if f.hi_open else '<='} {f.hi:g}")
+        bad(f"must be {'<' if f.hi_open else '<='} {_fmt(f.hi)}")
     return x
 
 
-def _unknown(src: str, where: str, key: str, valid) -> ConfigError:
+def _fmt(b) -> str:
+    """A bound as the user would type it (exact for integers, short for floats)."""
+    if isinstance(b, int) and not isinstance(b, bool):
+        return str(b)
+    return f"{b:g}"
+
+
+def _unknown(src: str, where: str, key, valid, value: Any = "...") -> ConfigError:
+    key = str(key)
     near = difflib.get_close_matches(key, list(valid), 1, 0.5)
     hint = f" (did you mean '{near[0]}'?)" if near else f"; valid keys: {', '.join(sorted(valid))}"
-    name = f"{where}.{key}" if where else key
-    return ConfigError(src, name, "...", f"unknown key{hint}")
+    shown = key if _BARE_KEY.fullmatch(key) else json.dumps(key)    # TOML's quoted-key form
+    name = f"{where}.{shown}" if where else shown
+    return ConfigError(src, name, value, f"unknown key{hint}")
 
 
 def _section(src, name, raw, schema, base_dir):
@@ -232,7 +257,7 @@ def _section(src, name, raw, schema, base_dir):
     out = {}
     for key in raw:
         if key not in schema:
-            raise _unknown(src, name, key, schema)
+            raise _unknown(src, name, key, schema, raw[key])
     for key, f in schema.items():
         v = raw.get(key, copy.deepcopy(f.default))
         if key not in raw and f.default is None and not f.none_ok:
@@ -248,7 +273,7 @@ def validate(raw: dict, source: str = "<config>", base_dir: str = ".") -> dict:
     valid_top = list(SCHEMA) + ["layer"]
     for key in raw:
         if key not in valid_top:
-            raise _unknown(source, "", key, valid_top)
+            raise _unknown(source, "", key, valid_top, raw[key])
     cfg = {name: _section(source, name, raw.get(name), schema, base_dir)
            for name, schema in SCHEMA.items()}
     layers = raw.get("layer")
@@ -266,9 +291,10 @@ def _cross_checks(src: str, cfg: dict) -> None:
     sp = cfg["spectrum"]
     if sp["stop_nm"] < sp["start_nm"]:
         raise ConfigError(src, "spectrum.stop_nm", sp["stop_nm"], "must be >= spectrum.start_nm")
-    nb = int(round((sp["stop_nm"] - sp["start_nm"]) / sp["step_nm"])) + 1
-    if nb > 512:
-        raise ConfigError(src, "spectrum.step_nm", sp["step_nm"], f"gives {nb} bands; at most 512")
+    nbf = (sp["stop_nm"] - sp["start_nm"]) / sp["step_nm"] + 1     # inf for a tiny step
+    if not nbf < 512.5:
+        nbs = f"{nbf:.0f}" if math.isfinite(nbf) else "too many"
+        raise ConfigError(src, "spectrum.step_nm", sp["step_nm"], f"gives {nbs} bands; at most 512")
     layers = cfg["layer"]
     for i, L in enumerate(layers[:-1]):
         if math.isinf(L["thickness_um"]):
@@ -304,6 +330,19 @@ def _cross_checks(src: str, cfg: dict) -> None:
     b = cfg["light"]["band_nm"]
     if b is not None and not (sp["start_nm"] - 1e-9 <= b <= sp["stop_nm"] + 1e-9):
         raise ConfigError(src, "light.band_nm", b, "outside the spectrum range")
+    if cfg["light"]["spectrum"] == "D65":
+        # colour's CIE D65 table covers 300-780 nm and silently holds its end values beyond
+        lo, hi = D65_RANGE_NM
+        last = sp["start_nm"] + sp["step_nm"] * (int(round((sp["stop_nm"] - sp["start_nm"])
+                                                           / sp["step_nm"])))
+        if sp["start_nm"] < lo - 1e-9:
+            raise ConfigError(src, "spectrum.start_nm", sp["start_nm"],
+                              f"outside the D65 light's data ({lo:g}-{hi:g} nm); "
+                              "use light.spectrum = 'flat' or start_nm >= 300")
+        if last > hi + 1e-9:
+            raise ConfigError(src, "spectrum.stop_nm", sp["stop_nm"],
+                              f"outside the D65 light's data ({lo:g}-{hi:g} nm; last band "
+                              f"{last:g} nm); use light.spectrum = 'flat' or stop_nm <= 780")
     if cfg["render"]["initial_photons"] > cfg["render"]["photons"]:
         raise ConfigError(src, "render.initial_photons", cfg["render"]["initial_photons"],
                           "must not exceed render.photons")
@@ -326,9 +365,11 @@ def load(path: str) -> dict:
 
 def override(cfg: dict, section: str, key: str, value: Any, source: str = "command line") -> dict:
     """Set one validated value (used by command-line flags)."""
+    if section not in SCHEMA:
+        raise _unknown(source, "", section, SCHEMA, value)
     schema = SCHEMA[section]
     if key not in schema:
-        raise _unknown(source, section, key, schema)
+        raise _unknown(source, section, key, schema, value)
     out = copy.deepcopy(cfg)
     out[section][key] = _check(source, f"{section}.{key}", value, schema[key], ".")
     _cross_checks(source, out)

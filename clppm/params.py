@@ -32,7 +32,7 @@ _FIELDS = [
     ("rr_threshold", "f4"),
     ("rr_m", "f4"),
     ("max_events", "i4"),
-    ("count", "u4"), ("pad1", "i4"), ("pad2", "i4"),
+    ("count", "u4"), ("rcone_cos", "f4"), ("pad2", "i4"),
 ]
 PARAMS_DTYPE = np.dtype(_FIELDS)
 assert PARAMS_DTYPE.itemsize == 4 * len(_FIELDS)
@@ -48,6 +48,7 @@ def new_params() -> np.ndarray:
     p["rr_m"] = 10.0
     p["max_events"] = 1_000_000
     p["store_zmin"] = -3.0e38
+    p["rcone_cos"] = 0.98
     return p
 
 

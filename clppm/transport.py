@@ -23,7 +23,10 @@ from .device import Device
 from .volume import Volume
 
 W0 = 2 ** 38
-CATEGORIES = ["specular", "diffuse", "transmitted", "lost", "rr_gain", "rr_loss", "missed"]
+CATEGORIES = ["specular", "diffuse", "transmitted", "lost", "rr_gain", "rr_loss", "missed",
+              "diffuse_cone"]
+NA = len(CATEGORIES)        # index of the first per-layer absorption tally
+BALANCE = [i for i, c in enumerate(CATEGORIES) if c != "diffuse_cone"]
 MAX_LAUNCH = 1 << 20          # photons per launch: tallies stay far below 2^63
 
 
@@ -146,8 +149,8 @@ class Tallies:
 
     def balance_error(self) -> float:
         """Exact bookkeeping: all categories minus roulette gains equals the emitted weight."""
-        n = len(CATEGORIES)
-        tot = sum(sum(self.counts[b][c] for c in range(n + self.nl)) for b in range(self.nb))
+        cats = BALANCE + list(range(NA, NA + self.nl))
+        tot = sum(sum(self.counts[b][c] for c in cats) for b in range(self.nb))
         gain = sum(self.counts[b][4] for b in range(self.nb))
         tot -= 2 * gain                             # gains were counted once in 'tot'
         return abs(tot - W0 * self.emitted) / (W0 * max(self.emitted, 1))
@@ -300,17 +303,18 @@ def trace_report(pp: PhotonPass, n_photons: int, batches: int = 10) -> dict:
     per_band = {}
     for b, wl in enumerate(pp.vol.wl):
         row = band_tot[b]
-        w = sum(int(v) for v in row) - 2 * int(row[4])
+        w = sum(int(row[c]) for c in BALANCE + list(range(NA, NA + nl))) - 2 * int(row[4])
         n_b = max(w / W0, 1e-300)
         per_band[f"{wl:g}"] = {
             "photons": round(n_b, 3),
             "specular": int(row[0]) / W0 / n_b, "Rd": int(row[1]) / W0 / n_b,
             "Tt": int(row[2]) / W0 / n_b,
-            "A": sum(int(row[7 + i]) for i in range(nl)) / W0 / n_b,
+            "A": sum(int(row[NA + i]) for i in range(nl)) / W0 / n_b,
+            "Rd_cone": int(row[7]) / W0 / n_b,
         }
-    A = float(mean[7:].sum())
-    A_se = float(np.sqrt((se[7:] ** 2).sum()))
-    total_bal = sum(int(t) for t in tot) - 2 * int(tot[4])
+    A = float(mean[NA:].sum())
+    A_se = float(np.sqrt((se[NA:] ** 2).sum()))
+    total_bal = sum(int(tot[c]) for c in BALANCE + list(range(NA, NA + nl))) - 2 * int(tot[4])
     return {
         "photons": n_photons,
         "specular": float(mean[0]), "specular_se": float(se[0]),
@@ -320,7 +324,9 @@ def trace_report(pp: PhotonPass, n_photons: int, batches: int = 10) -> dict:
         "lost": float(mean[3]), "missed": float(mean[6]),
         "roulette_net": float(mean[4] - mean[5]),
         "energy_balance_error": abs(total_bal - W0 * n_photons) / (W0 * n_photons),
-        "absorbed_per_layer": {n: float(v) for n, v in zip(pp.vol.names, mean[7:])},
+        "Rd_cone": float(mean[7]), "Rd_cone_se": float(se[7]),
+        "rcone_cos": float(pp.p["rcone_cos"][0]),
+        "absorbed_per_layer": {n: float(v) for n, v in zip(pp.vol.names, mean[NA:])},
         "per_band": per_band,
         "categories": dict(zip(names, map(float, mean))),
     }

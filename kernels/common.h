@@ -63,7 +63,8 @@ typedef struct {
     float rr_m;                 /* survive with probability 1/rr_m */
     int max_events;             /* safety bound on boundary + collision events per photon */
     uint count;                 /* work items in this launch (the rest return) */
-    int pad1, pad2;
+    float rcone_cos;            /* exits with cos(theta) above this also go to the cone tally */
+    int pad2;
 } Params;
 
 /* Interface k: (z if flat, zmin, zmax, var index as float; -1 = flat). */
@@ -166,6 +167,19 @@ inline float iface_z(__constant const float4* iface, __global const float* heigh
 #else
     int v = IF_VAR(k);
     return v < 0 ? IF_Z(k) : heights[(size_t)v * (size_t)(P->nx * P->ny) + (size_t)col];
+#endif
+}
+
+/* Height of the skin surface above position p (its column's top). */
+inline float surface_at(__constant const Params* P, __constant const float4* iface,
+                        __global const float* heights, float3 p) {
+#ifdef FLAT
+    return IF_Z(0);
+#else
+    if (IF_VAR(0) < 0) return IF_Z(0);
+    int ix = clamp((int)floor((p.x - P->x0) / P->dx), 0, P->nx - 1);
+    int iy = clamp((int)floor((p.y - P->y0) / P->dy), 0, P->ny - 1);
+    return iface_z(iface, heights, P, 0, col_index(P, ix, iy));
 #endif
 }
 

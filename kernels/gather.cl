@@ -12,6 +12,11 @@
  * spectral accumulator.  The per-point state is just R and N.  (The global-radius variant of
  * Knaus & Zwicker 2011 scales every R by the same schedule and averages per-pass estimates.)
  *
+ * Boundary: a sphere around a point less than R below the skin surface reaches into air, where
+ * no photon can be.  With BOUNDARY_CLIP the density is taken over the part of the sphere inside
+ * the skin (the sphere minus the cap above the local surface plane), which removes the
+ * first-order bias of the estimate near the surface; without it (the paper) V = 4/3 pi R^3.
+ *
  * Determinism: F is summed in 64-bit fixed point (order-independent: photons inside a grid
  * cell come in arbitrary order), the per-pixel float sums run in a fixed order, and the pixel
  * accumulators are doubles added once per pass.  The same photons give the same bits.
@@ -34,8 +39,10 @@ __kernel void gather(const GridParams gp,
                      __global const float4* pt_dir,         /* toward the eye, layer */
                      __global const uint* pt_piece,         /* [npts+1] */
                      __global const float2* pieces,         /* length (um), layer */
+                     __global const float* pt_surf,         /* surface height above the point */
                      __global float* pt_R,
                      __global float* pt_N,
+                     __global uint* pt_M,                   /* photons found in this pass */
                      __global double* pix_acc,              /* [npix*NB] */
                      __global ulong* pix_pairs,             /* [npix] photon-point pairs found */
                      const int npix, const int spp,
@@ -81,7 +88,15 @@ __kernel void gather(const GridParams gp,
             }
             /* path weight integral of T over the point's interval, per band */
             const uint k0 = pt_piece[i], k1 = pt_piece[i + 1];
-            const float f = (R > 0.0f) ? pp.w / (4.0f / 3.0f * PI_F * R * R * R) * INV_FIX : 0.0f;
+            float V = 4.0f / 3.0f * PI_F * R * R * R;
+#ifdef BOUNDARY_CLIP
+            {
+                const float hc = R - (pt_surf[i] - x.z);      /* height of the cap above the surface */
+                if (hc > 0.0f) V -= PI_F * hc * hc * (3.0f * R - fmin(hc, 2.0f * R)) / 3.0f;
+                V = fmax(V, 1e-3f * 4.0f / 3.0f * PI_F * R * R * R);
+            }
+#endif
+            const float f = (R > 0.0f) ? pp.w / V * INV_FIX : 0.0f;
             for (int b = 0; b < NB; ++b) {
                 float Tb = T[b], Wb = 0.0f;
                 for (uint k = k0; k < k1; ++k) {
@@ -103,6 +118,7 @@ __kernel void gather(const GridParams gp,
                 pt_N[i] = Nn;
                 pt_R[i] = R * cbrt(Nn / (N + (float)M));
             }
+            pt_M[i] = M;
             pairs += M;
         }
     }

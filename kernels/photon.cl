@@ -15,7 +15,9 @@
 #define W0L ((long)274877906944L)
 
 /* tally categories (per band); NC = T_ABS0 + NL */
-enum { T_SPEC = 0, T_RD, T_TT, T_LOST, T_RRGAIN, T_RRLOSS, T_MISS, T_ABS0 };
+/* T_RCONE: the part of T_RD leaving within the cone cos(theta) > rcone_cos around the normal
+ * (not a separate fate: it is excluded from the energy balance) */
+enum { T_SPEC = 0, T_RD, T_TT, T_LOST, T_RRGAIN, T_RRLOSS, T_MISS, T_RCONE, T_ABS0 };
 #define NC (T_ABS0 + NL)
 
 inline int sample_band(__global const float* cdf, float u) {
@@ -88,7 +90,7 @@ __kernel void photon_pass(VOLUME_ARGS,
     }
 
     long W = W0L;
-    long spec = 0, rd = 0, tt = 0, lost = 0, gain = 0, loss = 0;
+    long spec = 0, rd = 0, tt = 0, lost = 0, gain = 0, loss = 0, rcone = 0;
     long absorbed[NL];
     for (int i = 0; i < NL; ++i) absorbed[i] = 0;
 
@@ -166,7 +168,7 @@ __kernel void photon_pass(VOLUME_ARGS,
             float3 sn2 = gn2;
             if (L2 < 0) sn2 = relief_normal(P, normals, col_index(P, t.ix, t.iy));
             if (fresnel_cross(&t.dir, gn2, sn2, n1, n2, rng_u01(&rng))) {
-                if (L2 < 0) { rd += W; W = 0; break; }
+                if (L2 < 0) { rd += W; if (t.dir.z > P->rcone_cos) rcone += W; W = 0; break; }
                 if (L2 >= NL) { tt += W; W = 0; break; }
                 t.L = L2;
             }
@@ -208,6 +210,7 @@ __kernel void photon_pass(VOLUME_ARGS,
     if (lost) atom_add(tal + T_LOST, lost);
     if (gain) atom_add(tal + T_RRGAIN, gain);
     if (loss) atom_add(tal + T_RRLOSS, loss);
+    if (rcone) atom_add(tal + T_RCONE, rcone);
     for (int i = 0; i < NL; ++i)
         if (absorbed[i]) atom_add(tal + T_ABS0 + i, absorbed[i]);
 }

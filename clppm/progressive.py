@@ -128,7 +128,7 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
            spacing=None, spp=None, device: str | None = None, out: str | None = None,
            progress: bool = False, resume: str | None = None, checkpoint_path: str | None = None,
            snapshot_every: int = 0, on_snapshot=None, dev: Device | None = None,
-           source: str = "<config>", stop_after: int | None = None) -> RenderResult:
+           source: str = "<config>", stop_after: int | None = None, on_pass=None) -> RenderResult:
     """Render ``cfg``; return the image and the run report.  See ``clppm render --help``."""
     t_start = time.perf_counter()
     cfg = apply_overrides(cfg, method, passes, photons, resolution, seed, spacing, spp)
@@ -166,7 +166,7 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     check_alloc(dev, needs)
 
     pp = transport.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf)
-    prg = dev.build("gather.cl", transport.defines(vol))
+    prg = dev.build("gather.cl", {**transport.defines(vol), "BOUNDARY_CLIP": rc["boundary"] == "clip"})
     k_gather = cl.Kernel(prg, "gather")
     k_init = cl.Kernel(prg, "init_radius")
     mf = cl.mem_flags
@@ -174,6 +174,7 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     npts = eye.npoints
     pt_R = cla.zeros(q, max(npts, 1), np.float32)
     pt_N = cla.zeros(q, max(npts, 1), np.float32)
+    pt_M = cla.zeros(q, max(npts, 1), np.uint32)
     pix_acc = cla.zeros(q, npix * nb, np.float64)
     pix_pairs = cla.zeros(q, npix, np.uint64)
     gbufs = hashgrid.GridBuffers(dev)
@@ -261,14 +262,16 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
                 pass_scale = 1.0 / max(info["emitted"], 1) if global_radius else 1.0
                 k_gather(q, (_round(npix),), (64,), grid.params, grid.cell_start.data, grid.spos_w.data,
                          grid.sdir_b.data, hgtab, vbuf.optics, eye.ray_start.data, eye.pt_pos.data,
-                         eye.pt_dir.data, eye.pt_piece.data, eye.pieces.data, pt_R.data, pt_N.data,
-                         pix_acc.data, pix_pairs.data, np.int32(npix), np.int32(cam.spp),
+                         eye.pt_dir.data, eye.pt_piece.data, eye.pieces.data, eye.pt_surf.data,
+                         pt_R.data, pt_N.data, pt_M.data, pix_acc.data, pix_pairs.data, np.int32(npix), np.int32(cam.spp),
                          np.float32(alpha), np.int32(global_radius), np.float32(rf),
                          np.float64(pass_scale))
                 if pairs_before is not None:
                     stats["first_search_mean"] = float((pix_pairs.get().sum() - pairs_before) / npts)
             q.finish()
             timing["gather"] += time.perf_counter() - t0
+            if on_pass is not None:
+                on_pass(p, {"pt_R": pt_R, "pt_N": pt_N, "pt_M": pt_M, "emitted": info["emitted"]})
             p += 1
             if bar is not None:
                 bar.update(1)

@@ -1,0 +1,194 @@
+"""Command line: clppm devices | trace | render | samples | compare | reflectance | fit.
+
+Every command takes ``--device`` (else ``PYOPENCL_CTX``, else the first GPU, else the
+first device).  Bad input ends with one line naming the file, key and value (exit 2);
+device problems with the device name and what to do (exit 3).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+from .config import ConfigError
+
+
+def _res(s: str):
+    try:
+        w, h = s.lower().split("x")
+        return int(w), int(h)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--resolution {s!r}: expected WxH, e.g. 320x240") from None
+
+
+def _add_device(p):
+    p.add_argument("--device", default=None,
+                   help="OpenCL device: 'P:D' as `clppm devices` lists, or part of its name")
+
+
+def cmd_devices(a) -> int:
+    from .device import describe, list_devices, NO_PLATFORM_HELP
+    devs = list_devices()
+    if not devs:
+        print(NO_PLATFORM_HELP, file=sys.stderr)
+        return 3
+    for ip, idev, plat, dev in devs:
+        d = describe(dev)
+        print(f"{ip}:{idev}  {d['name']}  [{d['platform']}; {d['type']}; {d['compute_units']} CUs; "
+              f"{d['global_mem_bytes'] / 2**30:.1f} GiB, max alloc {d['max_alloc_bytes'] / 2**30:.1f} GiB; "
+              f"fp64 {'yes' if d['fp64'] else 'no'}; int64 atomics {'yes' if d['int64_atomics'] else 'no'}]")
+    return 0
+
+
+def _load(path):
+    from . import config
+    return config.load(path)
+
+
+def cmd_trace(a) -> int:
+    from . import config, device, transport, volume
+    if (a.config is None) == (a.slab is None):
+        raise ConfigError("clppm trace", "CONFIG/--slab", None, "give a config file or --slab, not both")
+    if a.slab is not None:
+        cfg = config.slab_config(a.slab)
+        src = "--slab"
+    else:
+        cfg = _load(a.config)
+        src = os.path.basename(a.config)
+    if a.seed is not None:
+        cfg = config.override(cfg, "render", "seed", a.seed)
+    if a.photons <= 0:
+        raise ConfigError("command line", "--photons", a.photons, "must be > 0")
+    vol = volume.build(cfg, src)
+    dev = device.open_device(a.device)
+    pp = transport.PhotonPass(dev, vol, cfg)
+    rep = transport.trace_report(pp, a.photons, batches=min(a.batches, a.photons))
+    rep["device"] = dev.name
+    rep["seed"] = cfg["render"]["seed"]
+    print(f"{src}: {a.photons} photons on {dev.name} (seed {rep['seed']})")
+    for k in ("specular", "Rd", "Tt", "A"):
+        print(f"  {k:9s} {rep[k]:.6f} ± {rep[k + '_se']:.6f}")
+    print(f"  lost {rep['lost']:.6f}  missed {rep['missed']:.6f}  roulette net {rep['roulette_net']:+.2e}"
+          f"  energy balance error {rep['energy_balance_error']:.1e}")
+    if len(vol.wl) > 1 and a.bands:
+        print("  band    Rd       Tt       A")
+        for wl, r in rep["per_band"].items():
+            print(f"  {wl:>5s}  {r['Rd']:.4f}  {r['Tt']:.4f}  {r['A']:.4f}")
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(rep, f, indent=1)
+    return 0
+
+
+def cmd_render(a) -> int:
+    from . import progressive as render
+    cfg = _load(a.config)
+    res = render.render(cfg, method=a.method, passes=a.passes, photons=a.photons,
+                        resolution=a.resolution, seed=a.seed, spacing=a.spacing, device=a.device,
+                        out=a.output, progress=not a.quiet, resume=a.resume,
+                        source=os.path.basename(a.config))
+    r = res.report
+    print(f"wrote {a.output} (+ .png, .json): method {r['scheme']}, {r['passes_done']} passes"
+          f"{' (interrupted: resume with --resume ' + render.ckpt.default_path(a.output) + ')' if r['interrupted'] else ''}, "
+          f"{r['photons_emitted']} photons emitted, {r['sample_points']} sample points, "
+          f"{r['seconds']['total']:.1f} s on {r['device']['name']}")
+    return 0
+
+
+def cmd_samples(a) -> int:
+    from . import device, eyepass, transport, volume
+    from . import progressive as render
+    from .skin import PAPER_TABLE1
+    cfg = render.apply_overrides(_load(a.config), method=a.method, spacing=a.spacing,
+                                 resolution=a.resolution)
+    vol = volume.build(cfg, os.path.basename(a.config))
+    dev = device.open_device(a.device)
+    vb = transport.upload_volume(dev, vol)
+    sch = eyepass.scheme(cfg["render"]["method"], cfg["render"]["spacing_um"])
+    ed = eyepass.run(dev, vol, vb, cfg, sch)
+    pl = ed.per_layer(vol.nl)
+    out = {"method": sch.method, "scheme": sch.label(), "threshold": cfg["render"]["threshold"],
+           "rays_hit": int(ed.ray_hit.sum()), "sample_points": ed.npoints,
+           "per_layer": {n: float(v) for n, v in zip(vol.names, pl)}}
+    ref = PAPER_TABLE1.get(sch.method) if a.spacing is None else None
+    print(f"{sch.label()}: mean sample points per eye ray ({out['rays_hit']} rays on the skin)")
+    for n, v in zip(vol.names, pl):
+        pv = ref.get(n) if ref else None
+        extra = f"   paper {pv:6.2f}  ({100 * (v / pv - 1):+.0f} %)" if pv else ""
+        print(f"  {n:24s} {v:7.2f}{extra}")
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(out, f, indent=1)
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="clppm", description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("devices", help="list OpenCL platforms and devices")
+    _add_device(p)
+    p.set_defaults(func=cmd_devices)
+
+    p = sub.add_parser("trace", help="photon pass tallies (Rd, Tt, A, specular) of a config or slab")
+    p.add_argument("config", nargs="?")
+    p.add_argument("--slab", help="homogeneous slab: mua=10,mus=90,g=0.75,n=1.0,d=0.02 (cm^-1, cm)")
+    p.add_argument("--photons", type=int, default=1_000_000)
+    p.add_argument("--batches", type=int, default=10, help="batches for the standard errors")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--bands", action="store_true", help="print the per-band table")
+    p.add_argument("--json")
+    _add_device(p)
+    p.set_defaults(func=cmd_trace)
+
+    p = sub.add_parser("render", help="progressive photon mapping render")
+    p.add_argument("config")
+    p.add_argument("--method", choices=list("abcdef"))
+    p.add_argument("--spacing", type=float, help="equal spacing in um (any value)")
+    p.add_argument("--passes", type=int)
+    p.add_argument("--photons", type=int, help="stored photons per pass")
+    p.add_argument("--resolution", type=_res)
+    p.add_argument("--seed", type=int)
+    p.add_argument("--resume", help="continue from a checkpoint (.ckpt.npz)")
+    p.add_argument("-o", "--output", default="out/render.exr")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_device(p)
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("samples", help="mean sample points per eye ray per layer (Table 1)")
+    p.add_argument("config")
+    p.add_argument("--method", choices=list("abcdef"))
+    p.add_argument("--spacing", type=float)
+    p.add_argument("--resolution", type=_res)
+    p.add_argument("--json")
+    _add_device(p)
+    p.set_defaults(func=cmd_samples)
+
+    for extra in ("compare", "reflectance", "fit"):
+        try:
+            mod = __import__(f"clppm.{extra}", fromlist=["add_parser"])
+        except ImportError:
+            continue
+        mod.add_parser(sub, _add_device)
+
+    a = ap.parse_args(argv)
+    from .checkpoint import CheckpointError
+    from .device import DeviceError
+    try:
+        return a.func(a)
+    except ConfigError as e:
+        print(f"clppm: error: {e}", file=sys.stderr)
+        return 2
+    except CheckpointError as e:
+        print(f"clppm: error: {e}", file=sys.stderr)
+        return 2
+    except DeviceError as e:
+        print(f"clppm: device error: {e}", file=sys.stderr)
+        return 3
+    except KeyboardInterrupt:
+        print("clppm: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,69 @@
+/* Test wrappers around the shared device functions of common.h, so that the tests check the
+ * very code the photon and eye passes run (tests/test_optics_kernels.py).
+ * Build with NB = NL = 1 (common.h requires them; nothing here uses them).
+ * Directions travel as float4 (xyz, w unused) to avoid float3 buffer layout questions. */
+#include "common.h"
+
+/* n cosines of the HG scattering angle, uniforms from the device RNG (Philox, domain 7). */
+__kernel void t_hg_sample(float g, uint seed, uint n, __global float* out) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    Rng rng;
+    rng_init(&rng, i, 0u, 7u, seed, 0u);
+    out[i] = hg_sample_cos(g, rng_u01(&rng));
+}
+
+/* hg_sample_cos at given uniforms u (host-chosen, e.g. the ends of (0, 1]). */
+__kernel void t_hg_sample_u(float g, __global const float* u, uint n, __global float* out) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    out[i] = hg_sample_cos(g, u[i]);
+}
+
+/* Full scattering event as photon.cl does it: new direction from d_in, HG cosine and a uniform
+ * azimuth, both drawn on the device. */
+__kernel void t_scatter(float g, uint seed, uint n, __global const float4* d_in,
+                        __global float4* d_out) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    Rng rng;
+    rng_init(&rng, i, 0u, 8u, seed, 0u);
+    const float4 d = d_in[i];
+    const float ct = hg_sample_cos(g, rng_u01(&rng));
+    const float3 o = rotate_dir(d.xyz, ct, 2.0f * PI_F * rng_u01(&rng));
+    d_out[i] = (float4)(o, ct);     /* w: the sampled cosine */
+}
+
+/* rotate_dir with host-given direction, polar cosine and azimuth. */
+__kernel void t_rotate(uint n, __global const float4* d_in, __global const float* ct,
+                       __global const float* phi, __global float4* d_out) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    const float3 o = rotate_dir(d_in[i].xyz, ct[i], phi[i]);
+    d_out[i] = (float4)(o, 0.0f);
+}
+
+__kernel void t_hg_eval(float g, uint n, __global const float* cos_t, __global float* out) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    out[i] = hg_eval(g, cos_t[i]);
+}
+
+/* Fresnel reflectance and transmitted cosine from n1 into n2. */
+__kernel void t_fresnel(float n1, float n2, uint n, __global const float* cos_i,
+                        __global float* R, __global float* cos_t) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    float ct;
+    R[i] = fresnel_R(n1, n2, cos_i[i], &ct);
+    cos_t[i] = ct;
+}
+
+/* Raw uniforms of the device RNG (stream i, domain 9), m per stream. */
+__kernel void t_u01(uint seed, uint n, uint m, __global float* out) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    Rng rng;
+    rng_init(&rng, i, 0u, 9u, seed, 0u);
+    for (uint j = 0; j < m; ++j) out[(size_t)i * m + j] = rng_u01(&rng);
+}
