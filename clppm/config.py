@@ -240,12 +240,16 @@ def _fmt(b) -> str:
     return f"{b:g}"
 
 
+def _show_key(key: str) -> str:
+    """A key as TOML would spell it: bare if it can be, else quoted (one line, visible)."""
+    return key if _BARE_KEY.fullmatch(key) else json.dumps(key)
+
+
 def _unknown(src: str, where: str, key, valid, value: Any = "...") -> ConfigError:
     key = str(key)
     near = difflib.get_close_matches(key, list(valid), 1, 0.5)
     hint = f" (did you mean '{near[0]}'?)" if near else f"; valid keys: {', '.join(sorted(valid))}"
-    shown = key if _BARE_KEY.fullmatch(key) else json.dumps(key)    # TOML's quoted-key form
-    name = f"{where}.{shown}" if where else shown
+    name = f"{where}.{_show_key(key)}" if where else _show_key(key)
     return ConfigError(src, name, value, f"unknown key{hint}")
 
 
@@ -393,12 +397,12 @@ def slab_config(spec: str, source: str = "--slab") -> dict:
     allowed = ("mua", "mus", "g", "n", "d")
     for item in filter(None, (s.strip() for s in spec.split(","))):
         if "=" not in item:
-            raise ConfigError(source, item, item, "expected key=value")
+            raise ConfigError(source, _show_key(item), item, "expected key=value")
         k, v = (s.strip() for s in item.split("=", 1))
         if k not in allowed:
             near = difflib.get_close_matches(k, allowed, 1)
-            raise ConfigError(source, k, v, "unknown key" + (f" (did you mean '{near[0]}'?)" if near
-                                                            else f"; valid: {', '.join(allowed)}"))
+            raise ConfigError(source, _show_key(k), v, "unknown key" + (
+                f" (did you mean '{near[0]}'?)" if near else f"; valid: {', '.join(allowed)}"))
         try:
             vals[k] = float(v)
         except ValueError:

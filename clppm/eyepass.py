@@ -123,6 +123,7 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
         sch: Scheme | None = None, max_points: int = 1 << 16) -> EyeData:
     import pyopencl as cl
     import pyopencl.array as cla
+    import pyopencl.cltypes as cltypes
     from pyopencl.scan import ExclusiveScanKernel
 
     rc = cfg["render"]
@@ -175,10 +176,10 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     scan = _scan_kernel(ctx)
     scan(npts_a)            # in place: exclusive prefix sums, entry nrays = total
     scan(npcs_a)
-    pt_pos = cla.empty(q, max(npoints, 1), cla.vec.float4)
-    pt_dir = cla.empty(q, max(npoints, 1), cla.vec.float4)
+    pt_pos = cla.empty(q, max(npoints, 1), cltypes.float4)
+    pt_dir = cla.empty(q, max(npoints, 1), cltypes.float4)
     pt_piece = cla.empty(q, npoints + 1, np.uint32)
-    pieces = cla.empty(q, max(npieces, 1), cla.vec.float2)
+    pieces = cla.empty(q, max(npieces, 1), cltypes.float2)
     ray_spec = cla.empty(q, nrays, np.float32)
     ray_hit = cla.empty(q, nrays, np.float32)
     pt_surf = cla.empty(q, max(npoints, 1), np.float32)
@@ -186,8 +187,8 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
         npts_a.data, npcs_a.data, pt_pos.data, pt_dir.data, pt_piece.data, pieces.data,
         ray_spec.data, ray_hit.data, pt_surf.data)
     cl.enqueue_copy(q, pt_piece.data, np.array([npieces], np.uint32), dst_offset=4 * npoints)
-    pos = pt_pos.get()[:npoints] if npoints else np.zeros(0, cla.vec.float4)
-    dirs = pt_dir.get()[:npoints] if npoints else np.zeros(0, cla.vec.float4)
+    pos = pt_pos.get()[:npoints] if npoints else np.zeros(0, cltypes.float4)
+    dirs = pt_dir.get()[:npoints] if npoints else np.zeros(0, cltypes.float4)
     return EyeData(camera=cam, scheme=sch, nrays=nrays, npoints=npoints, npieces=npieces,
                    ray_start=npts_a, pt_pos=pt_pos, pt_dir=pt_dir, pt_piece=pt_piece,
                    pieces=pieces, ray_spec=ray_spec.get(), ray_hit=ray_hit.get(), pt_surf=pt_surf,

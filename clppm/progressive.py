@@ -169,6 +169,7 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     prg = dev.build("gather.cl", {**transport.defines(vol), "BOUNDARY_CLIP": rc["boundary"] == "clip"})
     k_gather = cl.Kernel(prg, "gather")
     k_init = cl.Kernel(prg, "init_radius")
+    k_count = cl.Kernel(prg, "count_within")
     mf = cl.mem_flags
     hgtab = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hg_table(vol))
     npts = eye.npoints
@@ -243,6 +244,20 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
                     k_init(q, (_round(npts),), (64,), grid.params, grid.cell_start.data, eye.pt_pos.data,
                            pt_R.data, np.uint32(npts), np.float32(K), np.float32(r_guess),
                            np.float32(rmax), np.int32(4))
+                    h = hashgrid.choose_cell_size(pt_R.get(), lo, hi)
+                    grid = hashgrid.build(dev, pp.pos_w, pp.dir_b, n, lo, hi, h, buffers=gbufs)
+                    # calibrate: exact counts on a subsample, one global scale so the mean is K
+                    stride = max(1, npts // 20000)
+                    ns = (npts + stride - 1) // stride
+                    cnt = cla.zeros(q, ns, np.uint32)
+                    for _ in range(2):
+                        k_count(q, (_round(ns),), (64,), grid.params, grid.cell_start.data,
+                                grid.spos_w.data, eye.pt_pos.data, pt_R.data, np.uint32(npts),
+                                np.uint32(stride), cnt.data)
+                        mean_m = float(cnt.get().mean())
+                        if mean_m <= 0:
+                            break
+                        pt_R *= np.float32(min(max((K / mean_m) ** (1 / 3), 0.5), 2.0))
                     radii = pt_R.get()
                     rmax = float(radii.max())
                     h = hashgrid.choose_cell_size(radii, lo, hi)

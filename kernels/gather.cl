@@ -160,3 +160,26 @@ __kernel void init_radius(const GridParams gp,
     }
     pt_R[i] = R;
 }
+
+/* Exact photon count within R for every stride-th point (calibrates the initial radius). */
+__kernel void count_within(const GridParams gp,
+                           __global const uint* cell_start,
+                           __global const float4* spos_w,
+                           __global const float4* pt_pos,
+                           __global const float* pt_R,
+                           const uint npts, const uint stride,
+                           __global uint* out)
+{
+    const uint k = get_global_id(0);
+    const uint i = k * stride;
+    if (i >= npts) return;
+    const float3 x = pt_pos[i].xyz;
+    const float R = pt_R[i];
+    const float R2 = R * R;
+    uint M = 0;
+    GRID_FOR_EACH_ROW(gp, cell_start, x, R, jb, je) {
+        for (uint j = jb; j < je; ++j)
+            if (grid_within(spos_w[j].xyz, x, R2)) ++M;
+    } GRID_END_ROWS
+    out[k] = M;
+}

@@ -1,0 +1,502 @@
+"""Spectral reflectance R(λ) as an integrating-sphere spectrophotometer measures it.
+
+Photon-pass reflectance (:func:`spectral_reflectance`).  A collimated beam falls on the model
+at ``angle_deg`` from the normal (8° as in 8°/hemispherical spectrophotometers, or 0°), and
+the photon pass counts what leaves the top surface: every band is traced with the band fixed
+(the same photon ids, so the same random numbers, in every band and every call with the same
+seed), with exact integer tallies and a standard error from batch means.  With the specular
+component included (SCI, the default) R = first-surface Fresnel reflection + diffuse
+reflectance Rd; excluded (SCE) R = Rd.  Geometry:
+
+* flat model (no relief, no papillae): ``model.lateral = "infinite"`` and a pencil beam -- an
+  infinitely wide sample under an infinitely large sphere port, which for a laterally
+  uniform slab stack is the same as any beam size;
+* a model with relief or papillae: ``model.lateral = "periodic"`` and a wide beam over the
+  whole model (or a centred square spot of ``spot_mm``), so no light leaves at the sides and
+  every part of the relief is lit equally;
+* ``port_mm`` (flat models): a square sample port of that side; the model is cut to the port
+  and made laterally open, so light crossing the side of the tissue under the port is lost.
+  This bounds the reflectance a finite port collects from below (some of that light would
+  come back up inside the port);
+* SCE with relief: the first-surface reflection is removed whole (a sphere's specular trap
+  only removes the mirror direction, so this over-removes a little on rough surfaces).
+
+Reflectance from rendered images (:func:`method_reflectance`): render with each sampling
+scheme a-f under the configured light and camera, divide the spectral radiance of an image
+region by the radiance of a white Lambertian plane under the same light
+(:func:`clppm.progressive.white_reference`, evaluated per pixel), per band, and set it next to
+the photon-pass value at the same angle of incidence.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import config as C
+from .config import ConfigError
+
+DEFAULT_ANGLE = 8.0
+
+
+# ----------------------------------------------------------------------------- geometry
+def is_flat(cfg: dict) -> bool:
+    return cfg["relief"]["kind"] == "flat" and cfg["papillae"]["amplitude_um"] <= 0
+
+
+def flat_version(cfg: dict, source: str = "<config>") -> dict:
+    """The same layers with relief and papillae off and the sides infinite."""
+    raw = copy.deepcopy(cfg)
+    raw["relief"]["kind"] = "flat"
+    raw["papillae"]["amplitude_um"] = 0.0
+    raw["model"]["lateral"] = "infinite"
+    return C.validate(raw, source)
+
+
+def beam_direction(angle_deg: float) -> list[float]:
+    t = math.radians(angle_deg)
+    return [math.sin(t), 0.0, -math.cos(t)]
+
+
+def measurement_config(cfg: dict, angle_deg: float = DEFAULT_ANGLE, direction=None,
+                       spot_mm: float | None = None, port_mm: float | None = None,
+                       bands: tuple[float, float, float] | None = None, flat: bool = False,
+                       seed: int | None = None, source: str = "<config>") -> dict:
+    """The config the photon pass traces for R(λ): light, sides and bands set as described
+    in the module docstring.  ``direction`` (a downward vector) overrides ``angle_deg``;
+    ``bands`` = (start, stop, step) nm overrides the spectrum grid."""
+    if direction is None:
+        if not (0.0 <= float(angle_deg) <= 85.0):
+            raise ConfigError(source, "--angle", angle_deg, "must be in 0..85 degrees")
+        direction = beam_direction(float(angle_deg))
+    d = np.asarray(direction, float)
+    d = d / np.linalg.norm(d)
+    if d[2] >= -1e-6:
+        raise ConfigError(source, "direction", list(direction), "the beam must point down")
+    raw = copy.deepcopy(cfg)
+    if flat:
+        raw["relief"]["kind"] = "flat"
+        raw["papillae"]["amplitude_um"] = 0.0
+    varying = not is_flat(raw)
+    size = list(map(float, raw["model"]["size_mm"]))
+    L = raw["light"]
+    L.update(spectrum="flat", band_nm=None, power_w=1.0, direction=[float(x) for x in d])
+    if spot_mm is not None and not spot_mm > 0:
+        raise ConfigError(source, "--spot-mm", spot_mm, "must be > 0")
+    if port_mm is not None:
+        if not port_mm > 0:
+            raise ConfigError(source, "--port-mm", port_mm, "must be > 0")
+        if varying:
+            raise ConfigError(source, "--port-mm", port_mm,
+                              "a port needs a flat model (relief and papillae off; add --flat)")
+        if spot_mm is not None and spot_mm > port_mm:
+            raise ConfigError(source, "--spot-mm", spot_mm, f"must not exceed the port ({port_mm:g} mm)")
+        raw["model"]["size_mm"] = [float(port_mm), float(port_mm)]
+        raw["model"]["lateral"] = "open"
+        c = [port_mm / 2.0, port_mm / 2.0]
+        if spot_mm is None:
+            L.update(kind="pencil", center_mm=c)
+        else:
+            L.update(kind="wide", center_mm=c, width_mm=[float(spot_mm)] * 2)
+    elif varying:
+        raw["model"]["lateral"] = "periodic"
+        w = [float(spot_mm)] * 2 if spot_mm is not None else size
+        L.update(kind="wide", center_mm=[size[0] / 2.0, size[1] / 2.0], width_mm=w)
+    else:
+        raw["model"]["lateral"] = "infinite"
+        L.update(kind="pencil", center_mm=[size[0] / 2.0, size[1] / 2.0])
+    if bands is not None:
+        a, b, s = map(float, bands)
+        raw["spectrum"].update(start_nm=a, stop_nm=b, step_nm=s)
+    if seed is not None:
+        raw["render"]["seed"] = int(seed)
+    return C.validate(raw, source)
+
+
+def geometry_note(mcfg: dict, angle_deg: float, specular: bool) -> str:
+    m, L = mcfg["model"], mcfg["light"]
+    if m["lateral"] == "periodic":
+        beam = (f"wide beam {L['width_mm'][0]:g} x {L['width_mm'][1]:g} mm over a periodic "
+                f"{m['size_mm'][0]:g} x {m['size_mm'][1]:g} mm model (relief/papillae kept; no side loss)")
+    elif m["lateral"] == "open":
+        beam = (f"{'pencil beam' if L['kind'] == 'pencil' else 'spot %g mm' % L['width_mm'][0]} "
+                f"at the centre of a {m['size_mm'][0]:g} mm square port (light leaving the tissue "
+                f"below the port sideways is lost: a lower bound)")
+    else:
+        beam = "pencil beam on a laterally infinite flat model"
+    return (f"collimated {angle_deg:.3g}° incidence, {beam}, specular "
+            f"{'included (SCI)' if specular else 'excluded (SCE)'}")
+
+
+# ----------------------------------------------------------------------------- photon pass
+@dataclass
+class Reflectance:
+    """R(λ) from the photon pass; fractions of the incident power per band."""
+
+    wl: np.ndarray
+    R: np.ndarray               # the measured quantity: specular + Rd (SCI) or Rd (SCE)
+    se: np.ndarray              # standard error of R (batch means)
+    Rd: np.ndarray
+    Rd_se: np.ndarray
+    specular: np.ndarray
+    Tt: np.ndarray
+    A: np.ndarray
+    lost: np.ndarray
+    photons: int                # per band
+    specular_included: bool
+    angle_deg: float
+    geometry: str
+    seed: int
+    seconds: float = 0.0
+    balance_error: float = 0.0
+    device: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def at(self, nm: float) -> float:
+        return float(np.interp(nm, self.wl, self.R))
+
+    def to_dict(self) -> dict:
+        return {
+            "quantity": ("total reflectance incl. specular (SCI)" if self.specular_included
+                         else "diffuse reflectance excl. specular (SCE)"),
+            "geometry": self.geometry, "angle_deg": self.angle_deg,
+            "photons_per_band": self.photons, "seed": self.seed, "device": self.device,
+            "seconds": self.seconds, "energy_balance_error": self.balance_error,
+            "wavelength_nm": self.wl.tolist(), "R": self.R.tolist(), "R_se": self.se.tolist(),
+            "Rd": self.Rd.tolist(), "Rd_se": self.Rd_se.tolist(),
+            "specular": self.specular.tolist(), "Tt": self.Tt.tolist(), "A": self.A.tolist(),
+            "lost": self.lost.tolist(), **self.extra,
+        }
+
+
+def trace_bands(dev, vol, mcfg: dict, photons: int, batches: int = 10,
+                specular: bool = True) -> dict:
+    """Trace ``photons`` per band with the band fixed; fractions and batch standard errors."""
+    from . import transport
+    if photons < 2:
+        raise ConfigError("command line", "--photons", photons, "must be >= 2")
+    batches = max(2, min(int(batches), int(photons)))
+    pp = transport.PhotonPass(dev, vol, mcfg)
+    nb, nl = vol.nb, vol.nl
+    sizes = np.array([photons // batches + (1 if i < photons % batches else 0) for i in range(batches)],
+                     float)
+    out = {k: np.zeros(nb) for k in ("R", "se", "Rd", "Rd_se", "specular", "Tt", "A", "lost", "missed")}
+    bal = 0.0
+    W0 = transport.W0
+    for b in range(nb):
+        pp.p["fixed_band"] = b
+        pp.band = b
+        arrs = pp.trace(int(photons), batches=batches)
+        rows = np.array([a[b] for a in arrs], dtype=np.float64)           # (batches, nc)
+        tot = [sum(int(a[b][c]) for a in arrs) for c in range(rows.shape[1])]
+        n = float(photons) * W0
+        spec, rd = tot[0] / n, tot[1] / n
+        out["specular"][b], out["Rd"][b] = spec, rd
+        out["Tt"][b], out["lost"][b] = tot[2] / n, tot[3] / n
+        out["missed"][b] = tot[6] / n
+        out["A"][b] = sum(tot[7:7 + nl]) / n
+        fr = rows / (sizes[:, None] * W0)
+        r_b = fr[:, 0] + fr[:, 1] if specular else fr[:, 1]
+        out["R"][b] = spec + rd if specular else rd
+        out["se"][b] = r_b.std(ddof=1) / math.sqrt(batches)
+        out["Rd_se"][b] = fr[:, 1].std(ddof=1) / math.sqrt(batches)
+        w = sum(tot) - 2 * tot[4]
+        bal = max(bal, abs(w - photons * W0) / (photons * W0))
+    out["balance_error"] = bal
+    return out
+
+
+def spectral_reflectance(cfg: dict, photons: int = 20000, angle_deg: float = DEFAULT_ANGLE,
+                         specular: bool = True, spot_mm: float | None = None,
+                         port_mm: float | None = None, bands=None, flat: bool = False,
+                         direction=None, seed: int | None = None, batches: int = 10,
+                         dev=None, device: str | None = None,
+                         source: str = "<config>") -> Reflectance:
+    """R(λ) of ``cfg`` from the photon pass alone (see the module docstring)."""
+    from . import volume
+    from .device import open_device
+    t0 = time.perf_counter()
+    mcfg = measurement_config(cfg, angle_deg, direction, spot_mm, port_mm, bands, flat, seed, source)
+    if direction is not None:
+        d = np.asarray(direction, float)
+        angle_deg = math.degrees(math.acos(min(1.0, -d[2] / np.linalg.norm(d))))
+    vol = volume.build(mcfg, source)
+    dev = dev or open_device(device)
+    t = trace_bands(dev, vol, mcfg, int(photons), batches, specular)
+    return Reflectance(wl=np.asarray(vol.wl, float), R=t["R"], se=t["se"], Rd=t["Rd"],
+                       Rd_se=t["Rd_se"], specular=t["specular"], Tt=t["Tt"], A=t["A"],
+                       lost=t["lost"] + t["missed"], photons=int(photons),
+                       specular_included=bool(specular), angle_deg=float(angle_deg),
+                       geometry=geometry_note(mcfg, angle_deg, specular),
+                       seed=int(mcfg["render"]["seed"]), seconds=time.perf_counter() - t0,
+                       balance_error=t["balance_error"], device=dev.name)
+
+
+# ----------------------------------------------------------------------------- images
+class _PixelCam:
+    """A camera whose 'image centre' is pixel point (px, py) of ``cam`` (for white_reference)."""
+
+    def __init__(self, cam, px: float, py: float):
+        self._cam, self._px, self._py = cam, px, py
+        self.position = cam.position
+        self.width, self.height = cam.width, cam.height
+
+    def ray(self, _px, _py):
+        return self._cam.ray(self._px, self._py)
+
+
+def default_region(width: int, height: int, frac: float = 0.5) -> tuple[int, int, int, int]:
+    """Central box (x0, y0, x1, y1), ``frac`` of each side, at least one pixel."""
+    w = max(1, int(round(width * frac)))
+    h = max(1, int(round(height * frac)))
+    x0, y0 = (width - w) // 2, (height - h) // 2
+    return x0, y0, x0 + w, y0 + h
+
+
+def white_region(cfg: dict, cam, wl, spectrum, region) -> np.ndarray:
+    """White Lambertian reference radiance per pixel of ``region``: (h, w, NB)."""
+    from .progressive import white_reference
+    x0, y0, x1, y1 = region
+    out = np.empty((y1 - y0, x1 - x0, len(wl)))
+    for j in range(y0, y1):
+        for i in range(x0, x1):
+            out[j - y0, i - x0] = white_reference(cfg, _PixelCam(cam, i + 0.5, j + 0.5), wl, spectrum)
+    return out
+
+
+def incidence_direction(cfg: dict, cam) -> np.ndarray:
+    """Direction of the configured light's rays at the surface point seen at the image centre."""
+    L = cfg["light"]
+    if L["kind"] == "point":
+        d = cam.ray(cam.width / 2, cam.height / 2)
+        t = -cam.position[2] / d[2] if d[2] != 0 else 0.0
+        x = cam.position + t * d
+        v = x - np.asarray(L["position_mm"], float) * 1000.0
+    else:
+        v = np.asarray(L["direction"], float)
+    return v / np.linalg.norm(v)
+
+
+def method_reflectance(cfg: dict, methods="abcdef", passes: int | None = None,
+                       photons: int | None = None, resolution=None, region=None,
+                       specular: bool = False, band_photons: int = 20000, seed: int | None = None,
+                       dev=None, device: str | None = None, source: str = "<config>",
+                       progress: bool = False, log=None) -> dict:
+    """Per-method reflectance from rendered images, next to the photon-pass value.
+
+    Each method renders ``cfg`` (with ``passes``, ``photons`` per pass, ``resolution``
+    overriding the config; the render's specular highlight off unless ``specular``); the
+    spectral radiance of ``region`` (x0, y0, x1, y1 pixels; default the central 50 % box) is
+    divided pixel by pixel by the white Lambertian reference under the same light and camera,
+    and averaged.  The photon-pass R(λ) is traced for the same bands at the configured light's
+    angle of incidence at the image centre (SCE unless ``specular``).  The image value is a
+    reflectance *factor* toward the camera: a perfect renderer of a non-Lambertian skin does
+    not give exactly Rd, but the difference is the same for every method, so the methods'
+    ratios to each other show their spectral bias.
+    """
+    from . import camera, progressive, transport
+    from .device import open_device
+    cfg_r = progressive.apply_overrides(cfg, passes=passes, photons=photons, resolution=resolution,
+                                        seed=seed)
+    cfg_r = C.override(cfg_r, "render", "specular", bool(specular))
+    if cfg_r["light"]["kind"] == "pencil":
+        raise ConfigError(source, "light.kind", "pencil",
+                          "image reflectance needs a point or wide light (a pencil beam has no "
+                          "white-reference irradiance)")
+    methods = [m.strip() for m in (methods.split(",") if isinstance(methods, str) and "," in methods
+                                   else list(methods)) if m.strip()]
+    for m in methods:
+        if m not in "abcdef" or len(m) != 1:
+            raise ConfigError(source, "--methods", m, "methods are letters a-f")
+    cam = camera.from_config(cfg_r["camera"])
+    wl = C.wavelengths(cfg_r)
+    spectrum = transport.source_spectrum(cfg_r, wl)
+    region = tuple(region) if region is not None else default_region(cam.width, cam.height)
+    x0, y0, x1, y1 = region
+    if not (0 <= x0 < x1 <= cam.width and 0 <= y0 < y1 <= cam.height):
+        raise ConfigError(source, "--region", list(region),
+                          f"must be x0,y0,x1,y1 inside the {cam.width}x{cam.height} image")
+    white = white_region(cfg_r, cam, wl, spectrum, region)
+    if not np.all(white > 0):
+        raise ConfigError(source, "light", cfg_r["light"]["kind"],
+                          "the white reference is zero in the region (light behind the surface?)")
+    dev = dev or open_device(device)
+    out = {"wavelength_nm": wl.tolist(), "region": list(region),
+           "resolution": [cam.width, cam.height], "passes": cfg_r["render"]["passes"],
+           "photons_per_pass": cfg_r["render"]["photons"], "specular": bool(specular),
+           "methods": {}}
+    for m in methods:
+        t0 = time.perf_counter()
+        res = progressive.render(cfg_r, method=m, dev=dev, source=source, progress=progress)
+        Lr = res.spectral[y0:y1, x0:x1, :].astype(np.float64)
+        ratio = Lr / white
+        n = ratio.shape[0] * ratio.shape[1]
+        Rm = ratio.reshape(n, -1).mean(0)
+        se = ratio.reshape(n, -1).std(0, ddof=1) / math.sqrt(n) if n > 1 else np.full(len(wl), np.nan)
+        out["methods"][m] = {"scheme": res.report["scheme"], "R": Rm.tolist(), "se": se.tolist(),
+                             "sample_points": res.report["sample_points"],
+                             "seconds": time.perf_counter() - t0}
+        if log:
+            log(f"  method {m}: {res.report['scheme']}, {res.report['sample_points']} sample points, "
+                f"{time.perf_counter() - t0:.1f} s")
+    d = incidence_direction(cfg_r, cam)
+    angle = math.degrees(math.acos(min(1.0, -d[2])))
+    truth = spectral_reflectance(cfg, photons=band_photons, specular=specular, direction=d,
+                                 seed=seed, dev=dev, source=source)
+    out["photon_pass"] = {"angle_deg": angle, "geometry": truth.geometry, "R": truth.R.tolist(),
+                          "se": truth.se.tolist(), "photons_per_band": truth.photons}
+    tr = truth.R
+    for m, v in out["methods"].items():
+        Rm = np.asarray(v["R"])
+        v["ratio_to_photon_pass"] = (Rm / np.where(tr > 0, tr, np.nan)).tolist()
+        v["mean_abs_diff"] = float(np.mean(np.abs(Rm - tr)))
+        # spectral bias: blue (<500 nm) vs red (>600 nm) ratio to the photon pass
+        blue, red = wl < 500, wl > 600
+        if blue.any() and red.any():
+            rb = np.nanmean(Rm[blue] / tr[blue]); rr = np.nanmean(Rm[red] / tr[red])
+            v["blue_red_bias"] = float(rb / rr - 1.0)
+    return out
+
+
+# ----------------------------------------------------------------------------- CLI
+def _bands_arg(s: str):
+    try:
+        parts = [float(x) for x in s.split(":")]
+    except ValueError:
+        parts = []
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"--bands {s!r}: expected START:STOP:STEP in nm, e.g. 380:780:10")
+    return tuple(parts)
+
+
+def _region_arg(s: str):
+    try:
+        v = [int(x) for x in s.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 4:
+        raise argparse.ArgumentTypeError(f"--region {s!r}: expected x0,y0,x1,y1 pixels")
+    return tuple(v)
+
+
+def add_parser(subparsers, add_device) -> None:
+    p = subparsers.add_parser(
+        "reflectance",
+        help="spectral reflectance R(λ) as an integrating sphere measures it (photon pass), "
+             "vs NIST skin; per-method image reflectance with --methods",
+        description="R(λ) of a model from the photon pass: collimated beam at --angle, "
+                    "specular included or excluded, standard error per band; compared with the "
+                    "NIST volar-forearm population. Flat models: laterally infinite, pencil beam. "
+                    "Relief/papillae: periodic sides, wide beam over the whole model. "
+                    "--methods renders each scheme and divides image radiance by a white "
+                    "Lambertian reference.")
+    p.add_argument("config")
+    p.add_argument("--angle", type=float, default=DEFAULT_ANGLE, help="incidence angle, degrees (default 8)")
+    p.add_argument("--specular", choices=("included", "excluded"), default="included",
+                   help="specular component included (SCI, default) or excluded (SCE)")
+    p.add_argument("--photons", type=int, default=None,
+                   help="photons per band for R(λ) (default 20000); with --methods: stored "
+                        "photons per render pass (then --band-photons sets the per-band count)")
+    p.add_argument("--band-photons", type=int, default=None, help="photons per band for R(λ)")
+    p.add_argument("--bands", type=_bands_arg, help="START:STOP:STEP nm (default: the config's)")
+    p.add_argument("--flat", action="store_true", help="relief and papillae off (the fit's forward model)")
+    p.add_argument("--spot-mm", type=float, help="square beam spot side (relief models / with --port-mm)")
+    p.add_argument("--port-mm", type=float, help="square sample port side, flat models (a lower bound)")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--batches", type=int, default=10, help="batches for the standard errors")
+    p.add_argument("--methods", help="render these schemes (e.g. a,b,c,d,e,f) and add image reflectance")
+    p.add_argument("--passes", type=int, help="render passes (with --methods)")
+    p.add_argument("--resolution", type=_res_arg, help="WxH (with --methods)")
+    p.add_argument("--region", type=_region_arg, help="x0,y0,x1,y1 pixels (default: central 50 %% box)")
+    p.add_argument("--json", help="write the result as JSON")
+    p.add_argument("--plot", help="write a plot (PNG/PDF/SVG) over the NIST median and 5-95 %% band")
+    p.add_argument("--no-nist", action="store_true", help="skip the NIST comparison")
+    add_device(p)
+    p.set_defaults(func=cmd_reflectance)
+
+
+def _res_arg(s: str):
+    try:
+        w, h = s.lower().split("x")
+        return int(w), int(h)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--resolution {s!r}: expected WxH, e.g. 64x48") from None
+
+
+def cmd_reflectance(a) -> int:
+    from . import nist
+    from .device import open_device
+    cfg = C.load(a.config)
+    src = os.path.basename(a.config)
+    spec = a.specular == "included"
+    if a.methods:
+        band_photons = a.band_photons or 20000
+    else:
+        band_photons = a.band_photons or a.photons or 20000
+    for name, v in (("--photons", a.photons), ("--band-photons", a.band_photons),
+                    ("--passes", a.passes), ("--batches", a.batches)):
+        if v is not None and v <= 0:
+            raise ConfigError("command line", name, v, "must be > 0")
+    dev = open_device(a.device)
+    bands = a.bands
+    res = spectral_reflectance(cfg, photons=band_photons, angle_deg=a.angle, specular=spec,
+                               spot_mm=a.spot_mm, port_mm=a.port_mm, bands=bands, flat=a.flat,
+                               seed=a.seed, batches=a.batches, dev=dev, source=src)
+    out = {"config": os.path.abspath(a.config), "photon_pass": res.to_dict()}
+    print(f"{src}: R(λ) from the photon pass, {res.photons} photons per band, {len(res.wl)} bands, "
+          f"{res.seconds:.1f} s on {res.device}")
+    print(f"  {res.geometry}")
+    print("  band nm      R       ±SE     Rd    specular")
+    step = max(1, len(res.wl) // 41)
+    for i in range(0, len(res.wl), step):
+        print(f"  {res.wl[i]:7g}  {res.R[i]:.4f}  {res.se[i]:.4f}  {res.Rd[i]:.4f}  {res.specular[i]:.4f}")
+    cmp = None
+    if not a.no_nist and len(res.wl) > 1:
+        cmp = nist.compare(res.wl, res.R)
+        out["nist"] = cmp
+        print("vs " + nist.NIST_LABEL + ":")
+        for line in nist.summary_lines(cmp):
+            print(line)
+    curves = {}
+    if a.methods:
+        print(f"rendering methods {a.methods} ...")
+        mr = method_reflectance(cfg, a.methods, passes=a.passes, photons=a.photons,
+                                resolution=a.resolution, region=a.region, specular=spec,
+                                band_photons=band_photons, seed=a.seed, dev=dev, source=src,
+                                log=lambda s: print(s, flush=True))
+        out["images"] = mr
+        wl = np.asarray(mr["wavelength_nm"])
+        tr = np.asarray(mr["photon_pass"]["R"])
+        print(f"  image region {mr['region']} of {mr['resolution'][0]}x{mr['resolution'][1]}, "
+              f"{mr['passes']} passes x {mr['photons_per_pass']} photons; photon pass at "
+              f"{mr['photon_pass']['angle_deg']:.1f}° incidence")
+        q = [w for w in nist.QUOTE_NM if wl.min() <= w <= wl.max()]
+        print("  method  " + "  ".join(f"{w:>6g}" for w in q) + "   mean|ΔR|  blue/red bias")
+        print("  photon  " + "  ".join(f"{np.interp(w, wl, tr):6.3f}" for w in q))
+        for m, v in mr["methods"].items():
+            Rm = np.asarray(v["R"])
+            bias = v.get("blue_red_bias")
+            print(f"  {m:6s}  " + "  ".join(f"{np.interp(w, wl, Rm):6.3f}" for w in q)
+                  + f"   {v['mean_abs_diff']:.4f}   {'' if bias is None else f'{100 * bias:+.1f} %'}")
+            curves[f"image, method {m}"] = (wl, Rm)
+        curves["photon pass at the render's incidence"] = (wl, tr)
+    if a.json:
+        d = os.path.dirname(os.path.abspath(a.json))
+        os.makedirs(d, exist_ok=True)
+        with open(a.json, "w") as f:
+            json.dump(out, f, indent=1)
+        print(f"wrote {a.json}")
+    if a.plot:
+        nist.plot(a.plot, res.wl, res.R, res.se,
+                  label=f"{src} photon pass ({'SCI' if spec else 'SCE'}, {res.angle_deg:g}°)",
+                  curves=curves, nearest=cmp["nearest_subject"] if cmp else None,
+                  title=f"{src}: R(λ) vs NIST volar forearm skin")
+        print(f"wrote {a.plot}")
+    return 0
