@@ -57,8 +57,8 @@ __kernel void gather(const GridParams gp,
     for (int s = 0; s < spp; ++s) {
         const uint r = (uint)pix * (uint)spp + (uint)s;
         const uint i0 = ray_start[r], i1 = ray_start[r + 1];
-        float T[NB];
-        for (int b = 0; b < NB; ++b) T[b] = 1.0f;
+        float od[NB];                   /* optical depth from the entry, per band */
+        for (int b = 0; b < NB; ++b) od[b] = 0.0f;
         for (uint i = i0; i < i1; ++i) {
             const float4 pp = pt_pos[i];
             const float4 pd = pt_dir[i];
@@ -98,16 +98,24 @@ __kernel void gather(const GridParams gp,
 #endif
             const float f = (R > 0.0f) ? pp.w / V * INV_FIX : 0.0f;
             for (int b = 0; b < NB; ++b) {
-                float Tb = T[b], Wb = 0.0f;
-                for (uint k = k0; k < k1; ++k) {
-                    const float2 pc = pieces[k];
-                    const float m = optics[(int)pc.y * NB + b].w;
-                    const float ml = m * pc.x;
-                    Wb += Tb * (ml > 1e-6f ? -expm1(-ml) / m : pc.x);
-                    Tb *= exp(-ml);
+                float o = od[b];
+                if (acc[b] != 0) {          /* integral of T over the cell, exact per piece */
+                    float Wb = 0.0f;
+                    for (uint k = k0; k < k1; ++k) {
+                        const float2 pc = pieces[k];
+                        const float m = optics[(int)pc.y * NB + b].w;
+                        const float ml = m * pc.x;
+                        Wb += exp(-o) * (ml > 1e-6f ? -expm1(-ml) / m : pc.x);
+                        o += ml;
+                    }
+                    accp[b] += Wb * f * (float)acc[b];
+                } else {
+                    for (uint k = k0; k < k1; ++k) {
+                        const float2 pc = pieces[k];
+                        o += optics[(int)pc.y * NB + b].w * pc.x;
+                    }
                 }
-                T[b] = Tb;
-                if (acc[b] != 0) accp[b] += Wb * f * (float)acc[b];
+                od[b] = o;
             }
             /* progressive radius update */
             if (global_radius) {
