@@ -82,8 +82,11 @@ def cmd_trace(a) -> int:
 
 
 def cmd_render(a) -> int:
+    from . import config
     from . import progressive as render
     cfg = _load(a.config)
+    if a.preview_every is not None:
+        cfg = config.override(cfg, "render", "preview_every", a.preview_every)
     res = render.render(cfg, method=a.method, passes=a.passes, photons=a.photons,
                         resolution=a.resolution, seed=a.seed, spacing=a.spacing, device=a.device,
                         out=a.output, progress=not a.quiet, resume=a.resume,
@@ -150,6 +153,7 @@ def main(argv=None) -> int:
     p.add_argument("--resolution", type=_res)
     p.add_argument("--seed", type=int)
     p.add_argument("--resume", help="continue from a checkpoint (.ckpt.npz)")
+    p.add_argument("--preview-every", type=int, help="write a preview PNG every K passes")
     p.add_argument("-o", "--output", default="out/render.exr")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_device(p)

@@ -17,6 +17,12 @@
  * the skin (the sphere minus the cap above the local surface plane), which removes the
  * first-order bias of the estimate near the surface; without it (the paper) V = 4/3 pi R^3.
  *
+ * Layout (gather per pixel, not scatter per photon).  Scattering each photon into the points
+ * whose sphere holds it needs float atomics on per-point spectral flux (PoCL 3.0 has none; an
+ * int64 atomic per pair on CPU costs more than the pair test) and per-point spectral storage
+ * (81 accumulators x 2.5 M points for method a).  Gathering per pixel needs neither: a work item
+ * owns its pixel's points, sums into private arrays and writes its pixel once per pass.
+ *
  * Determinism: F is summed in 64-bit fixed point (order-independent: photons inside a grid
  * cell come in arbitrary order), the per-pixel float sums run in a fixed order, and the pixel
  * accumulators are doubles added once per pass.  The same photons give the same bits.
