@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -34,37 +35,106 @@ def save(path: str, meta: dict, state: dict, pt_R, pt_N, pix_acc, pix_pairs) -> 
     d = os.path.dirname(os.path.abspath(path))
     os.makedirs(d, exist_ok=True)
     tmp = os.path.join(d, f".{os.path.basename(path)}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, header=np.array(json.dumps(header, default=str)), pt_R=np.asarray(pt_R),
-                 pt_N=np.asarray(pt_N), pix_acc=np.asarray(pix_acc), pix_pairs=np.asarray(pix_pairs),
-                 tallies=tallies)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, header=np.array(json.dumps(header, default=str)), pt_R=np.asarray(pt_R),
+                     pt_N=np.asarray(pt_N), pix_acc=np.asarray(pix_acc),
+                     pix_pairs=np.asarray(pix_pairs), tallies=tallies)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:                # disk full, a second Ctrl-C: keep the old checkpoint
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    _fsync_dir(d)
+
+
+def _fsync_dir(d: str) -> None:
+    """Make the rename itself durable (POSIX); a no-op where folders cannot be opened."""
+    try:
+        fd = os.open(d, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def load(path: str, meta: dict | None = None) -> dict:
     name = os.path.basename(path)
     if not os.path.isfile(path):
         raise CheckpointError(f"checkpoint {name}: file not found ({path})")
+    def corrupt(why):
+        return CheckpointError(f"checkpoint {name} is corrupt or not a clppm checkpoint ({why})")
+
     try:
-        with np.load(path, allow_pickle=False) as z:
+        z = np.load(path, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):      # a lone .npy array
+            raise ValueError("not a .npz archive")
+        with z:
             header = json.loads(str(z["header"]))
             arrays = {k: z[k] for k in ("pt_R", "pt_N", "pix_acc", "pix_pairs", "tallies")}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError, EOFError) as e:
-        raise CheckpointError(f"checkpoint {name} is corrupt or not a clppm checkpoint ({e})") from None
+    except ValueError as e:
+        if "pickle" in str(e):           # numpy's guess for bytes it does not recognise
+            raise corrupt("not a .npz archive") from None
+        raise corrupt(_one_line(e)) from None
+    except (OSError, KeyError, zipfile.BadZipFile, EOFError, zlib.error, UnicodeDecodeError) as e:
+        raise corrupt(_one_line(e) or type(e).__name__) from None
+    if not isinstance(header, dict):
+        raise corrupt("header is not a table")
     if header.get("version") != VERSION:
-        raise CheckpointError(f"checkpoint {name} has version {header.get('version')}, expected {VERSION}")
+        raise CheckpointError(f"checkpoint {name} has version {header.get('version')!r}, "
+                              f"expected {VERSION}")
+    if not isinstance(header.get("meta"), dict) or not isinstance(header.get("state"), dict):
+        raise corrupt("header without meta or state")
     if meta is not None and header["meta"] != meta:
         diffs = _diff(header["meta"], meta)
         raise CheckpointError(f"checkpoint {name} was made with different parameters: "
-                              + "; ".join(diffs[:8]))
+                              + "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else ""))
     st = dict(header["state"])
+    missing = [k for k in ("pass_index", "emitted_total", "store_zmin", "tallies_emitted", "stats",
+                           "timing") if k not in st]
+    if missing:
+        raise corrupt(f"state lacks {', '.join(missing)}")
     st.update({k: v for k, v in arrays.items() if k != "tallies"})
-    st["tallies"] = [[int(v) for v in row] for row in arrays["tallies"].tolist()]
-    if not (np.all(np.isfinite(st["pt_R"])) and np.all(np.isfinite(st["pix_acc"]))):
-        raise CheckpointError(f"checkpoint {name} holds non-finite values")
+    try:
+        st["tallies"] = [[int(v) for v in row] for row in arrays["tallies"].tolist()]
+    except (TypeError, ValueError) as e:
+        raise corrupt(f"tallies: {_one_line(e)}") from None
+    if not isinstance(st["pass_index"], int) or st["pass_index"] < 1:
+        raise corrupt(f"pass index {st['pass_index']!r}")
+    for k in ("pt_R", "pt_N", "pix_acc"):
+        if st[k].dtype.kind not in "fiu" or not np.all(np.isfinite(st[k])):
+            raise CheckpointError(f"checkpoint {name} holds non-finite or non-numeric values in {k}")
+    if meta is not None:
+        _check_shapes(name, st, meta)
     return st
+
+
+def _one_line(e) -> str:
+    return " ".join(str(e).split())
+
+
+def _check_shapes(name: str, st: dict, meta: dict) -> None:
+    """Array sizes must match the render the checkpoint claims to belong to."""
+    try:
+        w, h = meta["config"]["camera"]["resolution"]
+        sp = meta["config"]["spectrum"]
+        nb = int(round((sp["stop_nm"] - sp["start_nm"]) / sp["step_nm"])) + 1
+        npts = int(meta["npoints"])
+    except (KeyError, TypeError, ValueError):
+        return                              # not a render's identity: nothing to compare with
+    want = {"pt_R": (npts,), "pt_N": (npts,), "pix_acc": (w * h, nb), "pix_pairs": (w * h,)}
+    for k, shape in want.items():
+        if tuple(st[k].shape) != shape:
+            raise CheckpointError(f"checkpoint {name} is corrupt: {k} has shape {tuple(st[k].shape)}, "
+                                  f"this render needs {shape}")
 
 
 def _diff(a, b, path="") -> list[str]:

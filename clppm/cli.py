@@ -60,6 +60,8 @@ def cmd_trace(a) -> int:
         cfg = config.override(cfg, "render", "seed", a.seed)
     if a.photons <= 0:
         raise ConfigError("command line", "--photons", a.photons, "must be > 0")
+    if a.batches < 2:
+        raise ConfigError("command line", "--batches", a.batches, "must be >= 2 (standard errors)")
     vol = volume.build(cfg, src)
     dev = device.open_device(a.device)
     pp = transport.PhotonPass(dev, vol, cfg)

@@ -110,7 +110,7 @@ SCHEMA: dict[str, dict[str, F]] = {
         "method": F("choice", "e", choices=tuple("abcdef")),
         "spacing_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e4,
                         doc="equal spacing; overrides a/b/c"),
-        "threshold": F("float", 1.1e-3, lo=0, hi=1, hi_open=True,
+        "threshold": F("float", 1.25e-3, lo=0, hi=1, hi_open=True,
                        doc="transmittance cut for sample points"),
         "merge": F("choice", "voxel", choices=("voxel", "none")),
         "photons": F("int", 810_000, lo=1, hi=2**30, doc="stored photons per pass"),

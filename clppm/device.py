@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import os
+import re
 from dataclasses import dataclass
 from importlib import resources
 
@@ -129,9 +130,19 @@ def _build(ctx, filename: str, defines: tuple):
     cl = _cl()
     kdir = kernel_dir()
     path = os.path.join(kdir, filename)
-    with open(path, encoding="utf-8") as f:
-        src = f.read()
-    opts = [f"-I{kdir}"]
+    try:
+        with open(path, encoding="utf-8") as f:
+            src = f.read()
+    except (OSError, UnicodeDecodeError) as e:
+        raise DeviceError(f"kernel source {filename} cannot be read from {kdir} ({e}); "
+                          "the clppm installation is incomplete: reinstall it (pip install clppm)") from None
+    if any(c.isspace() for c in kdir):
+        # OpenCL compilers split options at blanks and take no quotes (PoCL: "Invalid build
+        # option"), so an install path with a space cannot go into -I: inline the headers.
+        src = _inline_includes(src, kdir)
+        opts = []
+    else:
+        opts = [f"-I{kdir}"]
     for k, v in defines:
         if isinstance(v, bool):
             if v:
@@ -142,10 +153,30 @@ def _build(ctx, filename: str, defines: tuple):
             opts.append(f"-D{k}={v}")
     try:
         return cl.Program(ctx, src).build(options=opts)
-    except cl.RuntimeError as e:  # build failure: device name and the build log
+    except cl.Error as e:  # build failure (RuntimeError), bad options (LogicError): name + log
         dev = ctx.devices[0].name.strip()
         raise DeviceError(f"kernel build of {filename} failed on device '{dev}' "
                           f"with options {' '.join(opts)}:\n{e}") from None
+
+
+_INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]*"([^"]+)"[ \t]*$', re.M)
+
+
+def _inline_includes(src: str, kdir: str, seen: frozenset = frozenset()) -> str:
+    """Replace ``#include "x.h"`` of files in ``kdir`` by their text (``#line`` keeps log lines)."""
+    def sub(m):
+        name = m.group(1)
+        if name in seen:                              # a header that includes itself
+            return ""
+        try:
+            with open(os.path.join(kdir, name), encoding="utf-8") as f:
+                text = f.read()
+        except OSError:
+            return m.group(0)                         # not ours: leave it to the compiler
+        line = src.count("\n", 0, m.start()) + 2
+        return (f'#line 1 "{name}"\n' + _inline_includes(text, kdir, seen | {name})
+                + f"\n#line {line}\n")
+    return _INCLUDE.sub(sub, src)
 
 
 @functools.lru_cache(maxsize=None)

@@ -32,7 +32,7 @@ _FIELDS = [
     ("rr_threshold", "f4"),
     ("rr_m", "f4"),
     ("max_events", "i4"),
-    ("count", "u4"), ("rcone_cos", "f4"), ("pad2", "i4"),
+    ("count", "u4"), ("rcone_cos", "f4"), ("offset_hi", "u4"),
 ]
 PARAMS_DTYPE = np.dtype(_FIELDS)
 assert PARAMS_DTYPE.itemsize == 4 * len(_FIELDS)

@@ -185,29 +185,35 @@ def trace_bands(dev, vol, mcfg: dict, photons: int, batches: int = 10,
     batches = max(2, min(int(batches), int(photons)))
     pp = transport.PhotonPass(dev, vol, mcfg)
     nb, nl = vol.nb, vol.nl
+    cats = list(transport.CATEGORIES)
+    ix = {c: cats.index(c) for c in ("specular", "diffuse", "transmitted", "lost", "rr_gain",
+                                      "rr_loss", "missed")}
+    na = len(cats)                                  # first per-layer absorption column
+    sinks = [ix[c] for c in ("specular", "diffuse", "transmitted", "lost", "rr_loss", "missed")]
     sizes = np.array([photons // batches + (1 if i < photons % batches else 0) for i in range(batches)],
                      float)
     out = {k: np.zeros(nb) for k in ("R", "se", "Rd", "Rd_se", "specular", "Tt", "A", "lost", "missed")}
     bal = 0.0
     W0 = transport.W0
+    n = float(photons) * W0
     for b in range(nb):
         pp.p["fixed_band"] = b
         pp.band = b
         arrs = pp.trace(int(photons), batches=batches)
         rows = np.array([a[b] for a in arrs], dtype=np.float64)           # (batches, nc)
         tot = [sum(int(a[b][c]) for a in arrs) for c in range(rows.shape[1])]
-        n = float(photons) * W0
-        spec, rd = tot[0] / n, tot[1] / n
+        spec, rd = tot[ix["specular"]] / n, tot[ix["diffuse"]] / n
         out["specular"][b], out["Rd"][b] = spec, rd
-        out["Tt"][b], out["lost"][b] = tot[2] / n, tot[3] / n
-        out["missed"][b] = tot[6] / n
-        out["A"][b] = sum(tot[7:7 + nl]) / n
+        out["Tt"][b], out["lost"][b] = tot[ix["transmitted"]] / n, tot[ix["lost"]] / n
+        out["missed"][b] = tot[ix["missed"]] / n
+        absorbed = sum(tot[na:na + nl])
+        out["A"][b] = absorbed / n
         fr = rows / (sizes[:, None] * W0)
-        r_b = fr[:, 0] + fr[:, 1] if specular else fr[:, 1]
+        r_b = fr[:, ix["diffuse"]] + (fr[:, ix["specular"]] if specular else 0.0)
         out["R"][b] = spec + rd if specular else rd
         out["se"][b] = r_b.std(ddof=1) / math.sqrt(batches)
-        out["Rd_se"][b] = fr[:, 1].std(ddof=1) / math.sqrt(batches)
-        w = sum(tot) - 2 * tot[4]
+        out["Rd_se"][b] = fr[:, ix["diffuse"]].std(ddof=1) / math.sqrt(batches)
+        w = sum(tot[c] for c in sinks) + absorbed - tot[ix["rr_gain"]]
         bal = max(bal, abs(w - photons * W0) / (photons * W0))
     out["balance_error"] = bal
     return out
@@ -303,6 +309,14 @@ def method_reflectance(cfg: dict, methods="abcdef", passes: int | None = None,
     """
     from . import camera, progressive, transport
     from .device import open_device
+    methods = [m.strip() for m in (methods.split(",") if isinstance(methods, str) and "," in methods
+                                   else list(methods)) if m.strip()]
+    for m in methods:
+        if m not in "abcdef" or len(m) != 1:
+            raise ConfigError(source, "--methods", m, "methods are letters a-f")
+    if photons is not None and 0 < photons < cfg["render"]["initial_photons"]:
+        # (progressive.apply_overrides checks photons >= initial_photons before clamping)
+        cfg = C.override(cfg, "render", "initial_photons", int(photons))
     cfg_r = progressive.apply_overrides(cfg, passes=passes, photons=photons, resolution=resolution,
                                         seed=seed)
     cfg_r = C.override(cfg_r, "render", "specular", bool(specular))
@@ -310,11 +324,6 @@ def method_reflectance(cfg: dict, methods="abcdef", passes: int | None = None,
         raise ConfigError(source, "light.kind", "pencil",
                           "image reflectance needs a point or wide light (a pencil beam has no "
                           "white-reference irradiance)")
-    methods = [m.strip() for m in (methods.split(",") if isinstance(methods, str) and "," in methods
-                                   else list(methods)) if m.strip()]
-    for m in methods:
-        if m not in "abcdef" or len(m) != 1:
-            raise ConfigError(source, "--methods", m, "methods are letters a-f")
     cam = camera.from_config(cfg_r["camera"])
     wl = C.wavelengths(cfg_r)
     spectrum = transport.source_spectrum(cfg_r, wl)

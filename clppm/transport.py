@@ -198,7 +198,10 @@ class PhotonPass:
     def _launch(self, n: int, offset: int, pass_index: int, capacity: int) -> None:
         import pyopencl as cl
         q = self.dev.queue
-        self.p["photon_offset"] = offset
+        self.p["photon_offset"] = offset & 0xFFFFFFFF
+        self.p["offset_hi"] = offset >> 32
+        if (offset & 0xFFFFFFFF) + n > 2**32:
+            raise ValueError("a launch must not cross a multiple of 2^32 photons")
         self.p["pass_"] = pass_index
         self.p["capacity"] = capacity
         self.p["count"] = n
@@ -235,7 +238,7 @@ class PhotonPass:
             acc = np.zeros((self.vol.nb, self.nc), np.int64)
             done = 0
             while done < nb_:
-                n = min(MAX_LAUNCH, nb_ - done)
+                n = min(MAX_LAUNCH, nb_ - done, 2**32 - (offset & 0xFFFFFFFF))
                 self._set_count(0)
                 self._launch(n, offset, pass_index, 0)
                 acc += self._flush(n)
@@ -249,8 +252,9 @@ class PhotonPass:
         Returns emitted and stored counts; the stored photons are in ``pos_w``/``dir_b``.
         """
         cap = self.capacity
-        if target > cap:
-            raise ValueError(f"target {target} exceeds capacity {cap}")
+        if target + 4096 > cap:
+            raise ValueError(f"photon buffer capacity {cap} must exceed the target {target} "
+                             "by at least 4096 (one launch's last photons overshoot it)")
         self._set_count(0)
         stored, emitted, launches = 0, 0, 0
         per_photon = None

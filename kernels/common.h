@@ -64,7 +64,7 @@ typedef struct {
     int max_events;             /* safety bound on boundary + collision events per photon */
     uint count;                 /* work items in this launch (the rest return) */
     float rcone_cos;            /* exits with cos(theta) above this also go to the cone tally */
-    int pad2;
+    uint offset_hi;             /* high 32 bits of the photon index (traces beyond 2^32 photons) */
 } Params;
 
 /* Interface k: (z if flat, zmin, zmax, var index as float; -1 = flat). */
@@ -138,10 +138,11 @@ inline float3 rotate_dir(float3 d, float ct, float phi) {
     float st = sqrt(fmax(0.0f, 1.0f - ct * ct));
     float cp = cos(phi), sp = sin(phi);
     float3 o;
-    if (fabs(d.z) > 0.99999f) {
+    /* sqrt(dx^2 + dy^2), not sqrt(1 - dz^2): no cancellation near the poles */
+    float tmp = sqrt(d.x * d.x + d.y * d.y);
+    if (tmp < 1e-6f) {
         o = (float3)(st * cp, st * sp, d.z > 0.0f ? ct : -ct);
     } else {
-        float tmp = sqrt(1.0f - d.z * d.z);
         o.x = st * (d.x * d.z * cp - d.y * sp) / tmp + d.x * ct;
         o.y = st * (d.y * d.z * cp + d.x * sp) / tmp + d.y * ct;
         o.z = -st * cp * tmp + d.z * ct;
@@ -329,7 +330,7 @@ inline int cross_wall(Track* t, __constant const Params* P, int axis, int domain
 inline int hit_surface(Track* t, __constant const Params* P, __constant const float4* iface,
                        __global const float* heights, float3* geo_n) {
     float3 d = t->dir;
-    if (d.z >= 0.0f && t->pos.z > P->z_top) return 0;
+    if (d.z >= 0.0f && t->pos.z >= P->z_top) return 0;
     /* advance to the plane of the highest surface point */
     if (t->pos.z > P->z_top) {
         float s = (P->z_top - t->pos.z) / d.z;
@@ -371,6 +372,7 @@ inline int hit_surface(Track* t, __constant const Params* P, __constant const fl
     if (IF_VAR(0) < 0) { t->L = 0; return 1; }
     /* 2-D walk over columns until the ray is below the column top */
     for (int guard = 0; guard < 4 * (P->nx + P->ny) + 8; ++guard) {
+        if (d.z >= 0.0f && t->pos.z > P->z_top) return 0;     /* above all relief, going up */
         int col = col_index(P, t->ix, t->iy);
         float zs = iface_z(iface, heights, P, 0, col);
         if (t->pos.z <= zs) { t->L = 0; return 1; }         /* came in through a side wall */

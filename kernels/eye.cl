@@ -271,6 +271,8 @@ __kernel void eye_pass(VOLUME_ARGS,
 
         /* ---- boundary events: the eye ray takes the transmitted branch only */
         int L2 = L;
+        const int oix = t.ix, oiy = t.iy;
+        const float3 opos = t.pos;
         if (ev == EV_TOP || ev == EV_BOTTOM) {
             L2 = ev == EV_TOP ? L - 1 : L + 1;
             t.pos.z = iface_z(iface, heights, P, ev == EV_TOP ? L : L + 1, col_index(P, t.ix, t.iy));
@@ -287,16 +289,54 @@ __kernel void eye_pass(VOLUME_ARGS,
 #endif
         }
         if (L2 == L) continue;
+        /* the face crossed, as a normal pointing from layer L into L2 */
+        const float3 gnn = (ev == EV_TOP) ? (float3)(0.0f, 0.0f, 1.0f) : (ev == EV_BOTTOM) ? (float3)(0.0f, 0.0f, -1.0f)
+                   : ((ev == EV_WALL_X || ev == EV_DOMAIN_X) ? (float3)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
+                                                             : (float3)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f));
+        {
+            /* total internal reflection: all the radiance comes along the mirrored path, so the
+             * eye ray reflects and stays in L (at a 5 um stair step of the relief a steep ray
+             * meets a side wall at grazing incidence) */
+            const float n2x = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+            float ctx;
+            if (fresnel_R(layer_n[L], n2x, dot(t.dir, gnn), &ctx) >= 1.0f) {
+                t.ix = oix; t.iy = oiy; t.pos = opos;
+                t.dir = reflect3(t.dir, gnn);
+                continue;
+            }
+        }
         /* leaving layer L: extinction-based schemes give an empty visit its exit point */
         if (E->scheme == 1 && visit_pts == 0) {
             visit_pts += place(&e, t.pos - 1e-3f * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_surf, SURF(t.pos), write);
         }
         visit_pts = 0;
-        if (L2 < 0 || L2 >= NL) { done = 1; break; }
+        if (L2 >= NL) { done = 1; break; }
+        if (L2 < 0) {
+            /* out through the relief (a furrow wall): leave with Fresnel, cross the air gap and
+             * enter again where the ray meets the skin */
+            float ci = dot(t.dir, gnn), ct;
+            float R = fresnel_R(layer_n[L], P->n_above, ci, &ct);
+            if (R >= 1.0f) { done = 1; break; }
+            tw *= 1.0f - R;
+            t.dir = refract3(t.dir, -gnn, layer_n[L] / P->n_above, ci, ct);
+            t.pos += 1e-3f * t.dir;
+            float3 gn2;
+            if (!hit_surface(&t, P, iface, heights, &gn2)) { done = 1; break; }
+            int col = col_index(P, t.ix, t.iy);
+            float3 sn = relief_normal(P, normals, col);
+            float ci2 = -dot(t.dir, sn);
+            if (ci2 <= 1e-6f) { sn = gn2; ci2 = -dot(t.dir, gn2); }
+            float R2 = fresnel_R(P->n_above, layer_n[0], ci2, &ct);
+            tw *= 1.0f - R2;
+            float3 d2 = refract3(t.dir, sn, P->n_above / layer_n[0], ci2, ct);
+            if (dot(d2, gn2) >= 0.0f) d2 = reflect3(d2, gn2);
+            t.dir = normalize(d2);
+            nfac = P->n_above / layer_n[0];
+            nfac *= nfac;
+            t.L = 0;
+            continue;
+        }
         /* refraction into L2 with its Fresnel transmittance */
-        float3 gnn = (ev == EV_TOP) ? (float3)(0.0f, 0.0f, 1.0f) : (ev == EV_BOTTOM) ? (float3)(0.0f, 0.0f, -1.0f)
-                   : ((ev == EV_WALL_X || ev == EV_DOMAIN_X) ? (float3)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
-                                                             : (float3)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f));
         float n1 = layer_n[L], n2 = layer_n[L2];
         if (n1 != n2) {
             float ci = dot(t.dir, gnn), ct;

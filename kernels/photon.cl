@@ -48,6 +48,31 @@ inline int fresnel_cross(float3* dir, float3 gn, float3 sn, float n1, float n2, 
     return 1;
 }
 
+/* A photon that has just left the skin at t->pos going t->dir: if the straight way out meets
+ * the relief again (a furrow), enter there (Fresnel decided at the new point).  Returns 1 if the
+ * photon is back in layer 0, 0 if it escaped for good.  Reflections at re-entry send it on its
+ * way out again (up to a few bounces). */
+inline int reenter(Track* t, VOLUME_ARGS, Rng* rng) {
+#ifdef FLAT
+    return 0;
+#else
+    if (IF_VAR(0) < 0) return 0;
+    for (int k = 0; k < 4; ++k) {
+        t->pos += 1e-3f * t->dir;
+        float3 gn;
+        if (!hit_surface(t, P, iface, heights, &gn)) return 0;
+        float3 sn = relief_normal(P, normals, col_index(P, t->ix, t->iy));
+        float3 d = t->dir;
+        if (fresnel_cross(&d, -gn, -sn, P->n_above, layer_n[0], rng_u01(rng))) {
+            t->dir = d; t->L = 0;
+            return 1;
+        }
+        t->dir = d;
+    }
+    return 0;
+#endif
+}
+
 __kernel void photon_pass(VOLUME_ARGS,
                           __global const float* band_cdf,
                           __global float4* store_pos_w,
@@ -58,7 +83,7 @@ __kernel void photon_pass(VOLUME_ARGS,
     if ((uint)get_global_id(0) >= P->count) return;
     const uint id = P->photon_offset + (uint)get_global_id(0);
     Rng rng;
-    rng_init(&rng, id, P->pass, 0u, P->seed_lo, P->seed_hi);
+    rng_init(&rng, id, P->pass, 2u * P->offset_hi, P->seed_lo, P->seed_hi);   /* eye rays: odd domain */
 
     const int b = P->fixed_band >= 0 ? P->fixed_band : sample_band(band_cdf, rng_u01(&rng));
     __global long* tal = tallies + (size_t)b * NC;
@@ -168,6 +193,7 @@ __kernel void photon_pass(VOLUME_ARGS,
             float3 sn2 = gn2;
             if (L2 < 0) sn2 = relief_normal(P, normals, col_index(P, t.ix, t.iy));
             if (fresnel_cross(&t.dir, gn2, sn2, n1, n2, rng_u01(&rng))) {
+                if (L2 < 0 && reenter(&t, VOLUME_PASS, &rng)) { events++; continue; }
                 if (L2 < 0) { rd += W; if (t.dir.z > P->rcone_cos) rcone += W; W = 0; break; }
                 if (L2 >= NL) { tt += W; W = 0; break; }
                 t.L = L2;
@@ -195,7 +221,8 @@ __kernel void photon_pass(VOLUME_ARGS,
         float3 gnw = axis == 0 ? (float3)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
                                : (float3)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f);
         if (fresnel_cross(&t.dir, gnw, gnw, n1, n2, rng_u01(&rng))) {
-            if (L2 < 0) { rd += W; W = 0; break; }
+            if (L2 < 0 && reenter(&t, VOLUME_PASS, &rng)) continue;
+            if (L2 < 0) { rd += W; if (t.dir.z > P->rcone_cos) rcone += W; W = 0; break; }
             if (L2 >= NL) { tt += W; W = 0; break; }
             t.L = L2;
         } else {

@@ -1,0 +1,339 @@
+"""Converged reference images, cached on disk, and the error of an image against one.
+
+A reference is the mean of two independent renders ("halves") of the same scene with
+different seeds, each with many more stored photons per pass and passes than the runs it
+is compared with (and, by default, a smaller first-search photon count K, hence a smaller
+radius and less density-estimation bias).  It is computed once and stored as
+``<cache>/ref-<key>.npz`` + ``.json``, where ``key`` is a SHA-256 over everything that
+changes the picture: the scene config (with the reference's own render settings applied),
+the reference parameters, the clppm version and the kernel sources.  Any change of these
+gives a new key, so a stale reference is never reused.
+
+Its own error is estimated from the two halves: with h1 = t + e1, h2 = t + e2 (e1, e2
+independent, zero-mean) the reference (h1 + h2) / 2 deviates from t by (e1 + e2) / 2, which
+has the distribution of (e1 - e2) / 2 = (h1 - h2) / 2.  So every error measure of the
+reference is estimated as that measure between the halves, halved (exact for the RMSE in
+expectation, first order for the CIEDE2000 and chromaticity means).  This covers the Monte
+Carlo noise only; the density-estimation bias of the finite radius (which the halves share)
+is not in it, and is why the reference uses a smaller radius than the compared runs.
+
+Skin pixels (the error is taken over them) are the pixels all of whose eye rays hit the
+model, from the eye pass of the reference scene.
+"""
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import image
+
+#: settings of the render section that do not change the picture
+_NOT_PICTURE = ("passes", "preview_every", "checkpoint_every", "exposure")
+
+
+# ----------------------------------------------------------------------------- volumes
+_VOLUME_KEYS = ("model", "spectrum", "relief", "papillae", "layer")
+
+
+@contextlib.contextmanager
+def cached_volumes():
+    """While active, ``clppm.volume.build`` returns a memoised volume per geometry.
+
+    Building the forearm volume (2000 x 2000 columns, generated relief) takes 5-10 s on
+    the host and does not depend on the method, the camera or the photon counts; a compare
+    or benchmark run renders the same volume a dozen times.  The stage timings of the
+    renders exclude it anyway (it is ``seconds['volume']``).
+    """
+    from . import volume
+    orig = volume.build
+    cache: dict = {}
+
+    def build(cfg, source="<config>"):
+        key = json.dumps({k: cfg.get(k) for k in _VOLUME_KEYS}, sort_keys=True, default=str)
+        if key not in cache:
+            cache[key] = orig(cfg, source)
+        return cache[key]
+
+    volume.build = build
+    try:
+        yield cache
+    finally:
+        volume.build = orig
+
+
+# ----------------------------------------------------------------------------- metrics
+def skin_mask_from_eye(eye) -> np.ndarray:
+    """(H, W) bool: pixels all of whose eye rays hit the model."""
+    cam = eye.camera
+    hit = np.asarray(eye.ray_hit, float).reshape(cam.height, cam.width, cam.spp)
+    return np.all(hit > 0.5, axis=2)
+
+
+def error_metrics(xyz, ref_xyz, mask, exposure: float, rgb=None, ref_rgb=None,
+                  flip: bool = False) -> dict:
+    """Errors of ``xyz`` against ``ref_xyz`` over the skin pixels ``mask``.
+
+    Both are scaled by ``exposure`` (a white diffuser at the image centre has Y = 1), so
+    the numbers are relative to that white:
+
+    * ``rmse_xyz``: RMSE of linear XYZ over skin pixels and the three channels;
+    * ``rel_rmse``: ``rmse_xyz`` / mean reference Y over skin pixels;
+    * ``de2000``: mean CIEDE2000 against the reference (white D65, Y = 1);
+    * ``du``, ``dv``: mean signed per-pixel u', v' shift (test - reference);
+    * ``duv``: mean per-pixel |Δu'v'|;
+    * ``du_mean``, ``dv_mean``: u'v' of the mean skin colour minus the reference's
+      (robust to noise; the colour of the skin as a whole);
+    * ``db``, ``da``, ``dL``: mean signed Δb*, Δa*, ΔL* (b* < 0 is bluer);
+    * ``dY``: mean Y / reference mean Y - 1 (brightness bias);
+    * ``flip``: mean FLIP (LDR, displayed sRGB images at this exposure) over skin pixels,
+      when ``flip`` is set and ``flip-evaluator`` is installed (else absent).
+    """
+    m = np.asarray(mask, bool)
+    n = int(m.sum())
+    if n == 0:
+        raise ValueError("no skin pixels: the reference's eye rays hit nothing")
+    a = np.asarray(xyz, float)[m] * exposure
+    b = np.asarray(ref_xyz, float)[m] * exposure
+    a = np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0)
+    d = a - b
+    out = {"skin_pixels": n, "rmse_xyz": float(np.sqrt(np.mean(d * d)))}
+    mY = float(b[:, 1].mean())
+    out["rel_rmse"] = out["rmse_xyz"] / mY if mY > 0 else float("nan")
+    out["dY"] = float(a[:, 1].mean() / mY - 1.0) if mY > 0 else float("nan")
+    out["de2000"] = float(np.mean(image.delta_e2000(a, b)))
+    ua, ub = image.xyz_to_uv_prime(a), image.xyz_to_uv_prime(b)
+    duv = ua - ub
+    out["du"], out["dv"] = float(duv[:, 0].mean()), float(duv[:, 1].mean())
+    out["duv"] = float(np.mean(np.hypot(duv[:, 0], duv[:, 1])))
+    uma = image.xyz_to_uv_prime(a.mean(0))
+    umb = image.xyz_to_uv_prime(b.mean(0))
+    out["du_mean"], out["dv_mean"] = float(uma[0] - umb[0]), float(uma[1] - umb[1])
+    la, lb = image.xyz_to_lab(a), image.xyz_to_lab(b)
+    dl = (la - lb).mean(0)
+    out["dL"], out["da"], out["db"] = float(dl[0]), float(dl[1]), float(dl[2])
+    if flip and rgb is not None and ref_rgb is not None:
+        f = flip_error(rgb, ref_rgb, m, exposure)
+        if f is not None:
+            out["flip"] = f
+    return out
+
+
+def flip_available() -> bool:
+    try:
+        import flip_evaluator  # noqa: F401
+        return True
+    except Exception:
+        return False
+
+
+def flip_error(rgb, ref_rgb, mask, exposure: float):
+    """Mean LDR-FLIP over ``mask`` of the displayed (exposed, clipped, sRGB) images, or None.
+
+    FLIP (Andersson et al. 2020) models what a viewer sees flipping between two images; the
+    displayed PNGs are what is looked at, so the LDR mode on them is the sound use here.
+    """
+    try:
+        import flip_evaluator as fe
+    except Exception:
+        return None
+    t = image.encode_srgb(np.asarray(rgb, float) * exposure).astype(np.float32)
+    r = image.encode_srgb(np.asarray(ref_rgb, float) * exposure).astype(np.float32)
+    emap, _, _ = fe.evaluate(np.ascontiguousarray(r), np.ascontiguousarray(t), "LDR",
+                             inputsRGB=True, applyMagma=False, computeMeanError=False)
+    emap = np.asarray(emap, float)
+    if emap.ndim == 3:
+        emap = emap[..., 0]
+    return float(emap[np.asarray(mask, bool)].mean())
+
+
+# ----------------------------------------------------------------------------- reference
+@dataclass
+class RefSpec:
+    """What the reference is made of (besides the scene config)."""
+
+    method: str = "a"
+    spacing_um: float | None = None
+    resolution: tuple = (80, 60)
+    photons: int = 405_000              # stored photons per pass
+    passes: int = 60
+    initial_photons: int = 200          # K of the first search (sets the initial radius)
+    seeds: tuple = (1_000_001, 2_000_003)
+
+    def as_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["resolution"] = list(self.resolution)
+        d["seeds"] = list(self.seeds)
+        return d
+
+
+@dataclass
+class Reference:
+    key: str
+    spec: RefSpec
+    xyz: np.ndarray                # (H, W, 3) mean of the halves
+    rgb: np.ndarray                # (H, W, 3) linear sRGB
+    halves_xyz: np.ndarray         # (2, H, W, 3)
+    spectral: np.ndarray           # (H, W, NB) float32 mean
+    wl: np.ndarray
+    mask: np.ndarray               # (H, W) bool skin pixels
+    exposure: float
+    error: dict                    # own error estimate (error_metrics of the halves, halved)
+    info: dict = field(default_factory=dict)
+    cached: bool = False
+    path: str = ""
+
+
+def kernel_hash() -> str:
+    from .device import kernel_dir
+    h = hashlib.sha256()
+    d = kernel_dir()
+    for name in sorted(os.listdir(d)):
+        if name.endswith((".cl", ".h")):
+            with open(os.path.join(d, name), "rb") as f:
+                h.update(name.encode() + b"\0" + f.read())
+    return h.hexdigest()[:16]
+
+
+def scene_config(cfg: dict, spec: RefSpec) -> dict:
+    """The scene config with the reference's render settings applied (seed: first half)."""
+    from . import config as C
+    from .progressive import apply_overrides
+    c = apply_overrides(cfg, method=spec.method, spacing=spec.spacing_um, resolution=spec.resolution,
+                        seed=spec.seeds[0], photons=int(spec.photons))
+    c = C.override(c, "render", "initial_photons", int(min(spec.initial_photons, spec.photons)))
+    c = C.override(c, "render", "passes", int(spec.passes))
+    return c
+
+
+def reference_key(cfg: dict, spec: RefSpec) -> str:
+    import clppm
+    c = json.loads(json.dumps(scene_config(cfg, spec), default=str))
+    for k in _NOT_PICTURE + ("seed",):
+        c["render"].pop(k, None)
+    blob = json.dumps({"config": c, "spec": spec.as_dict(), "clppm": clppm.__version__,
+                       "kernels": kernel_hash()}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def _paths(cache_dir: str, key: str) -> tuple[str, str]:
+    base = os.path.join(cache_dir, f"ref-{key}")
+    return base + ".npz", base + ".json"
+
+
+def load_reference(cache_dir: str, key: str):
+    npz, js = _paths(cache_dir, key)
+    if not (os.path.isfile(npz) and os.path.isfile(js)):
+        return None
+    try:
+        with open(js) as f:
+            meta = json.load(f)
+        with np.load(npz, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError, KeyError, json.JSONDecodeError):
+        return None
+    if meta.get("key") != key:
+        return None
+    sp = meta["spec"]
+    spec = RefSpec(method=sp["method"], spacing_um=sp["spacing_um"], resolution=tuple(sp["resolution"]),
+                   photons=sp["photons"], passes=sp["passes"], initial_photons=sp["initial_photons"],
+                   seeds=tuple(sp["seeds"]))
+    return Reference(key=key, spec=spec, xyz=arrays["xyz"], rgb=arrays["rgb"],
+                     halves_xyz=arrays["halves_xyz"], spectral=arrays["spectral"], wl=arrays["wl"],
+                     mask=arrays["mask"].astype(bool), exposure=float(meta["exposure"]),
+                     error=meta["error"], info=meta.get("info", {}), cached=True, path=npz)
+
+
+def _save(cache_dir: str, ref: Reference) -> None:
+    os.makedirs(cache_dir, exist_ok=True)
+    npz, js = _paths(cache_dir, ref.key)
+    tmp = npz + f".{os.getpid()}.tmp.npz"
+    np.savez_compressed(tmp, xyz=ref.xyz, rgb=ref.rgb, halves_xyz=ref.halves_xyz,
+                        spectral=ref.spectral.astype(np.float32), wl=ref.wl, mask=ref.mask)
+    os.replace(tmp, npz)
+    meta = {"key": ref.key, "spec": ref.spec.as_dict(), "exposure": ref.exposure, "error": ref.error,
+            "info": ref.info}
+    with open(js + ".tmp", "w") as f:
+        json.dump(meta, f, indent=1, default=str)
+    os.replace(js + ".tmp", js)
+    ref.path = npz
+
+
+def skin_mask(cfg: dict, dev=None) -> np.ndarray:
+    """Skin pixels of ``cfg``'s camera (eye pass only)."""
+    from . import eyepass, transport, volume
+    from .device import open_device
+    dev = dev or open_device(None)
+    vol = volume.build(cfg)
+    vb = transport.upload_volume(dev, vol)
+    eye = eyepass.run(dev, vol, vb, cfg, eyepass.scheme(cfg["render"]["method"], cfg["render"]["spacing_um"]))
+    return skin_mask_from_eye(eye)
+
+
+def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=None, log=print,
+                  force: bool = False, flip: bool = False) -> Reference:
+    """The cached reference for (cfg, spec), computing (and caching) it if needed."""
+    from .progressive import render
+    key = reference_key(cfg, spec)
+    if not force:
+        ref = load_reference(cache_dir, key)
+        if ref is not None:
+            log(f"reference {key}: cached ({ref.path})")
+            log(reference_summary(ref))
+            return ref
+    c = scene_config(cfg, spec)
+    log(f"reference {key}: computing method {spec.method}"
+        f"{'' if spec.spacing_um is None else f' spacing {spec.spacing_um:g} um'}, "
+        f"{spec.resolution[0]}x{spec.resolution[1]}, {spec.photons} stored photons/pass, "
+        f"{spec.passes} passes, K = {spec.initial_photons}, two halves (seeds {spec.seeds[0]}, {spec.seeds[1]})")
+    halves, reports = [], []
+    t0 = time.perf_counter()
+    with cached_volumes():
+        mask = skin_mask(c, dev)
+        for s in spec.seeds:
+            th = time.perf_counter()
+            res = render(c, seed=int(s), dev=dev)
+            halves.append(res)
+            r = res.report
+            reports.append({"seed": int(s), "seconds": r["seconds"], "photons_emitted": r["photons_emitted"],
+                            "photons_stored": r["photons_stored"], "gather_pairs": r["gather_pairs"],
+                            "sample_points": r["sample_points"],
+                            "first_search_mean_photons": r.get("first_search_mean_photons")})
+            log(f"  half seed {s}: {time.perf_counter() - th:.1f} s, {r['photons_stored']:,} stored photons, "
+                f"{r['gather_pairs']:,} gather pairs")
+    exposure = float(halves[0].exposure)
+    h = np.stack([x.xyz for x in halves])
+    xyz = h.mean(0)
+    rgb = np.mean([x.rgb for x in halves], axis=0)
+    spectral = np.mean([x.spectral for x in halves], axis=0).astype(np.float32)
+    e = error_metrics(h[0], h[1], mask, exposure, halves[0].rgb, halves[1].rgb, flip=flip)
+    err = {k: (v / 2.0 if isinstance(v, float) else v) for k, v in e.items()}
+    err["note"] = ("noise of the mean of the two halves, estimated as (half1 vs half2) / 2; "
+                   "excludes the density-estimation bias the halves share")
+    ref = Reference(key=key, spec=spec, xyz=xyz, rgb=rgb, halves_xyz=h, spectral=spectral,
+                    wl=np.asarray(halves[0].wl), mask=mask, exposure=exposure, error=err,
+                    info={"halves": reports, "seconds": time.perf_counter() - t0,
+                          "device": halves[0].report["device"]["name"],
+                          "sample_points_per_ray_per_layer": halves[0].report["sample_points_per_ray_per_layer"]})
+    _save(cache_dir, ref)
+    log(f"reference {key}: saved {ref.path} ({ref.info['seconds']:.0f} s)")
+    log(reference_summary(ref))
+    return ref
+
+
+def reference_summary(ref: Reference) -> str:
+    e = ref.error
+    s = (f"reference own error (from its two halves): RMSE XYZ {e['rmse_xyz']:.3g} "
+         f"({100 * e['rel_rmse']:.2f} % of mean skin Y), mean CIEDE2000 {e['de2000']:.3g}, "
+         f"mean |du'v'| {e['duv']:.2g}, mean-colour du'v' ({e['du_mean']:+.1e}, {e['dv_mean']:+.1e}), "
+         f"db* {e['db']:+.3f}")
+    if "flip" in e:
+        s += f", FLIP {e['flip']:.3g}"
+    return s + f"; {e['skin_pixels']} skin pixels"
