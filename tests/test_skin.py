@@ -17,7 +17,7 @@ NINE = ["stratum corneum", "granular + spinous", "basal", "papillary dermis",
 
 
 def load_stack(name):
-    with open(CONFIGS / f"layers_{name}.toml", "rb") as fh:
+    with open(CONFIGS / f"{name}.toml", "rb") as fh:
         tables = tomllib.load(fh)["layer"]
     layers = []
     for t in tables:
