@@ -38,7 +38,8 @@ def test_stack_files_are_nine_layers_with_layer_keys(site):
     assert math.isinf(layers[-1].thickness_um)
     assert all(math.isfinite(L.thickness_um) and L.thickness_um > 0 for L in layers[:-1])
     assert [L.bottom for L in layers[:3]] == ["surface", "papillae", "papillae"]
-    assert all(L.bottom == "flat" for L in layers[3:])
+    assert layers[3].bottom == "surface"          # the papillary dermis follows the relief
+    assert all(L.bottom == "flat" for L in layers[4:])
     # more blood in the plexuses than in the dermis around them
     by = {L.name: L for L in layers}
     assert by["upper blood net plexus"].blood > by["reticular dermis"].blood
