@@ -70,9 +70,12 @@ def load(path: str, meta: dict | None = None) -> dict:
     name = os.path.basename(path)
     if not os.path.isfile(path):
         raise CheckpointError(f"checkpoint {name}: file not found ({path})")
+
     def corrupt(why):
         return CheckpointError(f"checkpoint {name} is corrupt or not a clppm checkpoint ({why})")
 
+    if os.path.getsize(path) == 0:
+        raise corrupt("empty file")
     try:
         z = np.load(path, allow_pickle=False)
         if not isinstance(z, np.lib.npyio.NpzFile):      # a lone .npy array
@@ -95,8 +98,9 @@ def load(path: str, meta: dict | None = None) -> dict:
         raise corrupt("header without meta or state")
     if meta is not None and header["meta"] != meta:
         diffs = _diff(header["meta"], meta)
+        more = f"; and {len(diffs) - 8} more" if len(diffs) > 8 else ""
         raise CheckpointError(f"checkpoint {name} was made with different parameters: "
-                              + "; ".join(diffs[:8]) + (f"; and {len(diffs) - 8} more" if len(diffs) > 8 else ""))
+                              + "; ".join(diffs[:8]) + more)
     st = dict(header["state"])
     missing = [k for k in ("pass_index", "emitted_total", "store_zmin", "tallies_emitted", "stats",
                            "timing") if k not in st]

@@ -42,8 +42,7 @@ import time
 import numpy as np
 
 from . import image
-from .reference import (RefSpec, cached_volumes, error_metrics, flip_available, get_reference,
-                        reference_summary, skin_mask)
+from .reference import RefSpec, cached_volumes, error_metrics, flip_available, get_reference, skin_mask
 
 METHODS = "abcdef"
 STAGES = ("eye", "photon", "grid", "gather")
@@ -63,10 +62,10 @@ FULL = {
     "photons": 202_500,
     "budget": 600.0,
     "max_passes": 200,
-    "ref": {"photons": 1_620_000, "passes": 200, "initial_photons": 200},
-    "shift_spacings": (4.0, 5.0, 7.0, 10.0, 14.0, 28.0),
+    "ref": {"photons": 1_620_000, "passes": 120, "initial_photons": 200},
+    "shift_spacings": (4.0, 7.0, 14.0, 28.0),
     "shift_photons": (50_625, 202_500, 810_000),
-    "shift_passes": 16,
+    "shift_passes": 8,
 }
 
 
@@ -77,6 +76,15 @@ class _Stop(Exception):
 def render_seconds(report: dict) -> float:
     s = report["seconds"]
     return float(sum(s.get(k, 0.0) for k in STAGES))
+
+
+def median_radius(last: dict, report: dict):
+    """Median progressive radius (um) over the sample points, from the device array an
+    ``on_pass`` hook kept in ``last['pt_R']`` (None if there is none)."""
+    a, n = last.get("pt_R"), int(report.get("sample_points", 0))
+    if a is None or n == 0:
+        return None
+    return float(np.median(a.get()[:n]))
 
 
 def schedule(max_passes: int, ratio: float = 1.25) -> set:
@@ -99,13 +107,18 @@ def run_method(cfg: dict, method: str, ref, *, budget: float, max_passes: int, p
     snaps: list = []
     last = {}
 
+    def on_pass(p, st):
+        last["pt_R"] = st["pt_R"]
+
     def on_snapshot(p, wall, res):
         t = render_seconds(res.report)
         due = p in sched or t >= budget or p >= max_passes
         if due:
             m = error_metrics(res.xyz, ref.xyz, ref.mask, ref.exposure, res.rgb, ref.rgb, flip=flip)
             r = res.report
-            snaps.append({"pass": p, "seconds": t, "wall": wall,
+            # the reference's own noise adds in quadrature to the RMSE; take it out
+            m["rmse_xyz_net"] = math.sqrt(max(m["rmse_xyz"] ** 2 - ref.error["rmse_xyz"] ** 2, 0.0))
+            snaps.append({"pass": p, "seconds": t, "wall": wall, "R_median_um": median_radius(last, r),
                           "stage_seconds": {k: r["seconds"].get(k, 0.0) for k in STAGES},
                           "photons_emitted": r["photons_emitted"], "photons_stored": r["photons_stored"],
                           "gather_pairs": r["gather_pairs"], **m})
@@ -116,7 +129,7 @@ def run_method(cfg: dict, method: str, ref, *, budget: float, max_passes: int, p
     t0 = time.perf_counter()
     try:
         render(cfg, method=method, spacing=spacing, passes=max_passes, photons=photons, resolution=(w, h),
-               seed=seed, dev=dev, snapshot_every=1, on_snapshot=on_snapshot)
+               seed=seed, dev=dev, snapshot_every=1, on_snapshot=on_snapshot, on_pass=on_pass)
     except _Stop:
         pass
     res = last["res"]
@@ -124,7 +137,7 @@ def run_method(cfg: dict, method: str, ref, *, budget: float, max_passes: int, p
     f = snaps[-1]
     log(f"  {method}: {f['pass']} passes, {f['seconds']:.1f} s render ({time.perf_counter() - t0:.0f} s wall), "
         f"RMSE {f['rmse_xyz']:.4f}, dE00 {f['de2000']:.2f}, du'v' mean colour ({f['du_mean']:+.4f}, "
-        f"{f['dv_mean']:+.4f}), db* {f['db']:+.2f}" + (f", FLIP {f['flip']:.3f}" if "flip" in f else ""))
+        f"{f['dv_mean']:+.4f}), db* {f['db']:+.2f}, median R {f['R_median_um'] or 0:.0f} um" + (f", FLIP {f['flip']:.3f}" if "flip" in f else ""))
     return {
         "method": method, "scheme": r["scheme"], "snapshots": snaps,
         "passes": f["pass"], "seconds": f["seconds"],
@@ -160,8 +173,9 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
         mask = ref.mask if ref is not None else None
         for n in photons:
             for s in spacings:
+                last = {}
                 res = render(cfg, spacing=float(s), passes=int(passes), photons=int(n), resolution=resolution,
-                             seed=seed, dev=dev)
+                             seed=seed, dev=dev, on_pass=lambda p, st, last=last: last.update(pt_R=st["pt_R"]))
                 if mask is None:
                     from .progressive import apply_overrides
                     mask = skin_mask(apply_overrides(cfg, resolution=resolution, spacing=float(s)), dev)
@@ -173,7 +187,7 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
                 row = {"spacing_um": float(s), "photons": int(n), "passes": int(passes),
                        "points_per_ray": r["sample_points"] / max(r["eye_rays_hit"], 1),
                        "reuse": r["gather_pairs"] / max(r["photons_stored"], 1),
-                       "seconds": render_seconds(r),
+                       "seconds": render_seconds(r), "R_median_um": median_radius(last, r),
                        "u": float(uv[0]), "v": float(uv[1]),
                        "L": float(lab[0]), "a": float(lab[1]), "b": float(lab[2])}
                 imgs[(float(s), int(n))] = (res.xyz, res.exposure)
@@ -212,11 +226,13 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
 
 def shift_markdown(exp: dict) -> str:
     lines = [f"Against {exp['against']}; {exp['passes']} passes, {exp['resolution'][0]}x{exp['resolution'][1]}, "
-             "same seed for every spacing.", "",
-             "| spacing (um) | photons/pass | points/ray | reuse | u' | v' | b* | Δu' | Δv' | Δb* | ΔE00 |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "same seed for every spacing.  reuse = gather pairs / stored photons (sample points counting a "
+             "stored photon, on average); R = median radius after the last pass.", "",
+             "| spacing (um) | photons/pass | points/ray | reuse | R (um) | u' | v' | b* | Δu' | Δv' | Δb* | ΔE00 |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in exp["rows"]:
         lines.append(f"| {r['spacing_um']:g} | {r['photons']:,} | {r['points_per_ray']:.1f} | {r['reuse']:.0f} | "
+                     f"{r['R_median_um'] or 0:.0f} | "
                      f"{r['u']:.4f} | {r['v']:.4f} | {r['b']:.2f} | {r['du_mean']:+.4f} | {r['dv_mean']:+.4f} | "
                      f"{r['db']:+.2f} | {r['de2000']:.2f} |")
     lines += ["", "| photons/pass | finest − coarsest Δu' | Δv' | Δb* | reuse finest / coarsest |",
@@ -284,7 +300,7 @@ def table1_markdown(runs: dict) -> str:
 def results_markdown(runs: dict, summ: dict, ref) -> str:
     from .skin import PAPER_RENDER_TIME_S
     has_flip = any("flip" in r["final"] for r in runs.values())
-    head = ("| method | scheme | passes | seconds | points | RMSE XYZ | ΔE00 | Δu' | Δv' | Δb* |"
+    head = ("| method | scheme | passes | seconds | points | R (um) | RMSE XYZ | net of ref noise | ΔE00 | Δu' | Δv' | Δb* |"
             + (" FLIP |" if has_flip else "")
             + f" RMSE @ {summ['equal_time_s']:.0f} s | ΔE00 @ {summ['equal_time_s']:.0f} s |"
             + f" s to ΔE00 ≤ {summ['equal_de2000']:.2f} | paper s (200 passes) |")
@@ -297,7 +313,8 @@ def results_markdown(runs: dict, summ: dict, ref) -> str:
             return "–" if x is None else format(x, fmt)
         lines.append(
             f"| {m} | {r['scheme']} | {r['passes']} | {r['seconds']:.1f} | {r['sample_points']:,} | "
-            f"{f['rmse_xyz']:.4f} | {f['de2000']:.2f} | {f['du_mean']:+.4f} | {f['dv_mean']:+.4f} | {f['db']:+.2f} |"
+            f"{f.get('R_median_um') or 0:.0f} | "
+            f"{f['rmse_xyz']:.4f} | {f['rmse_xyz_net']:.4f} | {f['de2000']:.2f} | {f['du_mean']:+.4f} | {f['dv_mean']:+.4f} | {f['db']:+.2f} |"
             + (f" {f['flip']:.3f} |" if has_flip and "flip" in f else (" – |" if has_flip else ""))
             + f" {g(s['rmse_at_equal_time'], '.4f')} | {g(s['de2000_at_equal_time'], '.2f')} |"
             f" {g(s['seconds_to_equal_de2000'], '.1f')} | {PAPER_RENDER_TIME_S.get(m, float('nan')):.0f} |")
@@ -376,7 +393,8 @@ def add_parser(subparsers, add_device) -> None:
                               description=__doc__.split("\n\n")[0])
     p.add_argument("config")
     p.add_argument("--methods", default=METHODS, help="comma list or letters, e.g. a,c,f (default: all)")
-    p.add_argument("--budget", type=float, help="render seconds per method (quick 20, full 600)")
+    p.add_argument("--budget", type=float, help="render seconds per method (quick 20, full 600; the full run "
+                   "takes ~2 h on 2 CPU cores: reference ~30 min, methods 6 x 10 min, colour shift ~20 min)")
     p.add_argument("--quick", action="store_true", help="80x60, 50,625 photons/pass, 20 s per method, small reference (~5 min, ~3 once cached)")
     p.add_argument("--resolution", type=_res, help="default: quick 80x60, full 160x120")
     p.add_argument("--photons", type=int, help="stored photons per pass (default: the paper's per pixel)")
@@ -397,6 +415,12 @@ def add_parser(subparsers, add_device) -> None:
     p.add_argument("-o", "--out", help="output folder (default out/compare or out/compare-quick)")
     add_device(p)
     p.set_defaults(func=cmd_compare)
+
+
+def _ref_R(ref) -> str:
+    rs = [h.get("R_median_um") for h in ref.info.get("halves", [])]
+    rs = [r for r in rs if r is not None]
+    return f"{np.mean(rs):.0f}" if rs else "?"
 
 
 def cmd_compare(a) -> int:
@@ -447,7 +471,11 @@ def cmd_compare(a) -> int:
           f"(eye + photon + grid + gather; volume build and snapshots excluded).", "",
           f"Reference `{ref.key}`: method {spec.method}"
           f"{'' if spec.spacing_um is None else f' spacing {spec.spacing_um:g} um'}, {spec.photons:,} stored "
-          f"photons/pass, {spec.passes} passes, K = {spec.initial_photons}, mean of two seeds.", "",
+          f"photons/pass, {spec.passes} passes, K = {spec.initial_photons}, mean of two seeds; median radius "
+          f"{_ref_R(ref)} um.  Its error estimate (from the halves) is noise only: the density-estimation bias "
+          "of its finite radius is not in it (the compared runs' radii are in the R column).", "",
+          "All methods use the same seed (the same photons in every pass), so the differences between them "
+          "at equal passes are not photon noise.", "",
           "## Speed and accuracy (last snapshot; equal-time columns interpolated log-log)", "",
           results_markdown(runs, summ, ref), "", "![error against time](compare.png)", "",
           "## Table 1: mean sample points per eye ray per layer", "", table1_markdown(runs)]

@@ -125,8 +125,9 @@ SCHEMA: dict[str, dict[str, F]] = {
         "checkpoint_every": F("int", 10, lo=0, hi=10**7),
         "exposure": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e12,
                       doc="PNG scale; default: a white diffuser at the image centre = 1"),
-        "boundary": F("choice", "clip", choices=("clip", "none"),
-                      doc="sphere volume clipped at the skin surface (clip) or not (paper)"),
+        "estimator": F("choice", "layer", choices=("layer", "clip", "sphere"),
+                       doc="layer: own-layer photons over the sphere within the layer; "
+                           "clip: all photons, sphere clipped at the surface; sphere: the paper"),
         "store_depth_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e6,
                             doc="store photons only this deep (default: all)"),
     },
@@ -320,6 +321,11 @@ def _cross_checks(src: str, cfg: dict) -> None:
     if cfg["relief"]["kind"] == "file" and cfg["relief"]["file"] is None:
         raise ConfigError(src, "relief.file", None, "relief.kind = 'file' needs relief.file")
     cam = cfg["camera"]
+    nrays = cam["resolution"][0] * cam["resolution"][1] * cam["spp"]
+    if nrays > 2**31 - 1:                  # the kernels index eye rays with 32-bit integers
+        raise ConfigError(src, "camera.spp", cam["spp"],
+                          f"{cam['resolution'][0]}x{cam['resolution'][1]} pixels x {cam['spp']} gives "
+                          f"{nrays} eye rays; at most {2**31 - 1}")
     d = [a - b for a, b in zip(cam["look_at_mm"], cam["position_mm"])]
     if math.sqrt(sum(x * x for x in d)) == 0:
         raise ConfigError(src, "camera.look_at_mm", cam["look_at_mm"], "equals camera.position_mm")

@@ -11,13 +11,13 @@ Sample-point storage on the device (bytes per point, and why):
   pt_pos    16  position (3 x f32) + Fresnel/n^2 throughput factor to the camera
   pt_dir    16  direction to the eye (3 x f32) + layer index (for g of the phase function)
   pt_piece   4  index of the point's first path piece
-  pt_surf    4  height of the skin surface above the point (boundary-clipped sphere volume)
+  pt_slab    8  top and bottom of the point's layer at its column (the estimator's volume)
   pt_R, pt_N 8  progressive radius and accumulated photon count
   pt_M       4  photons found in the last pass (statistics, tests)
   pieces    ~9  (8 per piece, ~1.1 pieces per point): the layer lengths of the point's path
                 interval, from which the gather kernel evaluates the per-band weight
                 integral of T over the interval exactly
-  = about 61 bytes.  The paper's per-point rho(lambda) and Phi(lambda) (2 x 81 floats) are
+  = about 65 bytes.  The paper's per-point rho(lambda) and Phi(lambda) (2 x 81 floats) are
   not needed: rho is recomputed from the pieces, and Phi/V only ever grows by the pass's
   F/V, which goes straight into the pixel (see kernels/gather.cl).
 """
@@ -93,13 +93,13 @@ class EyeData:
     pieces: object
     ray_spec: np.ndarray   # host, per ray
     ray_hit: np.ndarray    # host, per ray
-    pt_surf: object        # cl array: surface height above each point (um)
+    pt_slab: object        # cl array float2: top and bottom of each point's layer (um)
     counts: np.ndarray     # host, points per ray
     layers: np.ndarray     # host, layer of each point
     depth: np.ndarray      # host, depth below z=0 of each point (um)
 
     def device_bytes(self) -> int:
-        return self.npoints * (16 + 16 + 4 + 4 + 8 + 4) + self.npieces * 8 + (self.nrays + 1) * 4
+        return self.npoints * (16 + 16 + 4 + 8 + 8 + 4) + self.npieces * 8 + (self.nrays + 1) * 4
 
     def per_layer(self, nl: int) -> np.ndarray:
         """Mean sample points per eye ray in each layer, over rays that hit the skin."""
@@ -182,16 +182,16 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     pieces = cla.empty(q, max(npieces, 1), cltypes.float2)
     ray_spec = cla.empty(q, nrays, np.float32)
     ray_hit = cla.empty(q, nrays, np.float32)
-    pt_surf = cla.empty(q, max(npoints, 1), np.float32)
+    pt_slab = cla.empty(q, max(npoints, 1), cltypes.float2)
     knl(q, (P_.global_size(nrays),), (P_.WG,), *common, np.int32(1), npts_a.data, npcs_a.data,
         npts_a.data, npcs_a.data, pt_pos.data, pt_dir.data, pt_piece.data, pieces.data,
-        ray_spec.data, ray_hit.data, pt_surf.data)
+        ray_spec.data, ray_hit.data, pt_slab.data)
     cl.enqueue_copy(q, pt_piece.data, np.array([npieces], np.uint32), dst_offset=4 * npoints)
     pos = pt_pos.get()[:npoints] if npoints else np.zeros(0, cltypes.float4)
     dirs = pt_dir.get()[:npoints] if npoints else np.zeros(0, cltypes.float4)
     return EyeData(camera=cam, scheme=sch, nrays=nrays, npoints=npoints, npieces=npieces,
                    ray_start=npts_a, pt_pos=pt_pos, pt_dir=pt_dir, pt_piece=pt_piece,
-                   pieces=pieces, ray_spec=ray_spec.get(), ray_hit=ray_hit.get(), pt_surf=pt_surf,
+                   pieces=pieces, ray_spec=ray_spec.get(), ray_hit=ray_hit.get(), pt_slab=pt_slab,
                    counts=counts, layers=np.asarray(dirs["w"], np.int32) if npoints else np.zeros(0, np.int32),
                    depth=-np.asarray(pos["z"], float) if npoints else np.zeros(0))
 

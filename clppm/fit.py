@@ -763,10 +763,11 @@ def cmd_fit(a) -> int:
 
     def fmt_se(k):
         return "" if pse.get(k) is None else f" ± {pse[k]:.3g}"
-    print(f"{label}: {res.iterations} iterations, {res.evaluations} photon-pass evaluations, {res.seconds:.1f} s "
-          f"({'converged' if res.converged else 'iteration limit'})")
+    print(f"{label}: {res.iterations} iterations, {res.evaluations} photon-pass evaluations, "
+          f"{res.seconds:.1f} s ({'converged' if res.converged else 'iteration limit'})")
     print(f"  melanin ×{p['melanin']:.4g}{fmt_se('melanin')}   blood ×{p['blood']:.4g}{fmt_se('blood')}   "
-          f"S {p['saturation']:.3f}{fmt_se('saturation')}   scattering ×{p['scattering']:.4g}{fmt_se('scattering')}")
+          f"S {p['saturation']:.3f}{fmt_se('saturation')}   "
+          f"scattering ×{p['scattering']:.4g}{fmt_se('scattering')}")
     for L in res.layers:
         vals = ", ".join(f"{k} {v:.4g}" for k, v in L.items() if k != "name")
         print(f"    {L['name']}: {vals}")

@@ -13,7 +13,6 @@ observer, XYZ from reflectance x D65 through :mod:`clppm.image`), and plots it.
 from __future__ import annotations
 
 import functools
-import math
 import os
 import re
 from importlib import resources
@@ -346,7 +345,9 @@ def plot(path: str, wl, R, se=None, label: str = "model", curves: dict | None = 
     ax.set_xlabel("wavelength (nm)")
     ax.set_ylabel("reflectance factor")
     ax.set_xlim(min(380.0, wl.min()), max(780.0, wl.max()))
-    ax.set_ylim(0.0, max(0.8, float(np.nanmax(R)) * 1.05))
+    top = max([float(np.nanmax(R))] + [float(np.nanmax(np.asarray(c[1], float)))
+                                       for c in (curves or {}).values()])
+    ax.set_ylim(0.0, min(1.6, max(0.8, top * 1.05)))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")
     ax.set_title(title or "Spectral reflectance vs NIST volar forearm skin", fontsize=10)

@@ -166,7 +166,8 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     check_alloc(dev, needs)
 
     pp = transport.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf)
-    prg = dev.build("gather.cl", {**transport.defines(vol), "BOUNDARY_CLIP": rc["boundary"] == "clip"})
+    prg = dev.build("gather.cl", {**transport.defines(vol),
+                                  "ESTIMATOR": {"sphere": 0, "clip": 1, "layer": 2}[rc["estimator"]]})
     k_gather = cl.Kernel(prg, "gather")
     k_init = cl.Kernel(prg, "init_radius")
     k_count = cl.Kernel(prg, "count_within")
@@ -252,7 +253,8 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
                     cnt = cla.zeros(q, ns, np.uint32)
                     for _ in range(2):
                         k_count(q, (_round(ns),), (64,), grid.params, grid.cell_start.data,
-                                grid.spos_w.data, eye.pt_pos.data, pt_R.data, np.uint32(npts),
+                                grid.spos_w.data, grid.sdir_b.data, eye.pt_pos.data, eye.pt_dir.data,
+                                pt_R.data, np.uint32(npts),
                                 np.uint32(stride), cnt.data)
                         mean_m = float(cnt.get().mean())
                         if mean_m <= 0:
@@ -277,7 +279,7 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
                 pass_scale = 1.0 / max(info["emitted"], 1) if global_radius else 1.0
                 k_gather(q, (_round(npix),), (64,), grid.params, grid.cell_start.data, grid.spos_w.data,
                          grid.sdir_b.data, hgtab, vbuf.optics, eye.ray_start.data, eye.pt_pos.data,
-                         eye.pt_dir.data, eye.pt_piece.data, eye.pieces.data, eye.pt_surf.data,
+                         eye.pt_dir.data, eye.pt_piece.data, eye.pieces.data, eye.pt_slab.data,
                          pt_R.data, pt_N.data, pt_M.data, pix_acc.data, pix_pairs.data, np.int32(npix), np.int32(cam.spp),
                          np.float32(alpha), np.int32(global_radius), np.float32(rf),
                          np.float64(pass_scale))

@@ -23,7 +23,6 @@ model, from the eye pass of the reference scene.
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import hashlib
 import json
@@ -299,13 +298,17 @@ def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=No
         mask = skin_mask(c, dev)
         for s in spec.seeds:
             th = time.perf_counter()
-            res = render(c, seed=int(s), dev=dev)
+            last = {}
+            res = render(c, seed=int(s), dev=dev, on_pass=lambda p, st, last=last: last.update(pt_R=st["pt_R"]))
+            n = int(res.report["sample_points"])
+            R_med = float(np.median(last["pt_R"].get()[:n])) if n and "pt_R" in last else None
             halves.append(res)
             r = res.report
             reports.append({"seed": int(s), "seconds": r["seconds"], "photons_emitted": r["photons_emitted"],
                             "photons_stored": r["photons_stored"], "gather_pairs": r["gather_pairs"],
                             "sample_points": r["sample_points"],
-                            "first_search_mean_photons": r.get("first_search_mean_photons")})
+                            "first_search_mean_photons": r.get("first_search_mean_photons"),
+                            "R_median_um": R_med})
             log(f"  half seed {s}: {time.perf_counter() - th:.1f} s, {r['photons_stored']:,} stored photons, "
                 f"{r['gather_pairs']:,} gather pairs")
     exposure = float(halves[0].exposure)

@@ -34,7 +34,6 @@ import copy
 import json
 import math
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 
@@ -293,12 +292,13 @@ def incidence_direction(cfg: dict, cam) -> np.ndarray:
 def method_reflectance(cfg: dict, methods="abcdef", passes: int | None = None,
                        photons: int | None = None, resolution=None, region=None,
                        specular: bool = False, band_photons: int = 20000, seed: int | None = None,
-                       dev=None, device: str | None = None, source: str = "<config>",
+                       bands=None, dev=None, device: str | None = None, source: str = "<config>",
                        progress: bool = False, log=None) -> dict:
     """Per-method reflectance from rendered images, next to the photon-pass value.
 
     Each method renders ``cfg`` (with ``passes``, ``photons`` per pass, ``resolution``
-    overriding the config; the render's specular highlight off unless ``specular``); the
+    overriding the config, and ``bands`` = (start, stop, step) nm the spectrum grid of both the
+    renders and the photon pass; the render's specular highlight off unless ``specular``); the
     spectral radiance of ``region`` (x0, y0, x1, y1 pixels; default the central 50 % box) is
     divided pixel by pixel by the white Lambertian reference under the same light and camera,
     and averaged.  The photon-pass R(λ) is traced for the same bands at the configured light's
@@ -314,6 +314,11 @@ def method_reflectance(cfg: dict, methods="abcdef", passes: int | None = None,
     for m in methods:
         if m not in "abcdef" or len(m) != 1:
             raise ConfigError(source, "--methods", m, "methods are letters a-f")
+    if bands is not None:
+        raw = copy.deepcopy(cfg)
+        raw["spectrum"].update(start_nm=float(bands[0]), stop_nm=float(bands[1]),
+                               step_nm=float(bands[2]))
+        cfg = C.validate(raw, source)
     if photons is not None and 0 < photons < cfg["render"]["initial_photons"]:
         # (progressive.apply_overrides checks photons >= initial_photons before clamping)
         cfg = C.override(cfg, "render", "initial_photons", int(photons))
@@ -411,10 +416,12 @@ def add_parser(subparsers, add_device) -> None:
     p.add_argument("--specular", choices=("included", "excluded"), default="included",
                    help="specular component included (SCI, default) or excluded (SCE)")
     p.add_argument("--photons", type=int, default=None,
-                   help="photons per band for R(λ) (default 20000); with --methods: stored "
+                   help="photons per band for R(λ) (default 5000); with --methods: stored "
                         "photons per render pass (then --band-photons sets the per-band count)")
     p.add_argument("--band-photons", type=int, default=None, help="photons per band for R(λ)")
-    p.add_argument("--bands", type=_bands_arg, help="START:STOP:STEP nm (default: the config's)")
+    p.add_argument("--bands", type=_bands_arg,
+                   help="START:STOP:STEP nm (default: the config's); with --methods also the "
+                        "renders' spectrum")
     p.add_argument("--flat", action="store_true", help="relief and papillae off (the fit's forward model)")
     p.add_argument("--spot-mm", type=float, help="square beam spot side (relief models / with --port-mm)")
     p.add_argument("--port-mm", type=float, help="square sample port side, flat models (a lower bound)")
@@ -446,9 +453,9 @@ def cmd_reflectance(a) -> int:
     src = os.path.basename(a.config)
     spec = a.specular == "included"
     if a.methods:
-        band_photons = a.band_photons or 20000
+        band_photons = a.band_photons or 5000
     else:
-        band_photons = a.band_photons or a.photons or 20000
+        band_photons = a.band_photons or a.photons or 5000
     for name, v in (("--photons", a.photons), ("--band-photons", a.band_photons),
                     ("--passes", a.passes), ("--batches", a.batches)):
         if v is not None and v <= 0:
@@ -478,8 +485,8 @@ def cmd_reflectance(a) -> int:
         print(f"rendering methods {a.methods} ...")
         mr = method_reflectance(cfg, a.methods, passes=a.passes, photons=a.photons,
                                 resolution=a.resolution, region=a.region, specular=spec,
-                                band_photons=band_photons, seed=a.seed, dev=dev, source=src,
-                                log=lambda s: print(s, flush=True))
+                                band_photons=band_photons, seed=a.seed, bands=a.bands, dev=dev,
+                                source=src, log=lambda s: print(s, flush=True))
         out["images"] = mr
         wl = np.asarray(mr["wavelength_nm"])
         tr = np.asarray(mr["photon_pass"]["R"])

@@ -171,16 +171,16 @@ inline float iface_z(__constant const float4* iface, __global const float* heigh
 #endif
 }
 
-/* Height of the skin surface above position p (its column's top). */
-inline float surface_at(__constant const Params* P, __constant const float4* iface,
-                        __global const float* heights, float3 p) {
+/* Top and bottom of layer L in the column of position p (the bottom is -BIG when unbounded). */
+inline float2 layer_slab(__constant const Params* P, __constant const float4* iface,
+                         __global const float* heights, float3 p, int L) {
 #ifdef FLAT
-    return IF_Z(0);
+    return (float2)(IF_Z(L), IF_Z(L + 1));
 #else
-    if (IF_VAR(0) < 0) return IF_Z(0);
     int ix = clamp((int)floor((p.x - P->x0) / P->dx), 0, P->nx - 1);
     int iy = clamp((int)floor((p.y - P->y0) / P->dy), 0, P->ny - 1);
-    return iface_z(iface, heights, P, 0, col_index(P, ix, iy));
+    int col = col_index(P, ix, iy);
+    return (float2)(iface_z(iface, heights, P, L, col), iface_z(iface, heights, P, L + 1, col));
 #endif
 }
 

@@ -14,8 +14,11 @@
  * merged into it (one sample point per voxel, as the paper's 4 um spacing implies).
  *
  * Radiance weights.  The sampled path (entry to cut or exit) is split among the points by a
- * Voronoi partition along the ray: point i owns the path from the midpoint with its predecessor
- * to the midpoint with its successor (the first from the entry, the last to the end).  The pixel
+ * Voronoi partition along the ray, within each layer visit: point i owns the path from the
+ * midpoint with its predecessor to the midpoint with its successor, and a cell ends at a layer
+ * boundary (S jumps there with mu_s: a cell that crossed it would credit one layer with the
+ * other's in-scattered radiance).  Only a visit with no point (equal spacing wider than the
+ * layer) leaves its path to its neighbours' cells.  The pixel
  * radiance is  sum_i S(x_i) tw_i * integral over cell_i of T(l, lambda) dl,  S the in-scattered
  * radiance density, T the per-band transmittance from the entry (integrated exactly: the layer
  * extinction is piecewise constant).  Derivation: the path integral int T(l) S(l) dl is split
@@ -52,7 +55,7 @@ typedef struct {
 } EyeParams;
 
 #define MAXPEND (2 * NL + 4)
-#define SURF(p) (write ? surface_at(P, iface, heights, (p)) : 0.0f)
+#define SLAB(p, L) (write ? layer_slab(P, iface, heights, (p), (L)) : (float2)(0.0f))
 
 typedef struct {
     float pend_total;           /* path length since the last point */
@@ -63,6 +66,7 @@ typedef struct {
     int pend_layer[MAXPEND];
     int4 last_vox;
     int have_point;
+    int split_ok;               /* the last point is in the current layer visit */
 } Emit;
 
 inline void pend_add(Emit* e, int L, float len) {
@@ -108,23 +112,24 @@ inline void flush_first(Emit* e, float D, __global float2* pieces, int write) {
 /* place a candidate at p (layer L); returns 1 if a new point was made */
 inline int place(Emit* e, float3 p, float3 to_eye, int L, float tw, __constant const EyeParams* E,
                  __global float4* pt_pos, __global float4* pt_dir, __global uint* pt_piece,
-                 __global float2* pieces, __global float* pt_surf, float zsurf, int write) {
+                 __global float2* pieces, __global float2* pt_slab, float2 slab, int write) {
     int4 v = voxel_of(p, E);
     if (E->merge && e->have_point && all(v.xyz == e->last_vox.xyz)) return 0;
     if (e->npts >= (uint)E->max_points) return 0;
     /* Voronoi partition of the path: the previous point owns up to the midpoint */
-    if (e->have_point) flush_first(e, 0.5f * e->pend_total, pieces, write);
+    if (e->have_point && e->split_ok) flush_first(e, 0.5f * e->pend_total, pieces, write);
     if (write) {
         uint i = e->pt_base + e->npts;
         pt_pos[i] = (float4)(p, tw);
         pt_dir[i] = (float4)(to_eye, (float)L);
         pt_piece[i] = e->pc_base + e->npcs;
-        pt_surf[i] = zsurf;
+        pt_slab[i] = slab;
     }
     flush_pieces(e, pieces, write);
     e->npts++;
     e->last_vox = v;
     e->have_point = 1;
+    e->split_ok = 1;
     return 1;
 }
 
@@ -153,7 +158,7 @@ __kernel void eye_pass(VOLUME_ARGS,
                        __global const uint* pt_start, __global const uint* pc_start,
                        __global float4* pt_pos, __global float4* pt_dir, __global uint* pt_piece,
                        __global float2* pieces, __global float* ray_spec, __global float* ray_hit,
-                       __global float* pt_surf)
+                       __global float2* pt_slab)
 {
     const uint r = (uint)get_global_id(0);
     const uint npix = (uint)(E->width * E->height);
@@ -174,7 +179,7 @@ __kernel void eye_pass(VOLUME_ARGS,
     t.L = -1; t.ix = 0; t.iy = 0;
 
     Emit e;
-    e.npts = 0; e.npcs = 0; e.npend = 0; e.have_point = 0; e.last_vox = (int4)(0); e.pend_total = 0.0f;
+    e.npts = 0; e.npcs = 0; e.npend = 0; e.have_point = 0; e.split_ok = 0; e.last_vox = (int4)(0); e.pend_total = 0.0f;
     e.pt_base = write ? pt_start[r] : 0u;
     e.pc_base = write ? pc_start[r] : 0u;
 
@@ -248,7 +253,7 @@ __kernel void eye_pass(VOLUME_ARGS,
             while (next_eq <= ell + seg) {
                 float xc = next_eq - ell;
                 pend_add(&e, L, xc - x); x = xc;
-                visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_surf, SURF(t.pos + xc * t.dir), write);
+                visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_slab, SLAB(t.pos + xc * t.dir, L), write);
                 next_eq += E->spacing;
             }
         } else {
@@ -259,7 +264,7 @@ __kernel void eye_pass(VOLUME_ARGS,
                     xc += -log(rng_u01(&rng)) / rt;
                     if (xc > seg) break;
                     pend_add(&e, L, xc - x); x = xc;
-                    visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_surf, SURF(t.pos + xc * t.dir), write);
+                    visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_slab, SLAB(t.pos + xc * t.dir, L), write);
                 }
             }
         }
@@ -307,8 +312,10 @@ __kernel void eye_pass(VOLUME_ARGS,
         }
         /* leaving layer L: extinction-based schemes give an empty visit its exit point */
         if (E->scheme == 1 && visit_pts == 0) {
-            visit_pts += place(&e, t.pos - 1e-3f * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_surf, SURF(t.pos), write);
+            visit_pts += place(&e, t.pos - 1e-3f * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_slab, SLAB(t.pos - 1e-3f * t.dir, L), write);
         }
+        /* cells do not cross layers: a visit with points keeps its whole path */
+        if (visit_pts > 0 && e.have_point) { flush_pieces(&e, pieces, write); e.split_ok = 0; }
         visit_pts = 0;
         if (L2 >= NL) { done = 1; break; }
         if (L2 < 0) {

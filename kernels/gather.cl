@@ -12,10 +12,14 @@
  * spectral accumulator.  The per-point state is just R and N.  (The global-radius variant of
  * Knaus & Zwicker 2011 scales every R by the same schedule and averages per-pass estimates.)
  *
- * Boundary: a sphere around a point less than R below the skin surface reaches into air, where
- * no photon can be.  With BOUNDARY_CLIP the density is taken over the part of the sphere inside
- * the skin (the sphere minus the cap above the local surface plane), which removes the
- * first-order bias of the estimate near the surface; without it (the paper) V = 4/3 pi R^3.
+ * Estimator.  The in-scattered radiance is discontinuous across layers (mu_s jumps by 4x from
+ * epidermis to dermis) and zero in air, while R is 100-300 um against 15-60 um layers.
+ *   ESTIMATOR 2 "layer" (default): only photons stored in the point's own layer count, and V is
+ *     the exact volume of the sphere between the layer's top and bottom planes at the point's
+ *     column (which also removes the air above the surface and below a finite slab);
+ *   ESTIMATOR 1 "clip": all photons, V = the sphere minus the cap above the skin surface;
+ *   ESTIMATOR 0 "sphere" (the paper): all photons, V = 4/3 pi R^3.
+ * The photon record keeps its band and layer as band + 256 * layer.
  *
  * Layout (gather per pixel, not scatter per photon).  Scattering each photon into the points
  * whose sphere holds it needs float atomics on per-point spectral flux (PoCL 3.0 has none; an
@@ -34,6 +38,29 @@
 #define FIX 4294967296.0f               /* 2^32 per unit of weight x phase */
 #define INV_FIX (1.0f / 4294967296.0f)
 
+#ifndef ESTIMATOR
+#define ESTIMATOR 2
+#endif
+
+/* Volume of the sphere (centre height z, radius R) between the planes slab.x (top) and slab.y
+ * (bottom): integral of pi (R^2 - u^2) du over the part of [-R, R] inside the slab. */
+inline float estimator_volume(float z, float R, float2 slab) {
+    const float full = 4.0f / 3.0f * PI_F * R * R * R;
+#if ESTIMATOR == 0
+    return full;
+#else
+    float hi = fmin(R, slab.x - z);
+#if ESTIMATOR == 2
+    float lo = fmax(-R, slab.y - z);
+#else
+    float lo = -R;
+#endif
+    hi = fmax(hi, lo);
+    const float v = PI_F * ((R * R * hi - hi * hi * hi / 3.0f) - (R * R * lo - lo * lo * lo / 3.0f));
+    return fmax(v, 1e-3f * full);
+#endif
+}
+
 __kernel void gather(const GridParams gp,
                      __global const uint* cell_start,
                      __global const float4* spos_w,
@@ -45,7 +72,7 @@ __kernel void gather(const GridParams gp,
                      __global const float4* pt_dir,         /* toward the eye, layer */
                      __global const uint* pt_piece,         /* [npts+1] */
                      __global const float2* pieces,         /* length (um), layer */
-                     __global const float* pt_surf,         /* surface height above the point */
+                     __global const float2* pt_slab,        /* top, bottom of the point's layer */
                      __global float* pt_R,
                      __global float* pt_N,
                      __global uint* pt_M,                   /* photons found in this pass */
@@ -82,7 +109,11 @@ __kernel void gather(const GridParams gp,
                         const float4 p = spos_w[j];
                         if (grid_within(p.xyz, x, R2)) {
                             const float4 d = sdir_b[j];
-                            const int b = (int)d.w;
+                            const int bl = (int)d.w;
+#if ESTIMATOR == 2
+                            if ((bl >> 8) != L) continue;
+#endif
+                            const int b = bl & 255;
                             const float4 h = hg[b];
                             const float q = h.x - h.y * dot(d.xyz, pd.xyz);
                             const float rq = rsqrt(q);
@@ -94,14 +125,7 @@ __kernel void gather(const GridParams gp,
             }
             /* path weight integral of T over the point's interval, per band */
             const uint k0 = pt_piece[i], k1 = pt_piece[i + 1];
-            float V = 4.0f / 3.0f * PI_F * R * R * R;
-#ifdef BOUNDARY_CLIP
-            {
-                const float hc = R - (pt_surf[i] - x.z);      /* height of the cap above the surface */
-                if (hc > 0.0f) V -= PI_F * hc * hc * (3.0f * R - fmin(hc, 2.0f * R)) / 3.0f;
-                V = fmax(V, 1e-3f * 4.0f / 3.0f * PI_F * R * R * R);
-            }
-#endif
+            const float V = estimator_volume(x.z, R, pt_slab[i]);
             const float f = (R > 0.0f) ? pp.w / V * INV_FIX : 0.0f;
             for (int b = 0; b < NB; ++b) {
                 float o = od[b];
@@ -179,7 +203,9 @@ __kernel void init_radius(const GridParams gp,
 __kernel void count_within(const GridParams gp,
                            __global const uint* cell_start,
                            __global const float4* spos_w,
+                           __global const float4* sdir_b,
                            __global const float4* pt_pos,
+                           __global const float4* pt_dir,
                            __global const float* pt_R,
                            const uint npts, const uint stride,
                            __global uint* out)
@@ -190,10 +216,16 @@ __kernel void count_within(const GridParams gp,
     const float3 x = pt_pos[i].xyz;
     const float R = pt_R[i];
     const float R2 = R * R;
+    const int L = (int)pt_dir[i].w;
     uint M = 0;
     GRID_FOR_EACH_ROW(gp, cell_start, x, R, jb, je) {
         for (uint j = jb; j < je; ++j)
-            if (grid_within(spos_w[j].xyz, x, R2)) ++M;
+            if (grid_within(spos_w[j].xyz, x, R2)) {
+#if ESTIMATOR == 2
+                if (((int)sdir_b[j].w >> 8) != L) continue;
+#endif
+                ++M;
+            }
     } GRID_END_ROWS
     out[k] = M;
 }

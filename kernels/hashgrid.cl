@@ -120,7 +120,7 @@ __kernel void gather_grid(const GridParams gp, const uint m, const float wscale,
             const float4 p = spos_w[j];
             if (grid_within(p.xyz, x, R2)) {
                 const long wf = convert_long_rte(p.w * wscale);
-                const int bi = (int)sdir_b[j].w;
+                const int bi = (int)sdir_b[j].w & 255;
                 ++M;
                 W += wf;
                 if (bi >= 0 && bi < NB) B[bi] += wf;
@@ -154,7 +154,7 @@ __kernel void gather_bruteforce(const uint n, const uint m, const float wscale,
         const float4 p = pos_w[j];
         if (grid_within(p.xyz, x, R2)) {
             const long wf = convert_long_rte(p.w * wscale);
-            const int bi = (int)dir_b[j].w;
+            const int bi = (int)dir_b[j].w & 255;
             ++M;
             W += wf;
             if (bi >= 0 && bi < NB) B[bi] += wf;

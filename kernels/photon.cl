@@ -158,7 +158,7 @@ __kernel void photon_pass(VOLUME_ARGS,
                     uint i = atomic_inc(store_count);
                     if (i < P->capacity) {
                         store_pos_w[i] = (float4)(t.pos, (float)W * (1.0f / W0F));
-                        store_dir_b[i] = (float4)(t.dir, (float)b);
+                        store_dir_b[i] = (float4)(t.dir, (float)(b + 256 * t.L));   /* band, layer */
                     }
                 }
                 float ct = hg_sample_cos(op.z, rng_u01(&rng));
