@@ -30,7 +30,7 @@ import numpy as np
 
 from . import params as P_
 from .camera import Camera, from_config
-from .device import Device
+from .device import Device, DeviceError, check_alloc
 from .transport import VolumeBuffers, defines, volume_params
 from .volume import Volume
 
@@ -48,6 +48,7 @@ EYE_DTYPE = np.dtype([
     ("vox_dx", "f4"), ("vox_dz", "f4"), ("max_points", "i4"), ("max_len", "f4"),
     ("light_kind", "i4"), ("lx", "f4"), ("ly", "f4"), ("lz", "f4"), ("alpha", "f4"),
     ("seed_lo", "u4"), ("seed_hi", "u4"), ("jitter", "i4"),
+    ("bx0", "f4"), ("by0", "f4"), ("bx1", "f4"), ("by1", "f4"),
 ])
 
 
@@ -117,6 +118,10 @@ def light_fields(e: np.ndarray, cfg: dict) -> None:
         d /= np.linalg.norm(d)
         e["light_kind"] = 1 if L["kind"] == "wide" else 0
         e["lx"], e["ly"], e["lz"] = d
+        c = np.asarray(L["center_mm"], float) * 1000.0
+        w = np.asarray(L["width_mm"], float) * 1000.0
+        e["bx0"], e["by0"] = c - w / 2
+        e["bx1"], e["by1"] = c + w / 2
 
 
 def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
@@ -172,7 +177,10 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     npoints = int(counts.astype(np.int64).sum())
     npieces = int(npcs_a.get()[:nrays].astype(np.int64).sum())
     if npoints >= 2**32 or npieces >= 2**32:
-        raise RuntimeError("too many sample points for 32-bit indices")
+        raise DeviceError(f"{npoints} sample points / {npieces} path pieces exceed 32-bit indices; "
+                          "raise render.threshold, use a sparser method or a lower resolution")
+    check_alloc(dev, {"sample points": npoints * 56, "path pieces": npieces * 8,
+                      "sample point slabs": npoints * 8})
     scan = _scan_kernel(ctx)
     scan(npts_a)            # in place: exclusive prefix sums, entry nrays = total
     scan(npcs_a)

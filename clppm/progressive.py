@@ -80,6 +80,8 @@ def white_reference(cfg: dict, cam, wl, spectrum) -> np.ndarray:
     if L["kind"] == "point":
         lp = np.asarray(L["position_mm"], float) * 1000.0 - x
         d2 = float(lp @ lp)
+        if d2 <= 0:
+            return Pb * 0.0
         cos = max(lp[2] / math.sqrt(d2), 0.0)
         E = Pb / (4 * math.pi) * cos / d2 * 1e12
     elif L["kind"] == "wide":
@@ -144,6 +146,17 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     vbuf = transport.upload_volume(dev, vol)
     timing["volume"] = time.perf_counter() - t0
 
+    from .camera import from_config
+    cam0 = from_config(cfg["camera"])
+    target = int(rc["photons"])
+    capacity = int(target * 1.2) + 4096
+    npix0, nrays0 = cam0.width * cam0.height, cam0.width * cam0.height * cam0.spp
+    check_alloc(dev, {"stored photons": capacity * 32, "sorted photons": capacity * 36,
+                      "grid cells": 4 * (hashgrid.DEFAULT_MAX_CELLS + 1) * 2,
+                      "eye rays": (nrays0 + 1) * 8 + nrays0 * 8,
+                      "pixel accumulators": npix0 * vol.nb * 8 + npix0 * 8, **vol.device_bytes()})
+    if resume:
+        ckpt.load(resume)                       # fail fast on a missing or corrupt file
     t0 = time.perf_counter()
     sch = eyepass.scheme(rc["method"], rc["spacing_um"])
     eye = eyepass.run(dev, vol, vbuf, cfg, sch)
@@ -153,8 +166,6 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     npix = cam.width * cam.height
     nb, nl = vol.nb, vol.nl
 
-    target = int(rc["photons"])
-    capacity = int(target * 1.2) + 4096
     needs = {
         "stored photons": capacity * 32,
         "sorted photons": capacity * 36,
@@ -212,7 +223,9 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     global_radius = rc["radius"] == "global"
     alpha = float(rc["alpha"])
     K = float(rc["initial_photons"])
+    last_ckpt = start_pass if resume else None
     with _Interrupt() as intr:
+      try:
         while p < n_passes:
             # ---- photon pass
             t0 = time.perf_counter()
@@ -299,6 +312,7 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
             if ckpath and ((cp_every and p % cp_every == 0) or stop or p == n_passes):
                 ckpt.save(ckpath, meta, state, pt_R.get()[:npts], pt_N.get()[:npts],
                           pix_acc.get().reshape(npix, nb), pix_pairs.get())
+                last_ckpt = p
             if snapshot_every and on_snapshot and (p % snapshot_every == 0 or p == n_passes or stop):
                 res = _finish(cfg, vol, eye, pp, pix_acc, pix_pairs, emitted_total, p, timing, stats,
                               dev, t_start, rc, interrupted=False, meta=meta)
@@ -310,6 +324,11 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
             if stop:
                 interrupted = intr.flag
                 break
+      except cl.Error as e:
+        msg = " ".join(str(e).split())
+        keep = (f"checkpoint {ckpath} (pass {last_ckpt}) is kept: resume with --resume {ckpath}"
+                if last_ckpt else "no checkpoint was written yet")
+        raise DeviceError(f"device '{dev.name}' failed in pass {p + 1} of {n_passes} ({msg}); {keep}") from None
     if bar is not None:
         bar.close()
     t0 = time.perf_counter()
@@ -368,6 +387,7 @@ def _finish(cfg, vol, eye, pp, pix_acc, pix_pairs, emitted_total, passes_done, t
         else:
             fac = band_I * 0.0
         L = L + spec[:, None] * fac[None, :]
+    nonfinite = int(np.size(L) - np.count_nonzero(np.isfinite(L)))
     L = np.nan_to_num(L, nan=0.0, posinf=0.0, neginf=0.0).reshape(H, W, nb)
     if nb > 1:
         xyz = image.spectral_to_xyz(L, wl)
@@ -402,6 +422,7 @@ def _finish(cfg, vol, eye, pp, pix_acc, pix_pairs, emitted_total, passes_done, t
         "exposure": exposure,
         "white_reference_Y": Yw,
         "volume": vol.info, "accumulation": FIX_NOTE,
+        "nonfinite_values_zeroed": nonfinite,
         "units": "spectral radiance W m^-2 sr^-1 nm^-1 (EXR spectral channels); RGB linear sRGB",
     }
     return RenderResult(spectral=L, xyz=xyz, rgb=rgb, wl=wl, report=report, exposure=exposure)

@@ -57,6 +57,10 @@ def source_params(p: np.ndarray, cfg: dict, vol: Volume) -> float:
     if L["kind"] == "point":
         pos = np.asarray(L["position_mm"], float) * 1000.0
         p["sx"], p["sy"], p["sz"] = pos
+        if pos[2] <= vol.z_top:                    # in or below the surface plane: all directions
+            p["cone_cos"] = -1.0
+            p["cax"], p["cay"], p["caz"] = 0.0, 0.0, -1.0
+            return 1.0
         # cone around the model's top face, seen from the light
         x0, y0 = vol.x0, vol.y0
         x1, y1 = vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy
@@ -66,8 +70,6 @@ def source_params(p: np.ndarray, cfg: dict, vol: Volume) -> float:
         axis = vecs.sum(0)
         axis /= np.linalg.norm(axis)
         cosmin = float(np.min(vecs @ axis))
-        if pos[2] <= vol.z_top:
-            axis = np.array([0.0, 0.0, -1.0]); cosmin = -1.0    # below the surface plane: all
         cosmin = max(-1.0, min(cosmin, 1.0)) - 1e-6
         p["cone_cos"] = cosmin
         p["cax"], p["cay"], p["caz"] = axis
@@ -194,6 +196,7 @@ class PhotonPass:
         self.dir_b = cl.Buffer(dev.ctx, mf.READ_WRITE, 16 * cap)
         self.tallies = Tallies(vol.nb, vol.nl)
         self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY, P_.PARAMS_DTYPE.itemsize)
+        self.truncated = False
 
     def _launch(self, n: int, offset: int, pass_index: int, capacity: int) -> None:
         import pyopencl as cl
@@ -267,10 +270,19 @@ class PhotonPass:
             if per_photon is not None:
                 n = min(n, max(1, int(room / max(per_photon, 1e-3) * 0.5)))
             n = max(1, min(n, MAX_LAUNCH))
+            if per_photon is not None:
+                n = min(n, max(256, 4 * emitted))     # grow geometrically: no hour-long launch
             while True:
                 self._launch(n, emitted, pass_index, cap)
                 c = self._count()
                 if c <= cap:
+                    break
+                if n == 1:
+                    # one photon scattered more often than the buffer holds: its first events
+                    # were written in order, keep what fits (deterministic)
+                    self._set_count(cap)
+                    c = cap
+                    self.truncated = True
                     break
                 # overflow: the batch is deterministic, so halve it and redo it
                 self._set_count(stored)

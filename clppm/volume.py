@@ -194,7 +194,22 @@ def relief_normals(h, dx, dy, periodic):
 
 
 # ----------------------------------------------------------------------------- build
+_CACHE: dict = {}
+
+
 def build(cfg: dict, source: str = "<config>") -> Volume:
+    """The volume of a config; the last few are kept (the forearm's relief takes seconds)."""
+    import json
+    key = json.dumps({k: cfg[k] for k in ("model", "spectrum", "relief", "papillae", "layer")},
+                     sort_keys=True, default=str)
+    if key not in _CACHE:
+        if len(_CACHE) >= 3:
+            _CACHE.pop(next(iter(_CACHE)))
+        _CACHE[key] = _build(cfg, source)
+    return _CACHE[key]
+
+
+def _build(cfg: dict, source: str = "<config>") -> Volume:
     wl = wavelengths(cfg)
     layers = cfg["layer"]
     mua, mus, g = layer_optics(layers, wl, source)

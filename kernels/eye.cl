@@ -52,6 +52,7 @@ typedef struct {
     float alpha;                /* GGX roughness */
     uint seed_lo, seed_hi;
     int jitter;
+    float bx0, by0, bx1, by1;   /* wide beam footprint on z = 0 (specular only inside it) */
 } EyeParams;
 
 #define MAXPEND (2 * NL + 4)
@@ -209,6 +210,14 @@ __kernel void eye_pass(VOLUME_ARGS,
             l = (float3)(E->lx, E->ly, E->lz);
         }
         spec = specular_geo(sn, v, l, E->alpha, P->n_above, layer_n[0]) * inv_d2;
+        if (E->light_kind == 1) {
+            /* where this surface point's line to the light crosses z = 0 */
+            float s0 = -t.pos.z / l.z;
+            float fx = t.pos.x + s0 * l.x, fy = t.pos.y + s0 * l.y;
+            if (fx < E->bx0 || fx > E->bx1 || fy < E->by0 || fy > E->by1) spec = 0.0f;
+        } else if (E->light_kind == 0) {
+            spec = 0.0f;                /* a pencil beam's highlight has no area */
+        }
         float ct;
         float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
         tw = 1.0f - R;

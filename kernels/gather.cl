@@ -117,7 +117,7 @@ __kernel void gather(const GridParams gp,
                             const float4 h = hg[b];
                             const float q = h.x - h.y * dot(d.xyz, pd.xyz);
                             const float rq = rsqrt(q);
-                            acc[b] += convert_long_rte(h.z * rq * rq * rq * p.w * FIX);
+                            acc[b] += convert_long_sat_rte(h.z * rq * rq * rq * p.w * FIX);
                             ++M;
                         }
                     }

@@ -1,0 +1,398 @@
+"""Photon-pass throughput on every OpenCL device, and MCX-CL side by side when available.
+
+Per device:
+
+* ``mcml slab``: the MCML verification slab (mua 10, mus 90 /cm, g 0.75, d 0.02 cm, n 1),
+  ``PhotonPass.trace`` (tallies only, no storing): photons per second;
+* ``forearm``: the paper's model (configs/forearm.toml: 9 layers, 81 bands, D65 point light,
+  generated relief + papillae on 5 um voxels), ``PhotonPass.trace`` (photons/s) and
+  ``PhotonPass.run_pass`` storing every scattering event (the photon pass of the renderer):
+  emitted photons and stored scattering events per second;
+* ``skin slab``: the 5 upper forearm layers (stratum corneum ... subpapillary dermis, 310 um),
+  flat, one band (550 nm), pencil beam, 2 mm x 2 mm open model: photons per second.
+
+If ``pmcxcl`` (MCX-CL's Python module) is importable, the skin slab is also run by MCX-CL as a
+voxel volume with 5 um voxels (the same layers, optical properties, indices and Fresnel at
+every interface: isreflect = isrefint = 1) on the same device, and the photon throughput
+ratio clppm / MCX-CL is reported together with the absorbed fractions of both as a sanity
+check.  MCX-CL finds PoCL only through the ICD loader, so this script writes an ICD folder
+naming the libpocl*.so inside the pyopencl wheel (pocl-binary-distribution) and points
+OCL_ICD_VENDORS at it (pyopencl is imported first).  Whatever goes wrong there, the clppm
+numbers still come out and the reason for skipping the comparison is printed.
+
+Times exclude kernel builds (a warm-up launch first); nothing here asserts on time.
+
+    python bench/photons.py [--quick] [--out out/bench_photons.json] [--device P:D] [--no-mcx]
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import glob
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+MCML_SLAB = "mua=10,mus=90,g=0.75,n=1.0,d=0.02"
+SKIN_BAND_NM = 550.0
+SKIN_SIZE_MM = 2.0
+VOXEL_UM = 5.0
+
+
+# ----------------------------------------------------------------------------- helpers
+def _now():
+    return time.perf_counter()
+
+
+@contextlib.contextmanager
+def quiet_fds(log_path: Path):
+    """Send C-level stdout/stderr (MCX-CL's banner and progress) to a log file."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    with open(log_path, "ab") as log:
+        os.dup2(log.fileno(), 1)
+        os.dup2(log.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+
+
+def open_all_devices(spec: str | None):
+    from clppm import device
+    if spec is not None:
+        return [device.open_device(spec)]
+    out = []
+    for ip, idev, _, _ in device.list_devices():
+        out.append(device.open_device(f"{ip}:{idev}"))
+    return out
+
+
+# ----------------------------------------------------------------------------- clppm
+def bench_trace(dev, cfg, vol, n, label):
+    from clppm import transport
+    t0 = _now()
+    pp = transport.PhotonPass(dev, vol, cfg, seed=1)
+    pp.trace(min(n, 4096), pass_index=99)                  # build + first launch
+    setup = _now() - t0
+    t0 = _now()
+    arrs = pp.trace(n, pass_index=0)
+    dt = _now() - t0
+    tot = arrs[0].sum(0)
+    rd = float(tot[1]) / (transport.W0 * n)
+    return {"case": label, "mode": "trace", "photons": n, "seconds": dt,
+            "photons_per_s": n / dt, "setup_s": setup, "Rd": rd,
+            "A": float(tot[transport.NA:].sum()) / (transport.W0 * n)
+            if hasattr(transport, "NA") else None,
+            "specular": float(tot[0]) / (transport.W0 * n)}
+
+
+def bench_store(dev, cfg, vol, target, passes, label):
+    from clppm import transport
+    t0 = _now()
+    # the renderer's slack (progressive.py): a pass stops past the target, by up to one launch
+    pp = transport.PhotonPass(dev, vol, cfg, capacity=int(target * 1.2) + 4096, seed=1)
+    pp.run_pass(10_000, min(target, 20_000))               # build + warm-up (another pass)
+    setup = _now() - t0
+    emitted = stored = 0
+    t0 = _now()
+    for p in range(passes):
+        r = pp.run_pass(p, target)
+        emitted += r["emitted"]
+        stored += r["stored"]
+    dt = _now() - t0
+    return {"case": label, "mode": "run_pass (storing)", "passes": passes, "target": target,
+            "photons": emitted, "stored": stored, "seconds": dt,
+            "photons_per_s": emitted / dt, "stored_per_s": stored / dt,
+            "stored_per_photon": stored / max(emitted, 1), "setup_s": setup}
+
+
+def skin_slab_config():
+    """The 5 upper layers of configs/forearm.toml, flat, one band, pencil beam at the centre."""
+    from clppm import config
+    fore = config.load(str(ROOT / "configs" / "forearm.toml"))
+    layers = []
+    for L in fore["layer"][:5]:
+        L = dict(L)
+        L["bottom"] = "flat"
+        layers.append({k: v for k, v in L.items() if v is not None})
+    raw = {
+        "model": {"name": "skin slab", "size_mm": [SKIN_SIZE_MM, SKIN_SIZE_MM],
+                  "voxel_um": VOXEL_UM, "lateral_voxel_um": VOXEL_UM, "lateral": "open",
+                  "quantize": True, "n_outside": 1.0, "n_below": 1.0},
+        "spectrum": {"start_nm": SKIN_BAND_NM, "stop_nm": SKIN_BAND_NM, "step_nm": 5.0},
+        "light": {"kind": "pencil", "direction": [0.0, 0.0, -1.0], "spectrum": "flat",
+                  "center_mm": [SKIN_SIZE_MM / 2, SKIN_SIZE_MM / 2]},
+        "layer": layers,
+    }
+    return config.validate(raw, "skin slab")
+
+
+# ----------------------------------------------------------------------------- MCX-CL
+def find_libpocl() -> str | None:
+    cands = []
+    try:
+        import pyopencl
+        base = Path(pyopencl.__file__).resolve().parent
+        cands += glob.glob(str(base / ".libs" / "libpocl*.so*"))
+        cands += glob.glob(str(base.parent / "pyopencl.libs" / "libpocl*.so*"))
+    except ImportError:
+        pass
+    try:
+        import pocl_binary_distribution as pbd
+        base = Path(pbd.__file__).resolve().parent
+        cands += glob.glob(str(base / "**" / "libpocl*.so*"), recursive=True)
+    except ImportError:
+        pass
+    return cands[0] if cands else None
+
+
+def setup_mcx(workdir: Path):
+    """Import pmcxcl so it sees PoCL.  Returns (module, None) or (None, reason)."""
+    try:
+        import pyopencl  # noqa: F401  (first: its libpocl is then loaded in the process)
+    except ImportError as e:
+        return None, f"pyopencl not importable ({e})"
+    lib = find_libpocl()
+    vendors = workdir / "ocl_vendors"
+    vendors.mkdir(parents=True, exist_ok=True)
+    if lib:
+        (vendors / "pocl-clppm-bench.icd").write_text(lib + "\n")
+    for icd in glob.glob("/etc/OpenCL/vendors/*.icd"):          # keep system drivers visible
+        try:
+            (vendors / Path(icd).name).write_text(Path(icd).read_text())
+        except OSError:
+            pass
+    if not any(vendors.glob("*.icd")):
+        return None, "no libpocl*.so in the pyopencl wheel and no system OpenCL ICD"
+    os.environ["OCL_ICD_VENDORS"] = str(vendors)
+    try:
+        with quiet_fds(workdir / "mcx.log"):
+            import pmcxcl
+    except Exception as e:  # noqa: BLE001 - any import failure means: skip
+        return None, f"pmcxcl not importable ({type(e).__name__}: {e}); pip install pmcxcl"
+    if not hasattr(pmcxcl, "run") or not hasattr(pmcxcl, "gpuinfo"):
+        return None, "pmcxcl's binary extension could not be loaded (see its message above)"
+    return pmcxcl, None
+
+
+def mcx_devices(pmcxcl, workdir: Path):
+    try:
+        with quiet_fds(workdir / "mcx.log"):
+            info = pmcxcl.gpuinfo()
+    except Exception as e:  # noqa: BLE001
+        return None, f"pmcxcl.gpuinfo() failed: {e}"
+    if not info:
+        return None, "pmcxcl found no OpenCL device"
+    return info, None
+
+
+def mcx_spec(vol, nphoton, device_name):
+    """What the MCX-CL child needs: layer voxel counts and MCX prop rows (mua, mus /mm, g, n)."""
+    prop = [[0.0, 0.0, 1.0, 1.0]]
+    for i in range(vol.nl):
+        prop.append([float(vol.mua[i, 0]) * 1000.0, float(vol.mus[i, 0]) * 1000.0,
+                     float(vol.g[i, 0]), float(vol.n[i])])
+    return {"nz_layers": [int(round(t / VOXEL_UM)) for t in vol.thickness],
+            "n_lat": int(round(SKIN_SIZE_MM * 1000 / VOXEL_UM)), "prop": prop,
+            "nphoton": int(nphoton), "device": device_name}
+
+
+def run_mcx(pmcxcl, gpuid, spec, workdir: Path):
+    n_lat = spec["n_lat"]
+    labels = np.concatenate([np.full(k, i + 1, np.uint8) for i, k in enumerate(spec["nz_layers"])])
+    volume = np.asfortranarray(np.broadcast_to(labels[None, None, :], (n_lat, n_lat, len(labels))))
+    nphoton = spec["nphoton"]
+    cfg = dict(nphoton=nphoton, vol=volume, prop=np.array(spec["prop"], np.float32),
+               unitinmm=VOXEL_UM / 1000.0, tstart=0.0, tend=5e-9, tstep=5e-9,
+               srcpos=[n_lat / 2, n_lat / 2, 0], srcdir=[0, 0, 1], issrcfrom0=1, isreflect=1,
+               isrefint=1, isspecular=0, gpuid=int(gpuid), seed=1648335518, autopilot=1)
+    with quiet_fds(workdir / "mcx.log"):
+        pmcxcl.run(**{**cfg, "nphoton": 2000})           # warm-up (kernel build)
+        t0 = _now()
+        res = pmcxcl.run(**cfg)
+        wall = _now() - t0
+    st = res.get("stat", {}) if isinstance(res, dict) else {}
+    kernel_s = st.get("runtime", float("nan")) / 1000.0       # ms, excludes the build
+    etot = st.get("energytot", float("nan"))
+    return {"photons": nphoton, "wall_s": wall, "kernel_s": kernel_s,
+            "photons_per_s": nphoton / kernel_s if kernel_s > 0 else float("nan"),
+            "photons_per_s_wall": nphoton / wall,
+            "absorbed_fraction": st.get("energyabs", float("nan")) / etot if etot else float("nan"),
+            "voxels": list(volume.shape)}
+
+
+def mcx_child(spec_path: str, out_path: str) -> int:
+    """Child process: MCX-CL must not share the process with clppm's OpenCL contexts (PoCL
+    loaded by two ICD loaders, with pyopencl's already initialised, segfaults in
+    pmcxcl.gpuinfo), so it runs here, with pyopencl imported but never initialised."""
+    spec = json.loads(Path(spec_path).read_text())
+    workdir = Path(spec_path).parent
+    out = {"ok": False}
+    pm, why = setup_mcx(workdir)
+    info = None
+    if pm is not None:
+        info, why = mcx_devices(pm, workdir)
+    if info is not None:
+        match = [d for d in info if d.get("name", "").strip() == spec["device"]]
+        if not match:
+            why = ("pmcxcl sees " + ", ".join(d.get("name", "?") for d in info)
+                   + f", not clppm's device '{spec['device']}'")
+        else:
+            try:
+                out.update(run_mcx(pm, match[0].get("id", 1), spec, workdir))
+                out["ok"] = True
+            except Exception as e:  # noqa: BLE001
+                why = f"pmcxcl.run failed: {type(e).__name__}: {e}"
+    out["why"] = why
+    Path(out_path).write_text(json.dumps(out))
+    return 0
+
+
+def mcx_compare(vol, nphoton, device_name, workdir: Path, timeout: float):
+    """Run the MCX-CL child; return (result dict, None) or (None, reason)."""
+    import subprocess
+    tag = "".join(c if c.isalnum() else "_" for c in device_name)[:40]
+    spec_path, out_path = workdir / f"mcx_spec_{tag}.json", workdir / f"mcx_out_{tag}.json"
+    spec_path.write_text(json.dumps(mcx_spec(vol, nphoton, device_name)))
+    try:
+        r = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--mcx-child",
+                            str(spec_path), str(out_path)], capture_output=True, text=True,
+                           timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return None, f"MCX-CL run exceeded {timeout:.0f} s"
+    if not out_path.exists():
+        tail = (r.stderr or r.stdout).strip().splitlines()[-1:] or [""]
+        return None, f"MCX-CL child exited with code {r.returncode} {tail[0]!r} (log {workdir / 'mcx.log'})"
+    res = json.loads(out_path.read_text())
+    if not res.get("ok"):
+        return None, res.get("why") or "unknown"
+    return res, None
+
+
+# ----------------------------------------------------------------------------- main
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small runs (~1 minute)")
+    ap.add_argument("--out", default=str(ROOT / "out" / "bench_photons.json"))
+    ap.add_argument("--device", default=None, help="only this device ('P:D' or name part)")
+    ap.add_argument("--no-mcx", action="store_true", help="skip the MCX-CL comparison")
+    ap.add_argument("--mcx-child", nargs=2, metavar=("SPEC", "OUT"), help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.mcx_child:
+        return mcx_child(*a.mcx_child)
+
+    from clppm import config, device, volume
+
+    q = a.quick
+    n_mcml = 400_000 if q else 4_000_000
+    n_fore = 20_000 if q else 200_000
+    store_target, store_passes = (200_000, 2) if q else (810_000, 5)
+    n_skin = 50_000 if q else 500_000
+    n_mcx = 20_000 if q else 200_000
+
+    out_path = Path(a.out)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    workdir = Path(tempfile.mkdtemp(prefix="clppm_bench_"))
+
+    t0 = _now()
+    mcml_cfg = config.slab_config(MCML_SLAB)
+    mcml_vol = volume.build(mcml_cfg, "--slab")
+    fore_cfg = config.load(str(ROOT / "configs" / "forearm.toml"))
+    fore_vol = volume.build(fore_cfg, "forearm.toml")
+    fore_build = _now() - t0
+    skin_cfg = skin_slab_config()
+    skin_vol = volume.build(skin_cfg, "skin slab")
+
+    try:
+        devs = open_all_devices(a.device)
+    except device.DeviceError as e:
+        print(f"no device: {e}", file=sys.stderr)
+        return 3
+
+    results = {"host": platform.node(), "python": sys.version.split()[0], "quick": q,
+               "forearm_volume_build_s": fore_build,
+               "forearm_columns": fore_vol.info.get("columns"), "devices": []}
+    rows = []
+    for dev in devs:
+        info = dev.info()
+        print(f"device {dev.name} [{info['platform']}; {info['compute_units']} CUs]", flush=True)
+        entry = {"device": info, "runs": []}
+        runs = entry["runs"]
+        runs.append(bench_trace(dev, mcml_cfg, mcml_vol, n_mcml, "mcml slab"))
+        runs.append(bench_trace(dev, fore_cfg, fore_vol, n_fore, "forearm 5 um"))
+        runs.append(bench_store(dev, fore_cfg, fore_vol, store_target, store_passes, "forearm 5 um"))
+        runs.append(bench_trace(dev, skin_cfg, skin_vol, n_skin, "skin slab 550 nm"))
+        for r in runs:
+            rows.append((dev.name, r))
+        results["devices"].append(entry)
+
+    # ---- MCX-CL side by side
+    mcx = {"available": False}
+    if a.no_mcx:
+        mcx["skipped"] = "--no-mcx"
+    else:
+        import importlib.util
+        why = None
+        if importlib.util.find_spec("pmcxcl") is None:      # not imported here: see mcx_child
+            why = "pmcxcl is not installed (pip install pmcxcl)"
+        if why is None:
+            for dev, entry in zip(devs, results["devices"]):
+                m, why = mcx_compare(skin_vol, n_mcx, dev.name, workdir, timeout=300)
+                if m is None:
+                    continue
+                ours = next(r for r in entry["runs"] if r["case"].startswith("skin slab"))
+                m["device"] = dev.name
+                m["clppm_photons_per_s"] = ours["photons_per_s"]
+                m["ratio_clppm_over_mcx"] = ours["photons_per_s"] / m["photons_per_s"]
+                m["clppm_absorbed_fraction_excl_specular"] = ours["A"] / (1 - ours["specular"])
+                mcx.setdefault("runs", []).append(m)
+                mcx["available"] = True
+        if not mcx["available"]:
+            mcx["skipped"] = why
+        mcx["log"] = str(workdir / "mcx.log")
+    results["mcx"] = mcx
+
+    # ---- table
+    print()
+    hdr = f"{'device':24s} {'case':18s} {'mode':20s} {'photons':>10s} {'s':>7s} " \
+          f"{'photons/s':>11s} {'stored/s':>11s} {'stored/ph':>9s}"
+    print(hdr)
+    print("-" * len(hdr))
+    for name, r in rows:
+        st = f"{r['stored_per_s']:11.3e}" if "stored_per_s" in r else f"{'':>11s}"
+        sp = f"{r['stored_per_photon']:9.1f}" if "stored_per_photon" in r else f"{'':>9s}"
+        print(f"{name[:24]:24s} {r['case']:18s} {r['mode']:20s} {r['photons']:10d} "
+              f"{r['seconds']:7.2f} {r['photons_per_s']:11.3e} {st} {sp}")
+    if mcx["available"]:
+        for m in mcx["runs"]:
+            print(f"{m['device'][:24]:24s} {'skin slab 550 nm':18s} {'MCX-CL (pmcxcl)':20s} "
+                  f"{m['photons']:10d} {m['kernel_s']:7.2f} {m['photons_per_s']:11.3e}")
+            print(f"  clppm / MCX-CL photon throughput: {m['ratio_clppm_over_mcx']:.2f}x   "
+                  f"(absorbed: clppm {m['clppm_absorbed_fraction_excl_specular']:.4f}, "
+                  f"MCX-CL {m['absorbed_fraction']:.4f}; voxels {m['voxels']})")
+    else:
+        print(f"MCX-CL comparison skipped: {mcx.get('skipped')}")
+    print(f"forearm volume build: {fore_build:.1f} s ({fore_vol.info.get('columns')} columns)")
+
+    with open(out_path, "w") as f:
+        json.dump(results, f, indent=1, default=str)
+    print(f"wrote {out_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
