@@ -340,5 +340,8 @@ def test_forearm_photon_pass(dev, forearm):
     assert np.all((x >= -1e-2) & (x <= W + 1e-2) & (y >= -1e-2) & (y <= vol.ny * vol.dy + 1e-2))
     assert np.all(z <= vol.z_top + 1e-3)
     assert np.all((w > 0) & (w <= 1.1))
-    b = dir_b[:, 3]
-    assert np.all(b == np.round(b)) and b.min() >= 0 and b.max() < vol.nb
+    code = dir_b[:, 3]                       # band + 256 * layer
+    assert np.all(code == np.round(code))
+    b, lay = code.astype(int) % 256, code.astype(int) // 256
+    assert b.min() >= 0 and b.max() < vol.nb
+    assert lay.min() >= 0 and lay.max() < vol.nl
