@@ -144,6 +144,10 @@ def _build(ctx, filename: str, defines: tuple):
     else:
         opts = [f"-I{kdir}"]
     for k, v in defines:
+        if k == "FAST_MATH":                 # not a -D: the compiler's relaxed-math switch
+            if v:
+                opts += ["-cl-fast-relaxed-math", "-DFAST_MATH=1"]
+            continue
         if isinstance(v, bool):
             if v:
                 opts.append(f"-D{k}=1")

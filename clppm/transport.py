@@ -13,6 +13,7 @@ launch into Python integers and reset: exact and unbounded.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -91,7 +92,7 @@ def volume_params(p: np.ndarray, vol: Volume) -> None:
 
 
 def defines(vol: Volume) -> dict:
-    return {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat}
+    return {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
 
 
 @dataclass
