@@ -184,6 +184,8 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     k_count = cl.Kernel(prg, "count_within")
     mf = cl.mem_flags
     hgtab = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hg_table(vol))
+    lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
+    layer_z = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(lz))
     npts = eye.npoints
     pt_R = cla.zeros(q, max(npts, 1), np.float32)
     pt_N = cla.zeros(q, max(npts, 1), np.float32)
@@ -267,7 +269,7 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
                     for _ in range(2):
                         k_count(q, (_round(ns),), (64,), grid.params, grid.cell_start.data,
                                 grid.spos_w.data, grid.sdir_b.data, eye.pt_pos.data, eye.pt_dir.data,
-                                pt_R.data, np.uint32(npts),
+                                pt_R.data, layer_z, np.uint32(npts),
                                 np.uint32(stride), cnt.data)
                         mean_m = float(cnt.get().mean())
                         if mean_m <= 0:
@@ -292,7 +294,7 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
                 pass_scale = 1.0 / max(info["emitted"], 1) if global_radius else 1.0
                 k_gather(q, (_round(npix),), (64,), grid.params, grid.cell_start.data, grid.spos_w.data,
                          grid.sdir_b.data, hgtab, vbuf.optics, eye.ray_start.data, eye.pt_pos.data,
-                         eye.pt_dir.data, eye.pt_piece.data, eye.pieces.data, eye.pt_slab.data,
+                         eye.pt_dir.data, eye.pt_piece.data, eye.pieces.data, eye.pt_slab.data, layer_z,
                          pt_R.data, pt_N.data, pt_M.data, pix_acc.data, pix_pairs.data, np.int32(npix), np.int32(cam.spp),
                          np.float32(alpha), np.int32(global_radius), np.float32(rf),
                          np.float64(pass_scale))

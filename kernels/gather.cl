@@ -61,6 +61,20 @@ inline float estimator_volume(float z, float R, float2 slab) {
 #endif
 }
 
+/* Cells to visit for a query: the sphere's box, and with the layer estimator only the depths
+ * where photons of the point's layer can be (a thin layer's query then skips the 2R of depth
+ * its sphere spans in the layers around it).  Padded by 1 um: photons of layer L lie in
+ * [lowest point of its bottom interface, highest point of its top interface]. */
+inline void query_cells(const GridParams gp, float3 x, float R, int L,
+                        __constant const float2* layer_z, int4* c0, int4* c1) {
+    grid_query_range(gp, x, R, c0, c1);
+#if ESTIMATOR == 2
+    const float2 lz = layer_z[L];
+    c0->z = max(c0->z, grid_axis(lz.x - 1.0f, gp.lo_z, gp.inv_h, gp.nz));
+    c1->z = min(c1->z, grid_axis(lz.y + 1.0f, gp.lo_z, gp.inv_h, gp.nz));
+#endif
+}
+
 __kernel void gather(const GridParams gp,
                      __global const uint* cell_start,
                      __global const float4* spos_w,
@@ -73,6 +87,7 @@ __kernel void gather(const GridParams gp,
                      __global const uint* pt_piece,         /* [npts+1] */
                      __global const float2* pieces,         /* length (um), layer */
                      __global const float2* pt_slab,        /* top, bottom of the point's layer */
+                     __constant const float2* layer_z,      /* [NL] lowest, highest z of each layer */
                      __global float* pt_R,
                      __global float* pt_N,
                      __global uint* pt_M,                   /* photons found in this pass */
@@ -104,7 +119,12 @@ __kernel void gather(const GridParams gp,
             if (R > 0.0f) {
                 const float R2 = R * R;
                 __global const float4* hg = hgtab + L * NB;
-                GRID_FOR_EACH_ROW(gp, cell_start, x, R, jb, je) {
+                int4 c0, c1;
+                query_cells(gp, x, R, L, layer_z, &c0, &c1);
+                for (int iz = c0.z; iz <= c1.z; ++iz)
+                for (int iy = c0.y; iy <= c1.y; ++iy) {
+                    const uint row = grid_cell_index(gp, c0.x, iy, iz);
+                    const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
                     for (uint j = jb; j < je; ++j) {
                         const float4 p = spos_w[j];
                         if (grid_within(p.xyz, x, R2)) {
@@ -117,11 +137,11 @@ __kernel void gather(const GridParams gp,
                             const float4 h = hg[b];
                             const float q = h.x - h.y * dot(d.xyz, pd.xyz);
                             const float rq = rsqrt(q);
-                            acc[b] += convert_long_sat_rte(h.z * rq * rq * rq * p.w * FIX);
+                            acc[b] += (long)fmin(h.z * rq * rq * rq * p.w * FIX, 9.0e18f);
                             ++M;
                         }
                     }
-                } GRID_END_ROWS
+                }
             }
             /* path weight integral of T over the point's interval, per band */
             const uint k0 = pt_piece[i], k1 = pt_piece[i + 1];
@@ -207,6 +227,7 @@ __kernel void count_within(const GridParams gp,
                            __global const float4* pt_pos,
                            __global const float4* pt_dir,
                            __global const float* pt_R,
+                           __constant const float2* layer_z,
                            const uint npts, const uint stride,
                            __global uint* out)
 {
@@ -218,7 +239,12 @@ __kernel void count_within(const GridParams gp,
     const float R2 = R * R;
     const int L = (int)pt_dir[i].w;
     uint M = 0;
-    GRID_FOR_EACH_ROW(gp, cell_start, x, R, jb, je) {
+    int4 c0, c1;
+    query_cells(gp, x, R, L, layer_z, &c0, &c1);
+    for (int iz = c0.z; iz <= c1.z; ++iz)
+    for (int iy = c0.y; iy <= c1.y; ++iy) {
+        const uint row = grid_cell_index(gp, c0.x, iy, iz);
+        const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
         for (uint j = jb; j < je; ++j)
             if (grid_within(spos_w[j].xyz, x, R2)) {
 #if ESTIMATOR == 2
@@ -226,6 +252,6 @@ __kernel void count_within(const GridParams gp,
 #endif
                 ++M;
             }
-    } GRID_END_ROWS
+    }
     out[k] = M;
 }
