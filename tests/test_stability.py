@@ -382,10 +382,9 @@ def test_stored_photon_passes_exact(dev):
                                            # 0.4 mm model loses photons through its sides)
 
 
-@pytest.mark.skipif(os.environ.get("CLPPM_LONG_TESTS") != "1",
-                    reason="10^9 stored photons take ~5 min on 2 CPU cores; set CLPPM_LONG_TESTS=1")
+@pytest.mark.slow
 def test_billion_stored_photons_exact(dev):
-    """The same over 10^9 stored photons (250 passes of 4 million)."""
+    """The same over 10^9 stored photons (250 passes of 4 million; about 2 min on 2 cores)."""
     pp, stored, emitted, passes = _stored_passes(dev, 1_000_000_000, 4_000_000)
     assert stored >= 1_000_000_000
     assert pp.tallies.emitted == emitted and pp.tallies.balance_error() == 0.0
