@@ -15,7 +15,7 @@ set of kernel builds.  Each test states the failure it guards against:
 * the radius update over thousands of passes (host, float32 as the kernel) and the device
   gather over hundreds of tiny passes: R positive, finite, never growing; flux finite;
 * exact energy tallies over more photons than a device int64 could hold, and over many
-  stored-photon passes (the full 10^9 stored photons with CLPPM_LONG_TESTS=1);
+  stored-photon passes (and the full 10^9 stored photons, about 2 min);
 * method a's colour shift against spacing and photon count (the paper's explanation).
 """
 from __future__ import annotations
