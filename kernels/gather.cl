@@ -75,6 +75,17 @@ inline void query_cells(const GridParams gp, float3 x, float R, int L,
 #endif
 }
 
+/* Rows of grid cells to visit for a query at x (radius R, layer L): in the body, jb..je is one
+ * contiguous range of cell-sorted photons. */
+#define FOR_EACH_QUERY_ROW(gp, cell_start, x, R, L, layer_z, jb, je)                          \
+    int4 q_c0_, q_c1_;                                                                       \
+    query_cells((gp), (x), (R), (L), (layer_z), &q_c0_, &q_c1_);                             \
+    for (int q_iz_ = q_c0_.z; q_iz_ <= q_c1_.z; ++q_iz_)                                     \
+    for (int q_iy_ = q_c0_.y; q_iy_ <= q_c1_.y; ++q_iy_)                                     \
+    for (uint q_row_ = grid_cell_index((gp), q_c0_.x, q_iy_, q_iz_), jb = (cell_start)[q_row_], \
+              je = (cell_start)[q_row_ + (uint)(q_c1_.x - q_c0_.x) + 1u], q_once_ = 1u;        \
+         q_once_; q_once_ = 0u)
+
 __kernel void gather(const GridParams gp,
                      __global const uint* cell_start,
                      __global const float4* spos_w,
@@ -119,12 +130,7 @@ __kernel void gather(const GridParams gp,
             if (R > 0.0f) {
                 const float R2 = R * R;
                 __global const float4* hg = hgtab + L * NB;
-                int4 c0, c1;
-                query_cells(gp, x, R, L, layer_z, &c0, &c1);
-                for (int iz = c0.z; iz <= c1.z; ++iz)
-                for (int iy = c0.y; iy <= c1.y; ++iy) {
-                    const uint row = grid_cell_index(gp, c0.x, iy, iz);
-                    const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
+                FOR_EACH_QUERY_ROW(gp, cell_start, x, R, L, layer_z, jb, je) {
                     for (uint j = jb; j < je; ++j) {
                         const float4 p = spos_w[j];
                         if (grid_within(p.xyz, x, R2)) {
@@ -239,12 +245,7 @@ __kernel void count_within(const GridParams gp,
     const float R2 = R * R;
     const int L = (int)pt_dir[i].w;
     uint M = 0;
-    int4 c0, c1;
-    query_cells(gp, x, R, L, layer_z, &c0, &c1);
-    for (int iz = c0.z; iz <= c1.z; ++iz)
-    for (int iy = c0.y; iy <= c1.y; ++iy) {
-        const uint row = grid_cell_index(gp, c0.x, iy, iz);
-        const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
+    FOR_EACH_QUERY_ROW(gp, cell_start, x, R, L, layer_z, jb, je) {
         for (uint j = jb; j < je; ++j)
             if (grid_within(spos_w[j].xyz, x, R2)) {
 #if ESTIMATOR == 2
