@@ -160,9 +160,10 @@ def test_initial_radius_finds_K(dev):
     assert 0.7 * 50 < res.report["first_search_mean_photons"] < 1.3 * 50
 
 
-def _consistency(dev, method, passes):
-    cfg = slab_cfg([layer("m", math.inf, 1.0, 100.0)], method=method, passes=passes,
-                   photons=200_000, K=20)
+def _consistency(dev, method, passes, layers=None):
+    """Rendered radiance from above / (E * R_cone / (pi (1 - c^2))) from the photon pass."""
+    layers = layers or [layer("m", math.inf, 1.0, 100.0)]
+    cfg = slab_cfg(layers, method=method, passes=passes, photons=200_000, K=20)
     vol = volume.build(cfg)
     pp = transport.PhotonPass(dev, vol, cfg)
     rep = transport.trace_report(pp, 300_000, batches=10)
@@ -242,12 +243,5 @@ def test_ppm_matches_photon_pass_layered(dev, layers):
     """Layered media (mu_s jumps 10x at 90 um): the PPM radiance from above against the photon
     pass's cone tally, as in test_ppm_matches_photon_pass.  Spheres or path cells that mixed
     the layers gave 0.72 and 1.37 here."""
-    cfg = slab_cfg(layers, passes=12, photons=200_000, K=20)
-    vol = volume.build(cfg)
-    pp = transport.PhotonPass(dev, vol, cfg)
-    rep = transport.trace_report(pp, 300_000, batches=10)
-    c = rep["rcone_cos"]
-    expect = rep["Rd_cone"] / (math.pi * (1 - c * c))
-    res = pr.render(cfg, dev=dev)
-    ratio = res.spectral.mean() / (1.0 / (4e-3 * 4e-3)) / expect
+    ratio = _consistency(dev, "e", 12, layers)
     assert abs(ratio - 1) < 0.15, ratio
