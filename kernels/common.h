@@ -36,6 +36,11 @@
 #endif
 
 #define PI_F 3.14159265358979f
+
+/* Forced inline: PoCL otherwise calls some helpers out of line, and a call forces their state
+ * (the random-number block) out of registers into memory.  Inlining rng_u01 alone gave the
+ * photon pass +35 % photons/s under PoCL; forcing more helpers inline measured no further gain. */
+#define HOT __attribute__((always_inline)) inline
 #define BIG 1e30f
 
 /* Mirrors clppm/params.py PARAMS_DTYPE: 4-byte fields only, in this order. */
@@ -94,14 +99,18 @@ inline void rng_init(Rng* g, uint id, uint pass, uint domain, uint seed_lo, uint
     g->used = 4;
 }
 
-/* uniform in (0, 1]: never 0, so -log(u) is finite */
-inline float rng_u01(Rng* g) {
+/* uniform in (0, 1]: never 0, so -log(u) is finite.  The block is consumed by shifting, not
+ * by indexing (an indexed array would live on the stack), and the function is forced inline:
+ * PoCL otherwise calls it, and it is drawn three times per collision. */
+HOT float rng_u01(Rng* g) {
     if (g->used == 4) {
         g->r = philox4x32(g->c, g->k);
         g->c.v[1] += 1u;
         g->used = 0;
     }
-    uint x = g->r.v[g->used++];
+    const uint x = g->r.v[0];
+    g->r.v[0] = g->r.v[1]; g->r.v[1] = g->r.v[2]; g->r.v[2] = g->r.v[3];
+    g->used++;
     return ((float)(x >> 8) + 1.0f) * (1.0f / 16777216.0f);
 }
 
@@ -128,26 +137,92 @@ inline float hg_sample_cos(float g, float u) {
     return clamp(c, -1.0f, 1.0f);
 }
 
+/* The same with inv2g = 1/(2g) precomputed (0 for isotropic): one division. */
+inline float hg_sample_cos_t(float g, float inv2g, float u) {
+    if (inv2g == 0.0f) return 2.0f * u - 1.0f;
+    const float t = (1.0f - g * g) / (1.0f - g + 2.0f * g * u);
+    const float c = (1.0f + g * g - t * t) * inv2g;
+    return c < -1.0f ? -1.0f : (c > 1.0f ? 1.0f : c);
+}
+
 inline float hg_eval(float g, float cos_t) {
     float d = 1.0f + g * g - 2.0f * g * cos_t;
     return (1.0f - g * g) / (4.0f * PI_F * d * sqrt(d));
 }
 
-/* Rotate direction d by polar cosine ct and azimuth phi (MCML's formula). */
+/* Hot-path arithmetic.  PoCL calls its kernel library for cos/sin (with a general argument
+ * reduction), log (SLEEF, 1 ulp), normalize (overflow-safe scaling) and even fmax/dot, out of
+ * line: profiling the photon pass under PoCL (perf, skin slab at 550 nm) put 31 % of the
+ * kernel's time in cos/sin of the azimuth, 15 % in log and 10 % in normalize.  The azimuth and
+ * the free path only need a uniform angle and -ln(u) for u in (0, 1], so both are done here
+ * without library calls, accurate to a few float32 ulp (tests/test_optics_kernels.py). */
+
+/* unit vector, for vectors whose length is far from 0 and overflow (all directions here) */
+inline float3 unit3(float3 v) {
+    return v * native_rsqrt(v.x * v.x + v.y * v.y + v.z * v.z);
+}
+
+/* -ln(u) for u in (0, 1] (never 0: rng_u01).  u = m 2^e with m in [sqrt(1/2), sqrt(2)),
+ * ln m = 2 atanh(s), s = (m - 1)/(m + 1), |s| <= 0.1716: the series to s^9 leaves < 1e-9. */
+inline float neg_log_u01(float u) {
+    uint bits = as_uint(u);
+    int e = (int)(bits >> 23) - 127;
+    float m = as_float((bits & 0x007fffffu) | 0x3f800000u);     /* [1, 2) */
+    if (m > 1.41421356f) { m *= 0.5f; e += 1; }
+    const float s = (m - 1.0f) / (m + 1.0f);
+    const float s2 = s * s;
+    const float lnm = 2.0f * s * (1.0f + s2 * (1.0f / 3.0f + s2 * (0.2f + s2 * (1.0f / 7.0f
+                      + s2 * (1.0f / 9.0f)))));
+    return -(lnm + (float)e * 0.693147180559945f);
+}
+
+/* (cos 2 pi u, sin 2 pi u) for u in [0, 1]: the quadrant from 4u, then a = the remaining angle
+ * minus pi/4, |a| <= pi/4, by Taylor polynomials (truncation < 4e-9), and a rotation by pi/4. */
+inline float2 azimuth_cs(float u) {
+    const float x = 4.0f * u;
+    const int iq = (int)x;                                   /* x >= 0: truncation is floor */
+    const float fq = (float)iq;
+    const int q = iq & 3;
+    const float a = (x - fq - 0.5f) * 1.57079632679490f;
+    const float a2 = a * a;
+    const float sa = a * (1.0f + a2 * (-1.0f / 6.0f + a2 * (1.0f / 120.0f + a2 * (-1.0f / 5040.0f
+                     + a2 * (1.0f / 362880.0f)))));
+    const float ca = 1.0f + a2 * (-0.5f + a2 * (1.0f / 24.0f + a2 * (-1.0f / 720.0f
+                     + a2 * (1.0f / 40320.0f))));
+    const float c = (ca - sa) * 0.707106781186548f;          /* cos(a + pi/4) */
+    const float s = (ca + sa) * 0.707106781186548f;          /* sin(a + pi/4) */
+    return q == 0 ? (float2)(c, s) : q == 1 ? (float2)(-s, c) : q == 2 ? (float2)(-c, -s)
+                                                              : (float2)(s, -c);
+}
+
+/* Rotate direction d by polar cosine ct and the azimuth with cosine cp, sine sp.  The azimuth
+ * is measured in the orthonormal basis (b1, b2) of Duff et al., "Building an orthonormal
+ * basis, revisited", JCGT 6(1) 2017: no pole singularity and one division, where MCML's
+ * formula needs sqrt(dx^2 + dy^2) and a special case at the poles.  d is assumed unit; the
+ * result's length is restored by one Newton step of 1/sqrt around 1 (the error of a unit
+ * vector computed in float is ~1e-7, so the step leaves ~1e-14). */
+inline float3 rotate_dir_cs(float3 d, float ct, float cp, float sp) {
+    const float st2 = 1.0f - ct * ct;
+    const float st = st2 > 0.0f ? sqrt(st2) : 0.0f;
+    const float sg = d.z >= 0.0f ? 1.0f : -1.0f;
+    const float a = -1.0f / (sg + d.z);
+    const float bb = d.x * d.y * a;
+    const float3 b1 = (float3)(1.0f + sg * d.x * d.x * a, sg * bb, -sg * d.x);
+    const float3 b2 = (float3)(bb, sg + d.y * d.y * a, -d.y);
+    const float3 o = (st * cp) * b1 + (st * sp) * b2 + ct * d;
+    const float l2 = o.x * o.x + o.y * o.y + o.z * o.z;
+    return o * (1.5f - 0.5f * l2);
+}
+
+/* The same with the azimuth phi in radians. */
 inline float3 rotate_dir(float3 d, float ct, float phi) {
-    float st = sqrt(fmax(0.0f, 1.0f - ct * ct));
-    float cp = cos(phi), sp = sin(phi);
-    float3 o;
-    /* sqrt(dx^2 + dy^2), not sqrt(1 - dz^2): no cancellation near the poles */
-    float tmp = sqrt(d.x * d.x + d.y * d.y);
-    if (tmp < 1e-6f) {
-        o = (float3)(st * cp, st * sp, d.z > 0.0f ? ct : -ct);
-    } else {
-        o.x = st * (d.x * d.z * cp - d.y * sp) / tmp + d.x * ct;
-        o.y = st * (d.y * d.z * cp + d.x * sp) / tmp + d.y * ct;
-        o.z = -st * cp * tmp + d.z * ct;
-    }
-    return normalize(o);
+    return rotate_dir_cs(d, ct, cos(phi), sin(phi));
+}
+
+/* Scattering: new direction from d at polar cosine ct and azimuth 2 pi u. */
+inline float3 scatter_dir(float3 d, float ct, float u) {
+    const float2 cs = azimuth_cs(u);
+    return rotate_dir_cs(d, ct, cs.x, cs.y);
 }
 
 /* Mirror d about unit normal n. */
@@ -155,7 +230,7 @@ inline float3 reflect3(float3 d, float3 n) { return d - 2.0f * dot(d, n) * n; }
 
 /* Refract d through the interface with unit normal n facing the incoming side (dot(d,n) < 0). */
 inline float3 refract3(float3 d, float3 n, float eta, float cos_i, float cos_t) {
-    return normalize(eta * d + (eta * cos_i - cos_t) * n);
+    return unit3(eta * d + (eta * cos_i - cos_t) * n);
 }
 
 /* ---------------------------------------------------------------- volume geometry */
@@ -214,6 +289,26 @@ typedef struct {
 
 enum { EV_NONE = 0, EV_TOP, EV_BOTTOM, EV_WALL_X, EV_WALL_Y, EV_ZONE, EV_DOMAIN_X, EV_DOMAIN_Y };
 
+/* The domain sides (x0 .. x0 + xw, y0 .. y0 + yw) when they come before *best along d from p.
+ * The domain is convex and p inside, so if the end point p + best d is inside no side is
+ * crossed: two products and four comparisons replace two divisions on almost every step. */
+inline void domain_sides(float3 p, float3 d, __constant const Params* P, float* best, int* e) {
+    if (*best < BIG) {
+        const float ex = p.x + *best * d.x, ey = p.y + *best * d.y;
+        if (ex >= P->x0 && ex <= P->x0 + P->xw && ey >= P->y0 && ey <= P->y0 + P->yw) return;
+    }
+    if (d.x != 0.0f) {
+        float w = d.x > 0.0f ? P->x0 + P->xw : P->x0;
+        float s = (w - p.x) / d.x;
+        if (s < *best) { *best = s; *e = EV_DOMAIN_X; }
+    }
+    if (d.y != 0.0f) {
+        float w = d.y > 0.0f ? P->y0 + P->yw : P->y0;
+        float s = (w - p.y) / d.y;
+        if (s < *best) { *best = s; *e = EV_DOMAIN_Y; }
+    }
+}
+
 /* Distance along t->dir to the next boundary of the constant region around t->pos and its kind. */
 inline float next_boundary(const Track* t, __constant const Params* P,
                            __constant const float4* iface, __global const float* heights,
@@ -226,18 +321,7 @@ inline float next_boundary(const Track* t, __constant const Params* P,
 #ifdef FLAT
     if (d.z > 0.0f) { best = (IF_Z(L) - z) / d.z; e = EV_TOP; }
     else if (d.z < 0.0f && L + 1 <= NL && IF_Z(L + 1) > -BIG) { best = (IF_Z(L + 1) - z) / d.z; e = EV_BOTTOM; }
-    if (P->lateral != 0) {
-        if (d.x != 0.0f) {
-            float w = d.x > 0.0f ? P->x0 + P->xw : P->x0;
-            float s = (w - t->pos.x) / d.x;
-            if (s < best) { best = s; e = EV_DOMAIN_X; }
-        }
-        if (d.y != 0.0f) {
-            float w = d.y > 0.0f ? P->y0 + P->yw : P->y0;
-            float s = (w - t->pos.y) / d.y;
-            if (s < best) { best = s; e = EV_DOMAIN_Y; }
-        }
-    }
+    if (P->lateral != 0) domain_sides(t->pos, d, P, &best, &e);
 #else
     const float ztop_core = IF_ZMIN(L);           /* lowest point of the interface above */
     const float zbot_core = IF_ZMAX(L + 1);       /* highest point of the interface below */
@@ -253,16 +337,7 @@ inline float next_boundary(const Track* t, __constant const Params* P,
             best = (zbot_core - z) / d.z;
             e = (IF_VAR(L + 1) < 0) ? EV_BOTTOM : EV_ZONE;
         }
-        if (d.x != 0.0f) {
-            float w = d.x > 0.0f ? P->x0 + P->xw : P->x0;
-            float s = (w - t->pos.x) / d.x;
-            if (s < best) { best = s; e = EV_DOMAIN_X; }
-        }
-        if (d.y != 0.0f) {
-            float w = d.y > 0.0f ? P->y0 + P->yw : P->y0;
-            float s = (w - t->pos.y) / d.y;
-            if (s < best) { best = s; e = EV_DOMAIN_Y; }
-        }
+        domain_sides(t->pos, d, P, &best, &e);
     } else {
         /* column mode: this column's two interfaces and its four walls */
         const int col = col_index(P, t->ix, t->iy);
@@ -285,7 +360,7 @@ inline float next_boundary(const Track* t, __constant const Params* P,
     }
 #endif
     *ev = e;
-    return fmax(best, 0.0f);
+    return best > 0.0f ? best : 0.0f;
 }
 
 /* Column of a position (clamped into the grid). */

@@ -270,7 +270,7 @@ __kernel void eye_pass(VOLUME_ARGS,
             if (rt > 0.0f) {
                 float xc = x;
                 while (1) {
-                    xc += -log(rng_u01(&rng)) / rt;
+                    xc += neg_log_u01(rng_u01(&rng)) / rt;
                     if (xc > seg) break;
                     pend_add(&e, L, xc - x); x = xc;
                     visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_slab, SLAB(t.pos + xc * t.dir, L), write);

@@ -39,12 +39,12 @@ inline int fresnel_cross(float3* dir, float3 gn, float3 sn, float n1, float n2, 
     if (u < R) {
         float3 r = reflect3(*dir, sn);
         if (dot(r, gn) > 0.0f) r = reflect3(r, gn);   /* a reflection must stay on this side */
-        *dir = normalize(r);
+        *dir = unit3(r);
         return 0;
     }
     float3 t = refract3(*dir, -sn, n1 / n2, ci, ct);
     if (dot(t, gn) <= 0.0f) t = reflect3(t, gn);       /* a transmission must cross the face */
-    *dir = normalize(t);
+    *dir = unit3(t);
     return 1;
 }
 
@@ -92,8 +92,7 @@ __kernel void photon_pass(VOLUME_ARGS,
     /* ---- launch */
     if (P->src_kind == 2) {                       /* isotropic point light, cone-sampled */
         float ct = 1.0f - rng_u01(&rng) * (1.0f - P->cone_cos);
-        float phi = 2.0f * PI_F * rng_u01(&rng);
-        t.dir = rotate_dir((float3)(P->cax, P->cay, P->caz), ct, phi);
+        t.dir = scatter_dir((float3)(P->cax, P->cay, P->caz), ct, rng_u01(&rng));
         t.pos = (float3)(P->sx, P->sy, P->sz);
     } else {
         float3 d = (float3)(P->sdx, P->sdy, P->sdz);
@@ -133,16 +132,16 @@ __kernel void photon_pass(VOLUME_ARGS,
         if (W > 0) {
             float3 d = refract3(t.dir, sn, P->n_above / layer_n[0], ci, ct);
             if (dot(d, gn) >= 0.0f) d = reflect3(d, gn);
-            t.dir = normalize(d);
+            t.dir = unit3(d);
         }
     }
 
     const long rr_w = (long)(P->rr_threshold * W0F);
-    float tau = -log(rng_u01(&rng));
+    float tau = neg_log_u01(rng_u01(&rng));
     int events = 0;
     while (W > 0) {
         if (++events > P->max_events) { lost += W; W = 0; break; }
-        const float4 op = optics[t.L * NB + b];     /* mua, mus, g, mut in um^-1 */
+        const float4 op = optics[t.L * NB + b];     /* mua/mut, g, 1/(2g), mut in um^-1 */
         const float mut = op.w;
         int ev;
         const float db = next_boundary(&t, P, iface, heights, &ev);
@@ -150,10 +149,10 @@ __kernel void photon_pass(VOLUME_ARGS,
         if (s < db) {
             /* ---- collision: absorb by weight, store, scatter, roulette */
             t.pos += s * t.dir;
-            long dw = convert_long_rte((float)W * (op.x / mut));
-            dw = clamp(dw, 0L, W);
+            long dw = convert_long_rte((float)W * op.x);
+            dw = dw < 0 ? 0 : (dw > W ? W : dw);
             absorbed[t.L] += dw; W -= dw;
-            if (W > 0 && op.y > 0.0f) {
+            if (W > 0 && op.x < 1.0f) {
                 if (P->capacity > 0u && t.pos.z > P->store_zmin) {
                     uint i = atomic_inc(store_count);
                     if (i < P->capacity) {
@@ -161,8 +160,8 @@ __kernel void photon_pass(VOLUME_ARGS,
                         store_dir_b[i] = (float4)(t.dir, (float)(b + 256 * t.L));   /* band, layer */
                     }
                 }
-                float ct = hg_sample_cos(op.z, rng_u01(&rng));
-                t.dir = rotate_dir(t.dir, ct, 2.0f * PI_F * rng_u01(&rng));
+                float ct = hg_sample_cos_t(op.y, op.z, rng_u01(&rng));
+                t.dir = scatter_dir(t.dir, ct, rng_u01(&rng));
                 if (W < rr_w) {
                     if (rng_u01(&rng) * P->rr_m <= 1.0f) {
                         long g2 = W * (long)(P->rr_m) - W;
@@ -175,12 +174,12 @@ __kernel void photon_pass(VOLUME_ARGS,
                 /* pure absorber reached here only when mus = 0 and mua > 0: all absorbed */
                 absorbed[t.L] += W; W = 0;
             }
-            tau = -log(rng_u01(&rng));
+            tau = neg_log_u01(rng_u01(&rng));
             continue;
         }
         /* ---- boundary */
         t.pos += db * t.dir;
-        if (mut > 0.0f) tau = fmax(0.0f, tau - db * mut);
+        if (mut > 0.0f) { tau -= db * mut; tau = tau > 0.0f ? tau : 0.0f; }
         if (ev == EV_NONE) { lost += W; W = 0; break; }   /* semi-infinite, direction flat */
         if (ev == EV_TOP || ev == EV_BOTTOM) {
             const int up = (ev == EV_TOP);

@@ -30,7 +30,7 @@ __kernel void t_scatter(float g, uint seed, uint n, __global const float4* d_in,
     rng_init(&rng, i, 0u, 8u, seed, 0u);
     const float4 d = d_in[i];
     const float ct = hg_sample_cos(g, rng_u01(&rng));
-    const float3 o = rotate_dir(d.xyz, ct, 2.0f * PI_F * rng_u01(&rng));
+    const float3 o = scatter_dir(d.xyz, ct, rng_u01(&rng));
     d_out[i] = (float4)(o, ct);     /* w: the sampled cosine */
 }
 
@@ -66,4 +66,14 @@ __kernel void t_u01(uint seed, uint n, uint m, __global float* out) {
     Rng rng;
     rng_init(&rng, i, 0u, 9u, seed, 0u);
     for (uint j = 0; j < m; ++j) out[(size_t)i * m + j] = rng_u01(&rng);
+}
+
+/* The hot-path arithmetic of common.h: -ln(u), (cos, sin)(2 pi u), HG with 1/(2g) given. */
+__kernel void t_fastmath(float g, uint n, __global const float* u, __global float* nlog,
+                         __global float2* cs, __global float* hg) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    nlog[i] = neg_log_u01(u[i]);
+    cs[i] = azimuth_cs(u[i]);
+    hg[i] = hg_sample_cos_t(g, fabs(g) >= 1e-4f ? 0.5f / g : 0.0f, u[i]);
 }
