@@ -129,20 +129,18 @@ inline float fresnel_R(float n1, float n2, float cos_i, float* cos_t_out) {
     return 0.5f * (rs * rs + rp * rp);
 }
 
-/* Henyey-Greenstein: cosine of the scattering angle. */
-inline float hg_sample_cos(float g, float u) {
-    if (fabs(g) < 1e-4f) return 2.0f * u - 1.0f;
-    float t = (1.0f - g * g) / (1.0f - g + 2.0f * g * u);
-    float c = (1.0f + g * g - t * t) / (2.0f * g);
-    return clamp(c, -1.0f, 1.0f);
-}
-
-/* The same with inv2g = 1/(2g) precomputed (0 for isotropic): one division. */
+/* Henyey-Greenstein: cosine of the scattering angle, with inv2g = 1/(2g) precomputed (0 for
+ * isotropic; the photon pass reads it from the optics table): one division. */
 inline float hg_sample_cos_t(float g, float inv2g, float u) {
     if (inv2g == 0.0f) return 2.0f * u - 1.0f;
     const float t = (1.0f - g * g) / (1.0f - g + 2.0f * g * u);
     const float c = (1.0f + g * g - t * t) * inv2g;
     return c < -1.0f ? -1.0f : (c > 1.0f ? 1.0f : c);
+}
+
+/* The same from g alone. */
+inline float hg_sample_cos(float g, float u) {
+    return hg_sample_cos_t(g, fabs(g) < 1e-4f ? 0.0f : 0.5f / g, u);
 }
 
 inline float hg_eval(float g, float cos_t) {

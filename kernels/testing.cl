@@ -68,12 +68,12 @@ __kernel void t_u01(uint seed, uint n, uint m, __global float* out) {
     for (uint j = 0; j < m; ++j) out[(size_t)i * m + j] = rng_u01(&rng);
 }
 
-/* The hot-path arithmetic of common.h: -ln(u), (cos, sin)(2 pi u), HG with 1/(2g) given. */
+/* The hot-path arithmetic of common.h: -ln(u), (cos, sin)(2 pi u), HG sampling. */
 __kernel void t_fastmath(float g, uint n, __global const float* u, __global float* nlog,
                          __global float2* cs, __global float* hg) {
     const uint i = (uint)get_global_id(0);
     if (i >= n) return;
     nlog[i] = neg_log_u01(u[i]);
     cs[i] = azimuth_cs(u[i]);
-    hg[i] = hg_sample_cos_t(g, fabs(g) >= 1e-4f ? 0.5f / g : 0.0f, u[i]);
+    hg[i] = hg_sample_cos(g, u[i]);
 }
