@@ -530,15 +530,6 @@ def valid_config(draw):
     }
 
 
-@pytest.fixture(scope="module")
-def dev():
-    from clppm.device import DeviceError, open_device
-    try:
-        return open_device(None)
-    except DeviceError as e:            # pragma: no cover - no OpenCL here
-        pytest.skip(str(e))
-
-
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                  HealthCheck.function_scoped_fixture])
 @given(valid_config())

@@ -66,15 +66,6 @@ blood = 0.02
 """
 
 
-@pytest.fixture(scope="module")
-def dev():
-    from clppm.device import DeviceError, open_device
-    try:
-        return open_device(None)
-    except DeviceError as e:               # pragma: no cover - no OpenCL here
-        pytest.skip(str(e))
-
-
 def _render(dev, tmp_path, name, **changes):
     raw = copy.deepcopy(BASE)
     for sec, kv in changes.items():

@@ -53,14 +53,6 @@ def _cfg(**changes):
     return C.validate(raw, "guards")
 
 
-@pytest.fixture(scope="module")
-def dev():
-    try:
-        return D.open_device(None)
-    except D.DeviceError as e:             # pragma: no cover - no OpenCL here
-        pytest.skip(str(e))
-
-
 # ----------------------------------------------------------------------------- extreme inputs
 CASES = {
     "mua_huge": {"layers.mua": 1e5},                               # cm^-1: 0.1 um to absorption

@@ -5,15 +5,9 @@ import numpy as np
 import pytest
 
 from clppm import hashgrid as hg
-from clppm.device import open_device
 
 NB = 8
 METHODS = ["counting", "radix"]
-
-
-@pytest.fixture(scope="module")
-def dev():
-    return open_device()
 
 
 @pytest.fixture(scope="module")

@@ -17,19 +17,10 @@ import pytest
 cl = pytest.importorskip("pyopencl")
 from scipy import integrate, stats  # noqa: E402
 
-from clppm import device  # noqa: E402
 from clppm.params import global_size  # noqa: E402
 
 N_HG = 200_000
 SEED = 12345
-
-
-@pytest.fixture(scope="module")
-def dev():
-    try:
-        return device.open_device()
-    except device.DeviceError as e:  # pragma: no cover - no OpenCL at all
-        pytest.skip(str(e))
 
 
 class Kernels:

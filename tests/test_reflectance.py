@@ -30,12 +30,6 @@ def _forearm(**changes) -> dict:
     return config.validate(raw, "forearm-test")
 
 
-@pytest.fixture(scope="module")
-def dev():
-    from clppm.device import open_device
-    return open_device(None)
-
-
 # ----------------------------------------------------------------------------- photon pass
 @pytest.mark.parametrize("case,spec", [("semi_inf_g0.9_n1.4", "mua=1,mus=100,g=0.9,n=1.4"),
                                        ("semi_inf_g0.9_n1", "mua=1,mus=100,g=0.9,n=1.0")])

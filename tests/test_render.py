@@ -10,7 +10,7 @@ import os
 import numpy as np
 import pytest
 
-from clppm import config, device, eyepass, image, transport, volume
+from clppm import config, eyepass, image, transport, volume
 from clppm import progressive as pr
 from clppm.skin import PAPER_TABLE1
 
@@ -38,11 +38,6 @@ def slab_cfg(layers, *, method="e", spacing=None, threshold=1.1e-3, merge="none"
 def layer(name, t, mua, mus, g=0.0, n=1.0):
     return {"name": name, "thickness_um": t, "n": n, "mua": mua, "mus": mus, "g": g,
             "scattering": "none"}
-
-
-@pytest.fixture(scope="module")
-def dev():
-    return device.open_device()
 
 
 def eye_for(dev, cfg):

@@ -29,7 +29,6 @@ import pytest
 
 from clppm import config, transport, volume
 from clppm import progressive as pr
-from clppm.device import open_device
 from clppm.reference import skin_mask
 
 LAYERS = [
@@ -61,11 +60,6 @@ def scene(edit=None):
     if edit:
         edit(raw)
     return config.validate(raw, "test_stability")
-
-
-@pytest.fixture(scope="module")
-def dev():
-    return open_device()
 
 
 def per_layer(res):

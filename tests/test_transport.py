@@ -16,7 +16,7 @@ import pytest
 cl = pytest.importorskip("pyopencl")
 from scipy import stats  # noqa: E402
 
-from clppm import config, device, transport, volume  # noqa: E402
+from clppm import config, transport, volume  # noqa: E402
 from clppm.transport import CATEGORIES, W0  # noqa: E402
 
 try:                                   # categories that make up a photon's weight
@@ -47,14 +47,6 @@ def photons_in(row, nl):
     """Whole photons accounted for by one tally row (exact: None if not a whole number)."""
     w = sum(int(row[c]) for c in BALANCE + list(range(NA, NA + nl))) - 2 * int(row[I_GAIN])
     return w // W0 if w % W0 == 0 else None
-
-
-@pytest.fixture(scope="module")
-def dev():
-    try:
-        return device.open_device()
-    except device.DeviceError as e:  # pragma: no cover
-        pytest.skip(str(e))
 
 
 def slab_pass(dev, spec, seed=SEED, capacity=0):
