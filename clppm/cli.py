@@ -28,7 +28,7 @@ def _add_device(p):
 
 
 def cmd_devices(a) -> int:
-    from .device import describe, list_devices, NO_PLATFORM_HELP
+    from .device import compiler_problem, describe, list_devices, NO_PLATFORM_HELP
     devs = list_devices()
     if not devs:
         print(NO_PLATFORM_HELP, file=sys.stderr)
@@ -38,6 +38,9 @@ def cmd_devices(a) -> int:
         print(f"{ip}:{idev}  {d['name']}  [{d['platform']}; {d['type']}; {d['compute_units']} CUs; "
               f"{d['global_mem_bytes'] / 2**30:.1f} GiB, max alloc {d['max_alloc_bytes'] / 2**30:.1f} GiB; "
               f"fp64 {'yes' if d['fp64'] else 'no'}; int64 atomics {'yes' if d['int64_atomics'] else 'no'}]")
+        why = compiler_problem(dev)
+        if why:
+            print(f"      not usable: {why}")
     return 0
 
 

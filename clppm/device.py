@@ -88,7 +88,13 @@ def select_device(spec: str | None = None):
     if spec is None:
         cl = _cl()
         gpus = [d for d in devs if d[3].type & cl.device_type.GPU]
-        return (gpus or devs)[0][3]
+        others = [d for d in devs if not d[3].type & cl.device_type.GPU]
+        for cand in gpus + others:
+            if compiler_problem(cand[3]) is None:
+                return cand[3]
+        dev = (gpus or devs)[0][3]
+        raise DeviceError(f"no OpenCL device can compile kernels; device '{dev.name.strip()}': "
+                          f"{compiler_problem(dev)}")
     spec = str(spec).strip()
     parts = spec.split(":")
     if all(p.isdigit() for p in parts if p != "") and parts[0] != "":
@@ -103,6 +109,45 @@ def select_device(spec: str | None = None):
         if spec.lower() in dev.name.lower():
             return dev
     raise DeviceError(f"no device name contains '{spec}'; `clppm devices` lists them")
+
+
+_PROBE_SRC = "__kernel void clppm_probe(__global float* a) { a[get_global_id(0)] = 1.0f; }"
+UNKNOWN_CPU_HELP = ("its compiler does not know this CPU (PoCL 3.0 from pip is built on LLVM 14, "
+                    "which predates e.g. AMD Zen 5); install a newer PoCL, e.g. Debian's "
+                    "'apt install pocl-opencl-icd', and clppm will use it")
+
+
+_PROBED: dict = {}
+
+
+def _probe(dev) -> str | None:
+    cl = _cl()
+    try:
+        ctx = cl.Context([dev])
+        cl.Program(ctx, _PROBE_SRC).build()
+    except cl.Error as e:
+        msg = " ".join(str(e).split())
+        if "unknown target CPU" in msg:
+            return UNKNOWN_CPU_HELP
+        return f"a test kernel does not build ({msg[:200]})"
+    return None
+
+
+def _device_key(dev) -> tuple:
+    return (dev.platform.name.strip(), dev.platform.version.strip(), dev.name.strip(),
+            dev.version.strip())
+
+
+def compiler_problem(dev) -> str | None:
+    """Why ``dev`` cannot build kernels (a one-line reason), or None when it can.
+
+    Checked once per device and process by building a one-line kernel: the pip PoCL (LLVM 14)
+    rejects CPUs newer than its LLVM ("unknown target CPU 'generic'"), and a machine may then
+    carry a second, working PoCL."""
+    key = _device_key(dev)
+    if key not in _PROBED:
+        _PROBED[key] = _probe(dev)
+    return _PROBED[key]
 
 
 @dataclass
