@@ -15,7 +15,8 @@ import zlib
 
 import numpy as np
 
-VERSION = 1
+VERSION = 2
+ARRAYS = ("pt_R", "pt_N", "R0", "pix_acc", "chunk_acc", "pix_pairs")
 
 
 class CheckpointError(ValueError):
@@ -27,7 +28,8 @@ def default_path(out: str) -> str:
     return base + ".ckpt.npz"
 
 
-def save(path: str, meta: dict, state: dict, pt_R, pt_N, pix_acc, pix_pairs) -> None:
+def save(path: str, meta: dict, state: dict, **arrays) -> None:
+    """Write ``state`` (JSON-able) and the named arrays (:data:`ARRAYS`) atomically."""
     header = {"version": VERSION, "meta": meta,
               "state": {k: state[k] for k in ("pass_index", "emitted_total", "store_zmin",
                                               "tallies_emitted", "stats", "timing")}}
@@ -37,9 +39,8 @@ def save(path: str, meta: dict, state: dict, pt_R, pt_N, pix_acc, pix_pairs) -> 
     tmp = os.path.join(d, f".{os.path.basename(path)}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as f:
-            np.savez(f, header=np.array(json.dumps(header, default=str)), pt_R=np.asarray(pt_R),
-                     pt_N=np.asarray(pt_N), pix_acc=np.asarray(pix_acc),
-                     pix_pairs=np.asarray(pix_pairs), tallies=tallies)
+            np.savez(f, header=np.array(json.dumps(header, default=str)), tallies=tallies,
+                     **{k: np.asarray(arrays[k]) for k in ARRAYS})
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -82,7 +83,7 @@ def load(path: str, meta: dict | None = None) -> dict:
             raise ValueError("not a .npz archive")
         with z:
             header = json.loads(str(z["header"]))
-            arrays = {k: z[k] for k in ("pt_R", "pt_N", "pix_acc", "pix_pairs", "tallies")}
+            arrays = {k: z[k] for k in ARRAYS + ("tallies",)}
     except ValueError as e:
         if "pickle" in str(e):           # numpy's guess for bytes it does not recognise
             raise corrupt("not a .npz archive") from None
@@ -113,7 +114,7 @@ def load(path: str, meta: dict | None = None) -> dict:
         raise corrupt(f"tallies: {_one_line(e)}") from None
     if not isinstance(st["pass_index"], int) or st["pass_index"] < 1:
         raise corrupt(f"pass index {st['pass_index']!r}")
-    for k in ("pt_R", "pt_N", "pix_acc"):
+    for k in ("pt_R", "pt_N", "R0", "pix_acc", "chunk_acc"):
         if st[k].dtype.kind not in "fiu" or not np.all(np.isfinite(st[k])):
             raise CheckpointError(f"checkpoint {name} holds non-finite or non-numeric values in {k}")
     if meta is not None:
@@ -134,7 +135,8 @@ def _check_shapes(name: str, st: dict, meta: dict) -> None:
         npts = int(meta["npoints"])
     except (KeyError, TypeError, ValueError):
         return                              # not a render's identity: nothing to compare with
-    want = {"pt_R": (npts,), "pt_N": (npts,), "pix_acc": (w * h, nb), "pix_pairs": (w * h,)}
+    want = {"pt_R": (npts,), "pt_N": (npts,), "R0": (npts,), "pix_acc": (w * h, nb),
+            "chunk_acc": (w * h, nb), "pix_pairs": (w * h,)}
     for k, shape in want.items():
         if tuple(st[k].shape) != shape:
             raise CheckpointError(f"checkpoint {name} is corrupt: {k} has shape {tuple(st[k].shape)}, "

@@ -164,8 +164,10 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
     shift of the finest spacing minus the coarsest, and the fitted slopes of Δv' and Δb*
     against log(reuse).
     """
+    from . import config as C
     from .progressive import render
     log = log or (lambda *a, **k: None)
+    cfg = C.paper_mode(cfg)               # reuse by overlapping spheres is the paper's estimator's
     if resolution is None:
         resolution = tuple(cfg["camera"]["resolution"]) if ref is None else (ref.xyz.shape[1], ref.xyz.shape[0])
     rows, imgs = [], {}

@@ -123,13 +123,26 @@ SCHEMA: dict[str, dict[str, F]] = {
         "roughness": F("float", 0.35, lo=0.01, hi=1.0),
         "preview_every": F("int", 0, lo=0, hi=10**7),
         "checkpoint_every": F("int", 10, lo=0, hi=10**7),
+        "chunk_passes": F("int", 4, lo=1, hi=10**6,
+                          doc="passes summed per chunk before the chunk joins the total, here and "
+                              "on distributed workers alike (part of the result's bits)"),
         "exposure": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e12,
                       doc="PNG scale; default: a white diffuser at the image centre = 1"),
-        "estimator": F("choice", "layer", choices=("layer", "clip", "sphere"),
-                       doc="layer: own-layer photons over the sphere within the layer; "
-                           "clip: all photons, sphere clipped at the surface; sphere: the paper"),
+        "estimator": F("choice", "beam", choices=("beam", "layer", "clip", "sphere"),
+                       doc="beam: each photon integrated along its point's path cell, a horizontal "
+                           "disc exact in depth; layer: own-layer photons over the sphere within the "
+                           "layer; clip: all photons, sphere clipped at the surface; sphere: the paper"),
         "store_depth_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e6,
                             doc="store photons only this deep (default: all)"),
+        "storage": F("choice", "importance", choices=("importance", "all"),
+                     doc="importance: store a scattering event with a probability that follows "
+                         "its weight toward the eye (unbiased, weight 1/probability); all: every "
+                         "event (the paper)"),
+        "store_scale": F("float", 1.0, lo=0, lo_open=True, hi=1e6,
+                         doc="importance storage: probability = clamp(scale * importance, "
+                             "store_min, 1)"),
+        "store_min": F("float", 0.02, lo=0, lo_open=True, hi=1.0,
+                       doc="importance storage: the smallest storage probability (bounds weights)"),
     },
 }
 
@@ -384,6 +397,18 @@ def override(cfg: dict, section: str, key: str, value: Any, source: str = "comma
     out[section][key] = _check(source, f"{section}.{key}", value, schema[key], ".")
     _cross_checks(source, out)
     return out
+
+
+#: the paper's design: every scattering event stored, one band per photon path, the plain
+#: sphere estimator, the per-point progressive radius (Kamatani & Kawai; Hachisuka et al. 2008)
+PAPER_MODE = {"storage": "all", "estimator": "sphere", "radius": "ppm"}
+
+
+def paper_mode(cfg: dict, source: str = "--paper") -> dict:
+    """``cfg`` with the paper's photon storage, estimator and radius (:data:`PAPER_MODE`)."""
+    for k, v in PAPER_MODE.items():
+        cfg = override(cfg, "render", k, v, source)
+    return cfg
 
 
 def wavelengths(cfg: dict):

@@ -98,9 +98,14 @@ class EyeData:
     counts: np.ndarray     # host, points per ray
     layers: np.ndarray     # host, layer of each point
     depth: np.ndarray      # host, depth below z=0 of each point (um)
+    geo: object = None     # cl array float4 x 2 per piece: (start, length), (direction, layer)
+    zmin: float = 0.0      # lowest z any piece reaches (um)
+    cone_deg: float = 0.0  # 99th percentile of the sample points' eye directions' angle from +z
+    grazing: bool = False  # some piece runs closer to horizontal than 60 degrees from vertical
 
     def device_bytes(self) -> int:
-        return self.npoints * (16 + 16 + 4 + 8 + 8 + 4) + self.npieces * 8 + (self.nrays + 1) * 4
+        return (self.npoints * (16 + 16 + 4 + 8 + 8 + 4) + self.npieces * (8 + (32 if self.geo is not None else 0))
+                + (self.nrays + 1) * 4)
 
     def per_layer(self, nl: int) -> np.ndarray:
         """Mean sample points per eye ray in each layer, over rays that hit the skin."""
@@ -125,7 +130,9 @@ def light_fields(e: np.ndarray, cfg: dict) -> None:
 
 
 def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
-        sch: Scheme | None = None, max_points: int = 1 << 16) -> EyeData:
+        sch: Scheme | None = None, max_points: int = 1 << 16, geometry: bool | None = None) -> EyeData:
+    """Eye rays, sample points and path pieces; ``geometry`` (default: when the estimator is
+    the beam) also writes each piece's start and direction."""
     import pyopencl as cl
     import pyopencl.array as cla
     import pyopencl.cltypes as cltypes
@@ -171,8 +178,10 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     dummy4 = cl.Buffer(ctx, mf.READ_WRITE, 16)
     dummyf = cl.Buffer(ctx, mf.READ_WRITE, 16)
     common = [pbuf, *vbuf.args(), ebuf, rbuf]
+    if geometry is None:
+        geometry = rc["estimator"] == "beam"
     knl(q, (P_.global_size(nrays),), (P_.WG,), *common, np.int32(0), npts_a.data, npcs_a.data,
-        npts_a.data, npcs_a.data, dummy4, dummy4, dummy4, dummy4, dummyf, dummyf, dummyf)
+        npts_a.data, npcs_a.data, dummy4, dummy4, dummy4, dummy4, dummyf, dummyf, dummyf, dummy4)
     counts = npts_a.get()[:nrays].copy()
     npoints = int(counts.astype(np.int64).sum())
     npieces = int(npcs_a.get()[:nrays].astype(np.int64).sum())
@@ -180,7 +189,7 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
         raise DeviceError(f"{npoints} sample points / {npieces} path pieces exceed 32-bit indices; "
                           "raise render.threshold, use a sparser method or a lower resolution")
     check_alloc(dev, {"sample points": npoints * 56, "path pieces": npieces * 8,
-                      "sample point slabs": npoints * 8})
+                      "sample point slabs": npoints * 8, "piece geometry": npieces * 32 if geometry else 0})
     scan = _scan_kernel(ctx)
     scan(npts_a)            # in place: exclusive prefix sums, entry nrays = total
     scan(npcs_a)
@@ -191,13 +200,25 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     ray_spec = cla.empty(q, nrays, np.float32)
     ray_hit = cla.empty(q, nrays, np.float32)
     pt_slab = cla.empty(q, max(npoints, 1), cltypes.float2)
-    knl(q, (P_.global_size(nrays),), (P_.WG,), *common, np.int32(1), npts_a.data, npcs_a.data,
-        npts_a.data, npcs_a.data, pt_pos.data, pt_dir.data, pt_piece.data, pieces.data,
-        ray_spec.data, ray_hit.data, pt_slab.data)
+    geo = cla.empty(q, 2 * max(npieces, 1), cltypes.float4) if geometry else None
+    knl(q, (P_.global_size(nrays),), (P_.WG,), *common, np.int32(2 if geometry else 1), npts_a.data,
+        npcs_a.data, npts_a.data, npcs_a.data, pt_pos.data, pt_dir.data, pt_piece.data, pieces.data,
+        ray_spec.data, ray_hit.data, pt_slab.data, geo.data if geometry else dummy4)
     cl.enqueue_copy(q, pt_piece.data, np.array([npieces], np.uint32), dst_offset=4 * npoints)
     pos = pt_pos.get()[:npoints] if npoints else np.zeros(0, cltypes.float4)
     dirs = pt_dir.get()[:npoints] if npoints else np.zeros(0, cltypes.float4)
-    return EyeData(camera=cam, scheme=sch, nrays=nrays, npoints=npoints, npieces=npieces,
+    zmin, grazing = 0.0, False
+    if geometry and npieces:
+        g = geo.get()[:2 * npieces]
+        s, d = g[0::2], g[1::2]
+        zend = np.minimum(s["z"], s["z"] + s["w"] * d["z"])
+        zmin = float(zend.min())
+        grazing = bool(np.any(np.abs(d["z"]) < 0.5))
+    elif npoints:
+        zmin = float(pos["z"].min())
+    cone = float(np.degrees(np.arccos(np.clip(np.percentile(dirs["z"], 1.0), -1, 1)))) if npoints else 0.0
+    return EyeData(camera=cam, scheme=sch, nrays=nrays, npoints=npoints, npieces=npieces, geo=geo,
+                   zmin=zmin, grazing=grazing, cone_deg=cone,
                    ray_start=npts_a, pt_pos=pt_pos, pt_dir=pt_dir, pt_piece=pt_piece,
                    pieces=pieces, ray_spec=ray_spec.get(), ray_hit=ray_hit.get(), pt_slab=pt_slab,
                    counts=counts, layers=np.asarray(dirs["w"], np.int32) if npoints else np.zeros(0, np.int32),

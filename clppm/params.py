@@ -33,6 +33,8 @@ _FIELDS = [
     ("rr_m", "f4"),
     ("max_events", "i4"),
     ("count", "u4"), ("rcone_cos", "f4"), ("offset_hi", "u4"),
+    ("store_rule", "i4"), ("store_cos", "f4"), ("store_sin", "f4"), ("store_scale", "f4"),
+    ("store_qmin", "f4"),
 ]
 PARAMS_DTYPE = np.dtype(_FIELDS)
 assert PARAMS_DTYPE.itemsize == 4 * len(_FIELDS)
@@ -49,6 +51,7 @@ def new_params() -> np.ndarray:
     p["max_events"] = 1_000_000
     p["store_zmin"] = -3.0e38
     p["rcone_cos"] = 0.98
+    p["store_cos"], p["store_sin"], p["store_scale"], p["store_qmin"] = 1.0, 0.0, 1.0, 1.0
     return p
 
 

@@ -159,6 +159,20 @@ class Tallies:
         return abs(tot - W0 * self.emitted) / (W0 * max(self.emitted, 1))
 
 
+STORAGE = {"all": 0, "importance": 1}
+
+
+def storage_importance(vol: Volume) -> np.ndarray:
+    """(NL*NB, 2) float32 for importance-driven storage: the optical depth of a vertical path
+    from the surface to the nominal top of each layer, per band, and that top's z (um)."""
+    depth = vol.layer_depths()[:-1]
+    od = np.zeros((vol.nl, vol.nb))
+    for L in range(1, vol.nl):
+        od[L] = od[L - 1] + vol.mut[L - 1] * vol.thickness[L - 1]
+    t = np.stack([od, np.broadcast_to(-depth[:, None], od.shape)], -1)
+    return np.ascontiguousarray(t.reshape(-1, 2), np.float32)
+
+
 class PhotonPass:
     """Device state for photon passes of one scene."""
 
@@ -198,6 +212,15 @@ class PhotonPass:
         self.tallies = Tallies(vol.nb, vol.nl)
         self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY, P_.PARAMS_DTYPE.itemsize)
         self.truncated = False
+        self.store_imp = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=storage_importance(vol))
+
+    def set_storage(self, rule: str, cone_deg: float = 0.0, scale: float = 1.0, qmin: float = 1.0) -> None:
+        """Storage rule of later passes: "all" events, or "importance" (see photon.cl): store with
+        probability clamp(scale * importance, qmin, 1), eye directions within cone_deg of +z."""
+        self.p["store_rule"] = STORAGE[rule]
+        c = math.radians(max(0.0, min(float(cone_deg), 90.0)))
+        self.p["store_cos"], self.p["store_sin"] = math.cos(c), math.sin(c)
+        self.p["store_scale"], self.p["store_qmin"] = float(scale), float(qmin)
 
     def _launch(self, n: int, offset: int, pass_index: int, capacity: int) -> None:
         import pyopencl as cl
@@ -210,7 +233,7 @@ class PhotonPass:
         self.p["capacity"] = capacity
         self.p["count"] = n
         cl.enqueue_copy(q, self.pbuf, self.p)
-        self.kernel(q, (P_.global_size(n),), (P_.WG,), self.pbuf, *self.vbuf.args(), self.cdf,
+        self.kernel(q, (P_.global_size(n),), (P_.WG,), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
                     self.pos_w, self.dir_b, self.count_buf, self.tally_buf)
 
     def _flush(self, emitted: int, into: Tallies | None = None) -> np.ndarray:
@@ -250,10 +273,11 @@ class PhotonPass:
             out.append(acc)
         return out
 
-    def run_pass(self, pass_index: int, target: int) -> dict:
+    def run_pass(self, pass_index: int, target: int, tallies: Tallies | None = None) -> dict:
         """Emit photons until at least ``target`` scattering events are stored.
 
         Returns emitted and stored counts; the stored photons are in ``pos_w``/``dir_b``.
+        The exit and absorption tallies go to ``tallies`` (default: this pass object's own).
         """
         cap = self.capacity
         if target + 4096 > cap:
@@ -293,7 +317,7 @@ class PhotonPass:
                 if n == 1:
                     raise RuntimeError("one photon overflowed the photon buffer; raise capacity")
                 n = max(1, n // 2)
-            self._flush(n)
+            self._flush(n, tallies)
             emitted += n
             stored = c
             launches += 1

@@ -70,6 +70,11 @@ typedef struct {
     uint count;                 /* work items in this launch (the rest return) */
     float rcone_cos;            /* exits with cos(theta) above this also go to the cone tally */
     uint offset_hi;             /* high 32 bits of the photon index (traces beyond 2^32 photons) */
+    /* storage rule (photon pass): 0 every scattering event, 1 importance-driven */
+    int store_rule;
+    float store_cos, store_sin; /* half angle of the cone of eye directions around +z */
+    float store_scale;          /* storage probability = clamp(scale * importance, qmin, 1) */
+    float store_qmin;
 } Params;
 
 /* Interface k: (z if flat, zmin, zmax, var index as float; -1 = flat). */

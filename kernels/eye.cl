@@ -1,5 +1,6 @@
 /* Eye-ray pass: one work item per eye ray.  Run twice with the same random numbers: WRITE = 0
- * counts sample points and path pieces per ray (the host scans the counts), WRITE = 1 writes them.
+ * counts sample points and path pieces per ray (the host scans the counts), WRITE = 1 writes them
+ * and WRITE = 2 also each piece's geometry (start, direction: the beam estimator's input).
  *
  * Sample points (paper section 5).  The refracted ray is walked through the constant regions
  * of the volume; candidates are placed
@@ -65,47 +66,74 @@ typedef struct {
     int npend;
     float pend_len[MAXPEND];
     int pend_layer[MAXPEND];
+    float3 pend_start[MAXPEND]; /* where each pending piece starts, and its direction: the */
+    float3 pend_dir[MAXPEND];   /* beam estimator integrates along the pieces themselves */
     int4 last_vox;
     int have_point;
     int split_ok;               /* the last point is in the current layer visit */
 } Emit;
 
-inline void pend_add(Emit* e, int L, float len) {
+/* A piece of path of length len in layer L, from start along dir.  It joins the last pending
+ * piece when that one is in the same layer and goes the same way (one straight piece). */
+inline void pend_add(Emit* e, int L, float len, float3 start, float3 dir) {
     if (len <= 0.0f) return;
     e->pend_total += len;
-    if (e->npend > 0 && e->pend_layer[e->npend - 1] == L) { e->pend_len[e->npend - 1] += len; return; }
+    const int k = e->npend - 1;
+    if (k >= 0 && e->pend_layer[k] == L && all(e->pend_dir[k] == dir)) { e->pend_len[k] += len; return; }
     if (e->npend == MAXPEND) { e->pend_len[MAXPEND - 1] += len; return; }
-    e->pend_len[e->npend] = len; e->pend_layer[e->npend] = L; e->npend++;
+    e->pend_len[e->npend] = len; e->pend_layer[e->npend] = L;
+    e->pend_start[e->npend] = start; e->pend_dir[e->npend] = dir;
+    e->npend++;
+}
+
+/* Piece j of the output: (length, layer) and, for the beam estimator, (start, length) and
+ * (direction, layer). */
+inline void write_piece(uint j, float len, int L, float3 start, float3 dir, __global float2* pieces,
+                        __global float4* geo, int write) {
+    if (!write) return;
+    pieces[j] = (float2)(len, (float)L);
+    if (write == 2) {
+        geo[2 * j] = (float4)(start, len);
+        geo[2 * j + 1] = (float4)(dir, (float)L);
+    }
 }
 
 inline int4 voxel_of(float3 p, __constant const EyeParams* E) {
     return (int4)((int)floor(p.x / E->vox_dx), (int)floor(p.y / E->vox_dx), (int)floor(p.z / E->vox_dz), 0);
 }
 
-inline void flush_pieces(Emit* e, __global float2* pieces, int write) {
+inline void flush_pieces(Emit* e, __global float2* pieces, __global float4* geo, int write) {
     if (write)
         for (int k = 0; k < e->npend; ++k)
-            pieces[e->pc_base + e->npcs + k] = (float2)(e->pend_len[k], (float)e->pend_layer[k]);
+            write_piece(e->pc_base + e->npcs + k, e->pend_len[k], e->pend_layer[k], e->pend_start[k],
+                        e->pend_dir[k], pieces, geo, write);
     e->npcs += e->npend;
     e->npend = 0;
     e->pend_total = 0.0f;
 }
 
 /* Write the first D of the pending path (it belongs to the previous point) and keep the rest. */
-inline void flush_first(Emit* e, float D, __global float2* pieces, int write) {
+inline void flush_first(Emit* e, float D, __global float2* pieces, __global float4* geo, int write) {
     int k = 0;
     float acc = 0.0f;
     while (k < e->npend && acc + e->pend_len[k] <= D) {
-        if (write) pieces[e->pc_base + e->npcs] = (float2)(e->pend_len[k], (float)e->pend_layer[k]);
+        write_piece(e->pc_base + e->npcs, e->pend_len[k], e->pend_layer[k], e->pend_start[k],
+                    e->pend_dir[k], pieces, geo, write);
         e->npcs++; acc += e->pend_len[k]; k++;
     }
     if (k < e->npend && D - acc > 0.0f) {
-        if (write) pieces[e->pc_base + e->npcs] = (float2)(D - acc, (float)e->pend_layer[k]);
+        const float d = D - acc;
+        write_piece(e->pc_base + e->npcs, d, e->pend_layer[k], e->pend_start[k], e->pend_dir[k],
+                    pieces, geo, write);
         e->npcs++;
-        e->pend_len[k] -= D - acc;
+        e->pend_len[k] -= d;
+        e->pend_start[k] += d * e->pend_dir[k];
     }
     int m = 0;
-    for (int j = k; j < e->npend; ++j, ++m) { e->pend_len[m] = e->pend_len[j]; e->pend_layer[m] = e->pend_layer[j]; }
+    for (int j = k; j < e->npend; ++j, ++m) {
+        e->pend_len[m] = e->pend_len[j]; e->pend_layer[m] = e->pend_layer[j];
+        e->pend_start[m] = e->pend_start[j]; e->pend_dir[m] = e->pend_dir[j];
+    }
     e->npend = m;
     e->pend_total -= D;
 }
@@ -113,12 +141,13 @@ inline void flush_first(Emit* e, float D, __global float2* pieces, int write) {
 /* place a candidate at p (layer L); returns 1 if a new point was made */
 inline int place(Emit* e, float3 p, float3 to_eye, int L, float tw, __constant const EyeParams* E,
                  __global float4* pt_pos, __global float4* pt_dir, __global uint* pt_piece,
-                 __global float2* pieces, __global float2* pt_slab, float2 slab, int write) {
+                 __global float2* pieces, __global float4* geo, __global float2* pt_slab, float2 slab,
+                 int write) {
     int4 v = voxel_of(p, E);
     if (E->merge && e->have_point && all(v.xyz == e->last_vox.xyz)) return 0;
     if (e->npts >= (uint)E->max_points) return 0;
     /* Voronoi partition of the path: the previous point owns up to the midpoint */
-    if (e->have_point && e->split_ok) flush_first(e, 0.5f * e->pend_total, pieces, write);
+    if (e->have_point && e->split_ok) flush_first(e, 0.5f * e->pend_total, pieces, geo, write);
     if (write) {
         uint i = e->pt_base + e->npts;
         pt_pos[i] = (float4)(p, tw);
@@ -126,7 +155,7 @@ inline int place(Emit* e, float3 p, float3 to_eye, int L, float tw, __constant c
         pt_piece[i] = e->pc_base + e->npcs;
         pt_slab[i] = slab;
     }
-    flush_pieces(e, pieces, write);
+    flush_pieces(e, pieces, geo, write);
     e->npts++;
     e->last_vox = v;
     e->have_point = 1;
@@ -159,7 +188,7 @@ __kernel void eye_pass(VOLUME_ARGS,
                        __global const uint* pt_start, __global const uint* pc_start,
                        __global float4* pt_pos, __global float4* pt_dir, __global uint* pt_piece,
                        __global float2* pieces, __global float* ray_spec, __global float* ray_hit,
-                       __global float2* pt_slab)
+                       __global float2* pt_slab, __global float4* geo)
 {
     const uint r = (uint)get_global_id(0);
     const uint npix = (uint)(E->width * E->height);
@@ -261,8 +290,8 @@ __kernel void eye_pass(VOLUME_ARGS,
         if (E->scheme == 0) {
             while (next_eq <= ell + seg) {
                 float xc = next_eq - ell;
-                pend_add(&e, L, xc - x); x = xc;
-                visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_slab, SLAB(t.pos + xc * t.dir, L), write);
+                pend_add(&e, L, xc - x, t.pos + x * t.dir, t.dir); x = xc;
+                visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab, SLAB(t.pos + xc * t.dir, L), write);
                 next_eq += E->spacing;
             }
         } else {
@@ -272,12 +301,12 @@ __kernel void eye_pass(VOLUME_ARGS,
                 while (1) {
                     xc += neg_log_u01(rng_u01(&rng)) / rt;
                     if (xc > seg) break;
-                    pend_add(&e, L, xc - x); x = xc;
-                    visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_slab, SLAB(t.pos + xc * t.dir, L), write);
+                    pend_add(&e, L, xc - x, t.pos + x * t.dir, t.dir); x = xc;
+                    visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab, SLAB(t.pos + xc * t.dir, L), write);
                 }
             }
         }
-        pend_add(&e, L, seg - x);
+        pend_add(&e, L, seg - x, t.pos + x * t.dir, t.dir);
         for (int b = 0; b < NB; ++b) od[b] += optics[L * NB + b].w * seg;
         if (seg < db || ev == EV_NONE) { done = 1; break; }        /* cut by the threshold */
         t.pos += db * t.dir;
@@ -321,10 +350,10 @@ __kernel void eye_pass(VOLUME_ARGS,
         }
         /* leaving layer L: extinction-based schemes give an empty visit its exit point */
         if (E->scheme == 1 && visit_pts == 0) {
-            visit_pts += place(&e, t.pos - 1e-3f * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, pt_slab, SLAB(t.pos - 1e-3f * t.dir, L), write);
+            visit_pts += place(&e, t.pos - 1e-3f * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab, SLAB(t.pos - 1e-3f * t.dir, L), write);
         }
         /* cells do not cross layers: a visit with points keeps its whole path */
-        if (visit_pts > 0 && e.have_point) { flush_pieces(&e, pieces, write); e.split_ok = 0; }
+        if (visit_pts > 0 && e.have_point) { flush_pieces(&e, pieces, geo, write); e.split_ok = 0; }
         visit_pts = 0;
         if (L2 >= NL) { done = 1; break; }
         if (L2 < 0) {
@@ -366,7 +395,7 @@ __kernel void eye_pass(VOLUME_ARGS,
         t.L = L2;
     }
     /* the tail after the last point belongs to the last point */
-    if (e.have_point) flush_pieces(&e, pieces, write);
+    if (e.have_point) flush_pieces(&e, pieces, geo, write);
     else e.npend = 0;
     if (write) { ray_spec[r] = spec; ray_hit[r] = 1.0f; }
     else { n_points[r] = e.npts; n_pieces[r] = e.npcs; }

@@ -10,7 +10,8 @@
  * spectral flux is stored: F/V, weighted by the point's path weight integral of T over its
  * interval (per band, exact for the layered extinction), is added straight into the pixel's
  * spectral accumulator.  The per-point state is just R and N.  (The global-radius variant of
- * Knaus & Zwicker 2011 scales every R by the same schedule and averages per-pass estimates.)
+ * Knaus & Zwicker 2011: pt_R holds R0, pass p uses R0 * radius_scale(p) and the pass estimates
+ * are averaged, each scaled by 1 / its emitted photons.)
  *
  * Estimator.  The in-scattered radiance is discontinuous across layers (mu_s jumps by 4x from
  * epidermis to dermis) and zero in air, while R is 100-300 um against 15-60 um layers.
@@ -105,7 +106,7 @@ __kernel void gather(const GridParams gp,
                      __global double* pix_acc,              /* [npix*NB] */
                      __global ulong* pix_pairs,             /* [npix] photon-point pairs found */
                      const int npix, const int spp,
-                     const float alpha, const int global_radius, const float radius_factor,
+                     const float alpha, const int global_radius, const float radius_scale,
                      const double pass_scale)
 {
     const int pix = get_global_id(0);
@@ -122,7 +123,7 @@ __kernel void gather(const GridParams gp,
             const float4 pp = pt_pos[i];
             const float4 pd = pt_dir[i];
             const int L = (int)pd.w;
-            const float R = pt_R[i];
+            const float R = global_radius ? pt_R[i] * radius_scale : pt_R[i];
             const float3 x = pp.xyz;
             long acc[NB];
             for (int b = 0; b < NB; ++b) acc[b] = 0;
@@ -174,9 +175,7 @@ __kernel void gather(const GridParams gp,
                 od[b] = o;
             }
             /* progressive radius update */
-            if (global_radius) {
-                pt_R[i] = R * radius_factor;
-            } else if (M > 0u) {
+            if (!global_radius && M > 0u) {
                 const float N = pt_N[i];
                 const float Nn = N + alpha * (float)M;
                 pt_N[i] = Nn;
@@ -255,4 +254,129 @@ __kernel void count_within(const GridParams gp,
             }
     }
     out[k] = M;
+}
+
+/* ---------------------------------------------------------------- the beam estimator
+ * ESTIMATOR "beam": the radiance of an eye ray is  L = tw * integral over the ray of T(t) S(x(t)) dt,
+ * S the in-scattered radiance density.  With S(x) ~ sum_p Phi_p HG(w_p . w_eye) K(x - x_p) for a
+ * normalised kernel K, the integral over t can be done for each photon exactly:
+ *   L ~ tw * sum_p Phi_p HG(w_p . w_eye) * integral T(t) K(x(t) - x_p) dt.
+ * K here is a disc of radius R in the horizontal plane times a delta in depth:
+ *   K(u) = delta(u.z) [|u.xy| < R] / (pi R^2)   ->   integral = T(t*) [rho < R] / (pi R^2 |d.z|),
+ * t* where the ray reaches the photon's depth, rho the horizontal distance there.  The kernel never
+ * reaches across depth, so the jumps of S at the flat layer interfaces (mu_s changes 4x between
+ * epidermis and dermis) and the steep depth profile of S cost no bias at all: what is smoothed is
+ * only the lateral variation, and a symmetric disc's bias is second order in R there
+ * (R^2/8 laplacian_xy S).  The sample points keep the paper's role as owners of path cells: each
+ * has its own R (progressive per point, in 2-D: R'^2 = R^2 (N + alpha M)/(N + M)), and its cell's
+ * pieces (straight, one layer each) are integrated exactly, so no quadrature error is left from
+ * the point placement either.  A piece nearly parallel to the surface (|d.z| < 1/2: after total
+ * internal reflection at a furrow wall) uses the disc perpendicular to itself instead (the beam
+ * radiance estimate of Jarosz, Zwicker & Jensen 2008), whose depth smoothing is then unavoidable.
+ * T(t*) is per band, from the optical depth at the piece's start plus mu_t of the piece's layer.
+ * Phase: the photon's own layer's g (the scattering happens at the photon). */
+__kernel void gather_beam(const GridParams gp,
+                          __global const uint* cell_start,
+                          __global const float4* spos_w,
+                          __global const float4* sdir_b,
+                          __global const float4* hgtab,     /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
+                          __global const float4* optics,    /* [NL*NB]: ..., mut (um^-1) in .w */
+                          __global const uint* ray_start,
+                          __global const float4* pt_pos,    /* xyz, tw */
+                          __global const uint* pt_piece,    /* [npts+1] */
+                          __global const float4* geo,       /* per piece: (start, len), (dir, layer) */
+                          __global float* pt_R,
+                          __global float* pt_N,
+                          __global uint* pt_M,
+                          __global double* pix_acc,
+                          __global ulong* pix_pairs,
+                          const int npix, const int spp,
+                          const float alpha, const int global_radius, const float radius_scale,
+                          const double pass_scale)
+{
+    const int pix = get_global_id(0);
+    if (pix >= npix) return;
+    float accp[NB];
+    for (int b = 0; b < NB; ++b) accp[b] = 0.0f;
+    ulong pairs = 0;
+    for (int s = 0; s < spp; ++s) {
+        const uint r = (uint)pix * (uint)spp + (uint)s;
+        const uint i0 = ray_start[r], i1 = ray_start[r + 1];
+        float od[NB];                   /* optical depth from the entry to the piece's start */
+        for (int b = 0; b < NB; ++b) od[b] = 0.0f;
+        for (uint i = i0; i < i1; ++i) {
+            const float4 pp = pt_pos[i];
+            const float R = global_radius ? pt_R[i] * radius_scale : pt_R[i];
+            const float R2 = R * R;
+            long acc[NB];
+            for (int b = 0; b < NB; ++b) acc[b] = 0;
+            uint M = 0;
+            const uint k0 = pt_piece[i], k1 = pt_piece[i + 1];
+            for (uint k = k0; k < k1; ++k) {
+                const float4 g0 = geo[2 * k], g1 = geo[2 * k + 1];
+                const float3 s0 = g0.xyz, d = g1.xyz;
+                const float len = g0.w;
+                const int Lk = (int)g1.w;
+                if (R > 0.0f && len > 0.0f) {
+                    const int vert = fabs(d.z) >= 0.5f;
+                    const float inv_dz = vert ? 1.0f / d.z : 0.0f;
+                    const float wax = vert ? fabs(inv_dz) : 1.0f;       /* 1 / |d . axis| */
+                    const float3 e = s0 + len * d;
+                    const float Rp = R * (1.0f + GRID_R_PAD);
+                    const float zp = vert ? 1e-3f + 1e-6f * fabs(s0.z) : Rp;
+                    const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, fmin(s0.z, e.z) - zp);
+                    const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, fmax(s0.z, e.z) + zp);
+                    const int4 c0 = grid_coords(gp, lo), c1 = grid_coords(gp, hi);
+                    __global const float4* mut_k = optics + Lk * NB;
+                    for (int iz = c0.z; iz <= c1.z; ++iz)
+                    for (int iy = c0.y; iy <= c1.y; ++iy) {
+                        const uint row = grid_cell_index(gp, c0.x, iy, iz);
+                        const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
+                        for (uint j = jb; j < je; ++j) {
+                            const float4 p = spos_w[j];
+                            float ts, rho2;
+                            if (vert) {
+                                ts = (p.z - s0.z) * inv_dz;
+                                const float qx = s0.x + ts * d.x - p.x, qy = s0.y + ts * d.y - p.y;
+                                rho2 = qx * qx + qy * qy;
+                            } else {
+                                const float3 v = p.xyz - s0;
+                                ts = dot(v, d);
+                                const float3 q = v - ts * d;
+                                rho2 = dot(q, q);
+                            }
+                            if (!(ts >= 0.0f && ts < len && rho2 < R2)) continue;
+                            const float4 dd = sdir_b[j];
+                            const int bl = (int)dd.w;
+                            const int b = bl & 255;
+                            const float4 h = hgtab[(bl >> 8) * NB + b];
+                            const float q = h.x + h.y * dot(dd.xyz, d);         /* w_eye = -d */
+                            const float rq = rsqrt(q);
+                            const float T = exp(-(od[b] + mut_k[b].w * ts));
+                            acc[b] += (long)fmin(h.z * rq * rq * rq * p.w * T * wax * FIX, 9.0e18f);
+                            ++M;
+                        }
+                    }
+                }
+                for (int b = 0; b < NB; ++b) od[b] += optics[Lk * NB + b].w * len;
+            }
+            if (R > 0.0f) {
+                const float f = pp.w / (PI_F * R2) * INV_FIX;
+                for (int b = 0; b < NB; ++b)
+                    if (acc[b] != 0) accp[b] += f * (float)acc[b];
+            }
+            /* progressive radius update, in 2-D: the disc's area shrinks as N grows */
+            if (!global_radius && M > 0u) {
+                const float N = pt_N[i];
+                const float Nn = N + alpha * (float)M;
+                pt_N[i] = Nn;
+                pt_R[i] = R * sqrt(Nn / (N + (float)M));
+            }
+            pt_M[i] = M;
+            pairs += M;
+        }
+    }
+    __global double* out = pix_acc + (size_t)pix * NB;
+    for (int b = 0; b < NB; ++b) out[b] += (double)accp[b] * pass_scale;
+    pix_pairs[pix] += pairs;
 }

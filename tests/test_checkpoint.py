@@ -281,14 +281,16 @@ def test_save_is_atomic_on_failure(tmp_path, monkeypatch):
     state = dict(pass_index=1, emitted_total=10, store_zmin=None, tallies=[[1, 2]], tallies_emitted=10,
                  stats={"stored": 1, "emitted": [10], "first_search_mean": None}, timing={})
     z = np.zeros(4, np.float32)
-    ckpt.save(path, {"m": 1}, state, z, z, np.zeros((2, 3)), np.zeros(2, np.uint64))
+    arrays = dict(pt_R=z, pt_N=z, R0=z, pix_acc=np.zeros((2, 3)), chunk_acc=np.zeros((2, 3)),
+                  pix_pairs=np.zeros(2, np.uint64))
+    ckpt.save(path, {"m": 1}, state, **arrays)
     before = open(path, "rb").read()
 
     def boom(*a, **k):
         raise OSError(28, "No space left on device")
     monkeypatch.setattr(np, "savez", boom)
     with pytest.raises(OSError):
-        ckpt.save(path, {"m": 1}, dict(state, pass_index=2), z, z, np.zeros((2, 3)), np.zeros(2, np.uint64))
+        ckpt.save(path, {"m": 1}, dict(state, pass_index=2), **arrays)
     assert open(path, "rb").read() == before
     assert os.listdir(tmp_path) == ["a.ckpt.npz"]
     monkeypatch.undo()

@@ -1,0 +1,337 @@
+"""Progressive photon mapping on the skin volume, as named pieces.
+
+One render is: :func:`setup` (the scene on a device: volume, eye pass, photon and grid
+buffers, kernels), :func:`calibrate` (the initial radius and the storage depth, from a photon
+pass of its own that never reaches the image), then passes.  A pass (:func:`run_pass`) is a
+photon pass, a grid build and a gather; it adds the pass's radiance into an
+:class:`Accumulators` and, with the per-point radius, updates the points' R and N.
+
+Passes are grouped in chunks of ``render.chunk_passes``.  A chunk starts from zeroed
+accumulators, and chunk sums are added to the total in chunk order, here and in a distributed
+run alike (:mod:`clppm.executor`): the float64 sums then round the same way wherever the chunks
+ran, so the same seed gives the same bytes.  With ``render.radius = "global"`` (Knaus & Zwicker
+2011) pass p's radii are R0 * s(p), a function of p alone, so chunks are independent given the
+calibration; with the per-point radius (Hachisuka et al. 2008) each pass needs the R and N that
+all earlier passes left, so chunks run in order on one device.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import eyepass, hashgrid, transport, volume
+from .device import Device, check_alloc
+
+#: pass index of the calibration photon pass (its photons set R0 and are then dropped)
+CAL_PASS = 0xFFFFFFFF
+ESTIMATORS = {"sphere": 0, "clip": 1, "layer": 2, "beam": 3}
+STAGES = ("photon", "grid", "gather")
+
+
+def hg_table(vol: volume.Volume) -> np.ndarray:
+    """Per layer and band: 1 + g^2, 2g, (1 - g^2)/(4 pi): HG(cos) = h.z (h.x - h.y cos)^-3/2."""
+    g = vol.g.astype(np.float64)
+    t = np.stack([1 + g * g, 2 * g, (1 - g * g) / (4 * math.pi), np.zeros_like(g)], -1)
+    return np.ascontiguousarray(t.reshape(-1, 4), np.float32)
+
+
+def radius_scale(p: int, alpha: float, dim: int = 3) -> float:
+    """Knaus & Zwicker's radius of pass p (0-based) relative to pass 0's:
+    r_{i+1}^d = r_i^d (i + alpha)/(i + 1), i = 1, 2, ...  In closed form
+    (r_{p+1}/r_1)^d = Gamma(p + 1 + alpha) / (Gamma(1 + alpha) Gamma(p + 2)), evaluated in
+    float64 from p alone, so a pass's radii do not depend on which passes ran before it."""
+    if p <= 0:
+        return 1.0
+    ln = math.lgamma(p + 1 + alpha) - math.lgamma(1 + alpha) - math.lgamma(p + 2)
+    return math.exp(ln / dim)
+
+
+@dataclass
+class Scene:
+    """One scene on one device: what every pass of a render shares."""
+
+    cfg: dict
+    dev: Device
+    vol: volume.Volume
+    vbuf: transport.VolumeBuffers
+    eye: eyepass.EyeData
+    pp: transport.PhotonPass
+    kernels: dict
+    hgtab: object
+    layer_z: object
+    gbufs: hashgrid.GridBuffers
+    target: int                      # stored photons per pass
+    capacity: int
+    box: tuple                       # x0, y0, x1, y1, deepest sample point z, top z
+    timing: dict = field(default_factory=lambda: {k: 0.0 for k in STAGES})
+
+    @property
+    def npix(self) -> int:
+        return self.eye.camera.width * self.eye.camera.height
+
+    @property
+    def npts(self) -> int:
+        return self.eye.npoints
+
+    @property
+    def global_radius(self) -> bool:
+        return self.cfg["render"]["radius"] == "global"
+
+    @property
+    def beam(self) -> bool:
+        return self.cfg["render"]["estimator"] == "beam"
+
+    @property
+    def dim(self) -> int:
+        """Dimension of the density estimate's kernel: the radius update's exponent."""
+        return 2 if self.beam else 3
+
+
+@dataclass
+class Calibration:
+    """What the calibration pass decides for every later pass."""
+
+    R0: np.ndarray                   # (npts,) float32 initial radius per sample point (um)
+    store_zmin: float | None         # photons below this z are never gathered (not stored)
+    first_search_mean: float | None  # photons the first search finds per point, on average
+
+
+@dataclass
+class Accumulators:
+    """Pixel x band radiance sums (float64) and photon-point pair counts, on the device."""
+
+    pix: object
+    pairs: object
+
+    @classmethod
+    def zeros(cls, sc: Scene) -> "Accumulators":
+        import pyopencl.array as cla
+        q = sc.dev.queue
+        return cls(cla.zeros(q, sc.npix * sc.vol.nb, np.float64), cla.zeros(q, sc.npix, np.uint64))
+
+    def clear(self) -> None:
+        self.pix.fill(0)
+        self.pairs.fill(0)
+
+    def add(self, other: "Accumulators") -> None:
+        self.pix += other.pix
+        self.pairs += other.pairs
+
+    def host(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.pix.get(), self.pairs.get()
+
+
+@dataclass
+class PointState:
+    """Per sample point: R (the radius of the next pass; R0 with the global radius) and N."""
+
+    R: object
+    N: object
+    M: object                        # photons found in the last pass (statistics, tests)
+
+
+def device_needs(cfg: dict, vol: volume.Volume, eye_bytes: int, npix: int) -> dict:
+    target = int(cfg["render"]["photons"])
+    capacity = int(target * 1.2) + 4096
+    return {"stored photons": capacity * 32, "sorted photons": capacity * 36,
+            "grid cells": 4 * (hashgrid.DEFAULT_MAX_CELLS + 1) * 2,
+            "sample points": eye_bytes,
+            "pixel accumulators": 2 * (npix * vol.nb * 8 + npix * 8), **vol.device_bytes()}
+
+
+def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
+    """Volume on the device, eye pass, photon and grid buffers, kernels; memory checked first."""
+    import pyopencl as cl
+    from .camera import from_config
+    rc = cfg["render"]
+    timing = {}
+    t0 = time.perf_counter()
+    vol = volume.build(cfg, source)
+    vbuf = transport.upload_volume(dev, vol)
+    timing["volume"] = time.perf_counter() - t0
+    cam = from_config(cfg["camera"])
+    nrays = cam.width * cam.height * cam.spp
+    check_alloc(dev, {**device_needs(cfg, vol, (nrays + 1) * 8 + nrays * 8, cam.width * cam.height)})
+    t0 = time.perf_counter()
+    eye = eyepass.run(dev, vol, vbuf, cfg, eyepass.scheme(rc["method"], rc["spacing_um"]))
+    dev.queue.finish()
+    timing["eye"] = time.perf_counter() - t0
+    check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height))
+    target = int(rc["photons"])
+    capacity = int(target * 1.2) + 4096
+    pp = transport.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf)
+    pp.set_storage(rc["storage"], eye.cone_deg, rc["store_scale"], rc["store_min"])
+    prg = dev.build("gather.cl", {**transport.defines(vol), "ESTIMATOR": ESTIMATORS[rc["estimator"]]})
+    kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "init_radius", "count_within")}
+    mf = cl.mem_flags
+    hgtab = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hg_table(vol))
+    lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
+    layer_z = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(lz))
+    zdeep = eye.zmin if eye.npoints else vol.z_top
+    box = (vol.x0, vol.y0, vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy, zdeep, vol.z_top)
+    sc = Scene(cfg=cfg, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, kernels=kernels, hgtab=hgtab,
+               layer_z=layer_z, gbufs=hashgrid.GridBuffers(dev), target=target, capacity=capacity,
+               box=box)
+    sc.timing.update(timing)
+    return sc
+
+
+def _round(n: int, wg: int = 64) -> int:
+    return max(wg, (n + wg - 1) // wg * wg)
+
+
+def build_grid(sc: Scene, n: int, radii_median: float, rmax: float) -> hashgrid.Grid:
+    """Grid over the photons that sample points can reach (the sample points' box padded by
+    the largest radius), cells of half the median radius."""
+    x0, y0, x1, y1, zdeep, ztop = sc.box
+    pad = rmax * 1.001 + 1.0
+    lo, hi = (x0 - pad, y0 - pad, zdeep - pad), (x1 + pad, y1 + pad, ztop + pad)
+    h = hashgrid.choose_cell_size([radii_median], lo, hi)
+    return hashgrid.build(sc.dev, sc.pp.pos_w, sc.pp.dir_b, n, lo, hi, h, buffers=sc.gbufs)
+
+
+def calibrate(sc: Scene) -> Calibration:
+    """The paper's initial radius: the radius at which the first search finds K photons.
+
+    A photon pass of its own (index CAL_PASS) is stored; the radius is estimated per point
+    from the grid's cell counts (kernel ``init_radius``), then scaled by one global factor so
+    that exact counts on a subsample average K.  Photons deeper than any point's sphere can
+    reach are not stored afterwards: they could never be gathered."""
+    import pyopencl.array as cla
+    q = sc.dev.queue
+    npts = sc.npts
+    if npts == 0:
+        return Calibration(R0=np.zeros(0, np.float32), store_zmin=None, first_search_mean=None)
+    K = float(sc.cfg["render"]["initial_photons"])
+    info = sc.pp.run_pass(CAL_PASS, sc.target, tallies=transport.Tallies(sc.vol.nb, sc.vol.nl))
+    n = min(info["stored"], sc.capacity)
+    x0, y0, x1, y1, zdeep, ztop = sc.box
+    depth = max(ztop - zdeep, 1.0)
+    vbox = (x1 - x0) * (y1 - y0) * (depth + 1.0)
+    r_guess = (3 * K * vbox / (4 * math.pi * max(n, 1))) ** (1 / 3)
+    r_guess = min(r_guess, 0.5 * max(x1 - x0, y1 - y0))
+    rmax = 4.0 * r_guess
+    R = cla.zeros(q, npts, np.float32)
+    grid = build_grid(sc, n, r_guess, rmax)
+    sc.kernels["init_radius"](q, (_round(npts),), (64,), grid.params, grid.cell_start.data,
+                              sc.eye.pt_pos.data, R.data, np.uint32(npts), np.float32(K),
+                              np.float32(r_guess), np.float32(rmax), np.int32(4))
+    stride = max(1, npts // 20000)
+    ns = (npts + stride - 1) // stride
+    cnt = cla.zeros(q, ns, np.uint32)
+    mean_m = 0.0
+    for _ in range(3):
+        radii = R.get()
+        grid = build_grid(sc, n, float(np.median(radii)), float(radii.max()))
+        sc.kernels["count_within"](q, (_round(ns),), (64,), grid.params, grid.cell_start.data,
+                                   grid.spos_w.data, grid.sdir_b.data, sc.eye.pt_pos.data,
+                                   sc.eye.pt_dir.data, R.data, sc.layer_z, np.uint32(npts),
+                                   np.uint32(stride), cnt.data)
+        mean_m = float(cnt.get().mean())
+        if mean_m <= 0 or _ == 2:
+            break
+        R *= np.float32(min(max((K / mean_m) ** (1 / 3), 0.5), 2.0))
+    R0 = R.get()
+    # the beam's disc has no depth extent: nothing below the deepest piece is ever gathered
+    reach = float(R0.max()) * 1.001 if (not sc.beam or sc.eye.grazing) else 0.0
+    return Calibration(R0=R0, store_zmin=zdeep - reach - 1.0,
+                       first_search_mean=mean_m if mean_m > 0 else None)
+
+
+def point_state(sc: Scene, cal: Calibration) -> PointState:
+    import pyopencl.array as cla
+    q = sc.dev.queue
+    n = max(sc.npts, 1)
+    R = cla.zeros(q, n, np.float32)
+    if sc.npts:
+        R[:sc.npts].set(np.ascontiguousarray(cal.R0, np.float32))
+    return PointState(R=R, N=cla.zeros(q, n, np.float32), M=cla.zeros(q, n, np.uint32))
+
+
+def prepare(sc: Scene, cal: Calibration) -> None:
+    """Apply the calibration to the photon pass (storage depth)."""
+    if cal.store_zmin is not None:
+        sc.pp.p["store_zmin"] = cal.store_zmin
+
+
+def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulators,
+             tallies: transport.Tallies) -> dict:
+    """Photon pass p, grid, gather into ``acc``; returns the pass's counts."""
+    q = sc.dev.queue
+    rc = sc.cfg["render"]
+    t0 = time.perf_counter()
+    info = sc.pp.run_pass(p, sc.target, tallies=tallies)
+    n = min(info["stored"], sc.capacity)
+    q.finish()
+    sc.timing["photon"] += time.perf_counter() - t0
+    if sc.npts == 0:
+        return info
+    t0 = time.perf_counter()
+    alpha = float(rc["alpha"])
+    if sc.global_radius:
+        scale = radius_scale(p, alpha, sc.dim)
+        med, rmax = float(np.median(cal.R0)) * scale, float(cal.R0.max()) * scale
+    else:
+        scale = 1.0
+        radii = st.R.get()[:sc.npts]
+        med, rmax = float(np.median(radii)), float(radii.max())
+    grid = build_grid(sc, n, med, rmax)
+    q.finish()
+    sc.timing["grid"] += time.perf_counter() - t0
+    t0 = time.perf_counter()
+    pass_scale = 1.0 / max(info["emitted"], 1) if sc.global_radius else 1.0
+    e = sc.eye
+    tail = (st.R.data, st.N.data, st.M.data, acc.pix.data, acc.pairs.data, np.int32(sc.npix),
+            np.int32(e.camera.spp), np.float32(alpha), np.int32(sc.global_radius), np.float32(scale),
+            np.float64(pass_scale))
+    if sc.beam:
+        sc.kernels["gather_beam"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,
+                                  grid.spos_w.data, grid.sdir_b.data, sc.hgtab, sc.vbuf.optics,
+                                  e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, *tail)
+    else:
+        sc.kernels["gather"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,
+                             grid.spos_w.data, grid.sdir_b.data, sc.hgtab, sc.vbuf.optics,
+                             e.ray_start.data, e.pt_pos.data, e.pt_dir.data, e.pt_piece.data,
+                             e.pieces.data, e.pt_slab.data, sc.layer_z, *tail)
+    q.finish()
+    sc.timing["gather"] += time.perf_counter() - t0
+    info["radius_scale"] = scale
+    return info
+
+
+@dataclass
+class ChunkResult:
+    """A chunk of passes: its sums (host arrays, for a distributed reduction) and counts."""
+
+    chunk: int
+    passes: list
+    pix: np.ndarray
+    pairs: np.ndarray
+    tallies: list                    # [band][category] python ints
+    emitted: list                    # per pass
+    stored: int
+    seconds: dict
+
+
+def run_chunk(sc: Scene, cal: Calibration, st: PointState, chunk: int, passes, acc: Accumulators
+              ) -> ChunkResult:
+    """Passes of one chunk from zeroed accumulators; the sums come back to the host."""
+    acc.clear()
+    tallies = transport.Tallies(sc.vol.nb, sc.vol.nl)
+    before = dict(sc.timing)
+    emitted, stored = [], 0
+    for p in passes:
+        info = run_pass(sc, cal, st, p, acc, tallies)
+        emitted.append(info["emitted"])
+        stored += min(info["stored"], sc.capacity)
+    pix, pairs = acc.host()
+    return ChunkResult(chunk=chunk, passes=list(passes), pix=pix, pairs=pairs, tallies=tallies.counts,
+                       emitted=emitted, stored=stored,
+                       seconds={k: sc.timing[k] - before.get(k, 0.0) for k in STAGES})
+
+
+def chunk_passes(chunk: int, k: int, n_passes: int) -> range:
+    return range(chunk * k, min((chunk + 1) * k, n_passes))
