@@ -39,7 +39,7 @@ from clppm.progressive import render                       # noqa: E402
 from clppm.reference import cached_volumes, skin_mask_from_eye  # noqa: E402
 
 STAGES = ("eye", "calibration", "photon", "grid", "gather")
-PAPER = {"storage": "all", "estimator": "sphere", "radius": "ppm"}
+PAPER = C.PAPER_MODE
 
 
 def render_seconds(report: dict) -> float:

@@ -134,6 +134,16 @@ SCHEMA: dict[str, dict[str, F]] = {
                            "layer; clip: all photons, sphere clipped at the surface; sphere: the paper"),
         "store_depth_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e6,
                             doc="store photons only this deep (default: all)"),
+        "bands_per_path": F("int", 1, lo=1, hi=512,
+                            doc="wavelength bands a photon path carries (hero wavelength sampling; "
+                                "must divide the number of bands)"),
+        "band_sampling": F("choice", "power", choices=("power", "visual"),
+                           doc="the hero band's pdf: power (the light's spectrum, the paper) or "
+                               "visual (light x CIE colour matching functions, with a floor)"),
+        "emission": F("choice", "qmc", choices=("qmc", "random"),
+                      doc="qmc: each pass's photons take their band and direction (or footprint) "
+                          "from a randomly shifted R3 sequence (stratified, unbiased); random: "
+                          "independent uniforms per photon (the paper)"),
         "storage": F("choice", "importance", choices=("importance", "all"),
                      doc="importance: store a scattering event with a probability that follows "
                          "its weight toward the eye (unbiased, weight 1/probability); all: every "
@@ -366,6 +376,12 @@ def _cross_checks(src: str, cfg: dict) -> None:
             raise ConfigError(src, "spectrum.stop_nm", sp["stop_nm"],
                               f"outside the D65 light's data ({lo:g}-{hi:g} nm; last band "
                               f"{last:g} nm); use light.spectrum = 'flat' or stop_nm <= 780")
+    nb = int(round((sp["stop_nm"] - sp["start_nm"]) / sp["step_nm"])) + 1
+    C = cfg["render"]["bands_per_path"]
+    if nb % C:
+        ok = [d for d in range(1, nb + 1) if nb % d == 0]
+        raise ConfigError(src, "render.bands_per_path", C,
+                          f"must divide the {nb} bands (one of {', '.join(map(str, ok[:12]))})")
     if cfg["render"]["initial_photons"] > cfg["render"]["photons"]:
         raise ConfigError(src, "render.initial_photons", cfg["render"]["initial_photons"],
                           "must not exceed render.photons")
@@ -401,7 +417,8 @@ def override(cfg: dict, section: str, key: str, value: Any, source: str = "comma
 
 #: the paper's design: every scattering event stored, one band per photon path, the plain
 #: sphere estimator, the per-point progressive radius (Kamatani & Kawai; Hachisuka et al. 2008)
-PAPER_MODE = {"storage": "all", "estimator": "sphere", "radius": "ppm"}
+PAPER_MODE = {"storage": "all", "estimator": "sphere", "radius": "ppm", "bands_per_path": 1,
+              "band_sampling": "power", "emission": "random"}
 
 
 def paper_mode(cfg: dict, source: str = "--paper") -> dict:

@@ -182,7 +182,7 @@ def _kernels(dev: Device, nb: int | None = None) -> dict:
     if k is None:
         prg = dev.build("hashgrid.cl", {"NB": int(nb)} if nb is not None else None)
         names = (["gather_grid", "gather_bruteforce"] if nb is not None else
-                 ["grid_count", "grid_scatter", "grid_keys", "grid_permute",
+                 ["grid_count", "grid_scatter", "grid_keys", "grid_permute", "grid_permute_extra",
                   "grid_starts_from_keys"])
         k = _KERNELS[key] = {nm: _cl().Kernel(prg, nm) for nm in names}
     return k
@@ -225,6 +225,7 @@ class Grid:
     spos_w: object
     sdir_b: object
     method: str = "counting"
+    sextra: object = None            # the extra per-photon floats, sorted the same way
 
     @property
     def ncells(self) -> int:
@@ -268,7 +269,8 @@ def _as_device(dev: Device, a, n: int, bufs: GridBuffers, name: str):
 
 def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
           method: str = "counting", max_cells: int = DEFAULT_MAX_CELLS,
-          buffers: GridBuffers | None = None, timings: dict | None = None) -> Grid:
+          buffers: GridBuffers | None = None, timings: dict | None = None,
+          extra=None, extra_stride: int = 0) -> Grid:
     """Sort ``n`` photons (``pos_w`` = (x, y, z µm, weight), ``dir_b`` = (dx, dy,
     dz, band) float4 device arrays) into a grid over ``[lo, hi)`` with cell edge
     ``h`` (grown if the box needs more than ``max_cells`` cells).
@@ -326,6 +328,7 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
         k["grid_permute"](q, _gsize(n), (_WG,), un, perm.data, pos, dirb,
                           spos.data, sdir.data)
         stage("permute")
+        sorted_idx = perm
     elif method == "radix":
         keys = bufs.get("keys", n, np.uint32)
         idx = bufs.get("idx", n, np.int32)
@@ -341,11 +344,17 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
         k["grid_starts_from_keys"](q, _gsize(n + 1), (_WG,), un, np.uint32(ncells),
                                    skeys.data, cell_start.data)
         stage("starts")
-        del skeys, sidx  # back to the pool once the queue is past them
+        sorted_idx = sidx
     else:
         raise ValueError(f"unknown grid build method {method!r} (counting, radix)")
+    sextra = None
+    if extra is not None and extra_stride > 0:
+        sextra = bufs.get("sextra", max(n, 1) * extra_stride, np.float32)
+        if n:
+            k["grid_permute_extra"](q, _gsize(n), (_WG,), un, np.uint32(extra_stride), sorted_idx.data,
+                                    extra, sextra.data)
     return Grid(params=params, n=n, cell_start=cell_start, spos_w=spos, sdir_b=sdir,
-                method=method)
+                method=method, sextra=sextra)
 
 
 # --------------------------------------------------------------------------- gathers (tests, bench)

@@ -35,6 +35,7 @@ _FIELDS = [
     ("count", "u4"), ("rcone_cos", "f4"), ("offset_hi", "u4"),
     ("store_rule", "i4"), ("store_cos", "f4"), ("store_sin", "f4"), ("store_scale", "f4"),
     ("store_qmin", "f4"),
+    ("qmc", "i4"), ("qmc_s0", "u4"), ("qmc_s1", "u4"), ("qmc_s2", "u4"),
 ]
 PARAMS_DTYPE = np.dtype(_FIELDS)
 assert PARAMS_DTYPE.itemsize == 4 * len(_FIELDS)

@@ -136,7 +136,8 @@ class PointState:
 def device_needs(cfg: dict, vol: volume.Volume, eye_bytes: int, npix: int) -> dict:
     target = int(cfg["render"]["photons"])
     capacity = int(target * 1.2) + 4096
-    return {"stored photons": capacity * 32, "sorted photons": capacity * 36,
+    rec = 32 + 4 * (int(cfg["render"]["bands_per_path"]) - 1)      # photon record bytes
+    return {"stored photons": capacity * rec, "sorted photons": capacity * (rec + 4),
             "grid cells": 4 * (hashgrid.DEFAULT_MAX_CELLS + 1) * 2,
             "sample points": eye_bytes,
             "pixel accumulators": 2 * (npix * vol.nb * 8 + npix * 8), **vol.device_bytes()}
@@ -162,9 +163,12 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height))
     target = int(rc["photons"])
     capacity = int(target * 1.2) + 4096
-    pp = transport.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf)
+    hero = int(rc["bands_per_path"])
+    pp = transport.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf, hero=hero,
+                              band_sampling=rc["band_sampling"])
     pp.set_storage(rc["storage"], eye.cone_deg, rc["store_scale"], rc["store_min"])
-    prg = dev.build("gather.cl", {**transport.defines(vol), "ESTIMATOR": ESTIMATORS[rc["estimator"]]})
+    pp.set_emission(rc["emission"])
+    prg = dev.build("gather.cl", {**transport.defines(vol, pp.hero), "ESTIMATOR": ESTIMATORS[rc["estimator"]]})
     kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "init_radius", "count_within")}
     mf = cl.mem_flags
     hgtab = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hg_table(vol))
@@ -190,7 +194,8 @@ def build_grid(sc: Scene, n: int, radii_median: float, rmax: float) -> hashgrid.
     pad = rmax * 1.001 + 1.0
     lo, hi = (x0 - pad, y0 - pad, zdeep - pad), (x1 + pad, y1 + pad, ztop + pad)
     h = hashgrid.choose_cell_size([radii_median], lo, hi)
-    return hashgrid.build(sc.dev, sc.pp.pos_w, sc.pp.dir_b, n, lo, hi, h, buffers=sc.gbufs)
+    return hashgrid.build(sc.dev, sc.pp.pos_w, sc.pp.dir_b, n, lo, hi, h, buffers=sc.gbufs,
+                          extra=sc.pp.extra, extra_stride=sc.pp.hero - 1)
 
 
 def calibrate(sc: Scene) -> Calibration:
@@ -287,13 +292,14 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
     tail = (st.R.data, st.N.data, st.M.data, acc.pix.data, acc.pairs.data, np.int32(sc.npix),
             np.int32(e.camera.spp), np.float32(alpha), np.int32(sc.global_radius), np.float32(scale),
             np.float64(pass_scale))
+    extra = grid.sextra.data if grid.sextra is not None else sc.pp.extra
     if sc.beam:
         sc.kernels["gather_beam"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,
-                                  grid.spos_w.data, grid.sdir_b.data, sc.hgtab, sc.vbuf.optics,
+                                  grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
                                   e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, *tail)
     else:
         sc.kernels["gather"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,
-                             grid.spos_w.data, grid.sdir_b.data, sc.hgtab, sc.vbuf.optics,
+                             grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
                              e.ray_start.data, e.pt_pos.data, e.pt_dir.data, e.pt_piece.data,
                              e.pieces.data, e.pt_slab.data, sc.layer_z, *tail)
     q.finish()

@@ -41,6 +41,22 @@ def source_spectrum(cfg: dict, wl: np.ndarray) -> np.ndarray:
     return s / s.sum()
 
 
+def hero_pdf(cfg: dict, wl: np.ndarray, spectrum: np.ndarray, how: str) -> np.ndarray:
+    """The hero band's selection probability per band (sums to 1).
+
+    "power": the light's spectrum (the paper: a photon's band is drawn from D65).  "visual":
+    the light's power times the sum of the CIE 1931 colour matching functions, plus a floor of
+    10 % of that product's mean so that no band goes unsampled: bands the eye barely sees
+    (380-400 and 700-780 nm) then get fewer paths, each weighted s/pi (spectral.h)."""
+    s = np.asarray(spectrum, float)
+    if how == "power" or len(wl) == 1:
+        return s / s.sum()
+    from .image import cmfs
+    v = s * cmfs(wl).sum(axis=1)
+    v = v + 0.1 * v.mean()
+    return v / v.sum()
+
+
 def fixed_band(cfg: dict, wl: np.ndarray) -> int:
     b = cfg["light"]["band_nm"]
     if b is None:
@@ -91,8 +107,11 @@ def volume_params(p: np.ndarray, vol: Volume) -> None:
     p["z_top"] = vol.z_top
 
 
-def defines(vol: Volume) -> dict:
-    return {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
+def defines(vol: Volume, hero: int = 1) -> dict:
+    d = {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
+    if hero > 1:
+        d["HERO_C"] = int(hero)
+    return d
 
 
 @dataclass
@@ -162,6 +181,13 @@ class Tallies:
 STORAGE = {"all": 0, "importance": 1}
 
 
+def qmc_shift(seed: int, pass_index: int) -> tuple[int, int, int]:
+    """The Cranley-Patterson shift of a pass's emission sequence: three uniform 32-bit words
+    from Philox keyed by the seed, counter = the pass (a function of (seed, pass) alone)."""
+    g = np.random.Generator(np.random.Philox(key=int(seed) & (2**64 - 1), counter=[int(pass_index), 0, 0, 7]))
+    return tuple(int(v) for v in g.integers(0, 2**32, size=3, dtype=np.uint64))
+
+
 def storage_importance(vol: Volume) -> np.ndarray:
     """(NL*NB, 2) float32 for importance-driven storage: the optical depth of a vertical path
     from the surface to the nominal top of each layer, per band, and that top's z (um)."""
@@ -177,24 +203,34 @@ class PhotonPass:
     """Device state for photon passes of one scene."""
 
     def __init__(self, dev: Device, vol: Volume, cfg: dict, capacity: int = 0,
-                 vbuf: VolumeBuffers | None = None, seed: int | None = None):
+                 vbuf: VolumeBuffers | None = None, seed: int | None = None, hero: int = 1,
+                 band_sampling: str = "power"):
+        """``hero``: bands carried per path (spectral.h); ``band_sampling``: the hero's pdf
+        (:func:`hero_pdf`).  The tallies follow the hero band alone, so neither changes them."""
         import pyopencl as cl
         self.dev, self.vol, self.cfg = dev, vol, cfg
-        self.prg = dev.build("photon.cl", defines(vol))
+        self.hero = int(hero) if fixed_band(cfg, vol.wl) < 0 else 1   # one fixed band: nothing to carry
+        self.prg = dev.build("photon.cl", defines(vol, self.hero))
         import pyopencl as _cl
         self.kernel = _cl.Kernel(self.prg, "photon_pass")
         self.vbuf = vbuf or upload_volume(dev, vol)
         wl = vol.wl
         self.spectrum = source_spectrum(cfg, wl)
         self.band = fixed_band(cfg, wl)
-        cdf = np.cumsum(self.spectrum).astype(np.float32)
+        self.pi = hero_pdf(cfg, wl, self.spectrum, band_sampling)
+        cdf = np.cumsum(self.pi).astype(np.float32)
         cdf[-1] = 1.0
         mf = cl.mem_flags
         self.cdf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cdf)
+        spi = np.ascontiguousarray(np.stack([self.spectrum, self.pi], -1), np.float32)
+        if fixed_band(cfg, wl) >= 0:
+            spi[:] = 1.0                    # every photon is of the one band: weight 1
+        self.band_spi = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spi)
         p = P_.new_params()
         volume_params(p, vol)
         self.power_fraction = source_params(p, cfg, vol)
         s = cfg["render"]["seed"] if seed is None else seed
+        self.seed = int(s)
         p["seed_lo"], p["seed_hi"] = P_.split_seed(s)
         p["fixed_band"] = self.band
         sd = cfg["render"]["store_depth_um"]
@@ -209,10 +245,15 @@ class PhotonPass:
         cap = max(self.capacity, 1)
         self.pos_w = cl.Buffer(dev.ctx, mf.READ_WRITE, 16 * cap)
         self.dir_b = cl.Buffer(dev.ctx, mf.READ_WRITE, 16 * cap)
+        self.extra = cl.Buffer(dev.ctx, mf.READ_WRITE, 4 * max(cap * (self.hero - 1), 1))
         self.tallies = Tallies(vol.nb, vol.nl)
         self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY, P_.PARAMS_DTYPE.itemsize)
         self.truncated = False
         self.store_imp = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=storage_importance(vol))
+
+    def set_emission(self, how: str) -> None:
+        """"random" (Philox per photon) or "qmc" (a randomly shifted R3 sequence per pass)."""
+        self.p["qmc"] = 1 if how == "qmc" else 0
 
     def set_storage(self, rule: str, cone_deg: float = 0.0, scale: float = 1.0, qmin: float = 1.0) -> None:
         """Storage rule of later passes: "all" events, or "importance" (see photon.cl): store with
@@ -231,10 +272,12 @@ class PhotonPass:
             raise ValueError("a launch must not cross a multiple of 2^32 photons")
         self.p["pass_"] = pass_index
         self.p["capacity"] = capacity
+        if self.p["qmc"][0]:
+            self.p["qmc_s0"], self.p["qmc_s1"], self.p["qmc_s2"] = qmc_shift(self.seed, pass_index)
         self.p["count"] = n
         cl.enqueue_copy(q, self.pbuf, self.p)
         self.kernel(q, (P_.global_size(n),), (P_.WG,), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
-                    self.pos_w, self.dir_b, self.count_buf, self.tally_buf)
+                    self.band_spi, self.pos_w, self.dir_b, self.extra, self.count_buf, self.tally_buf)
 
     def _flush(self, emitted: int, into: Tallies | None = None) -> np.ndarray:
         import pyopencl as cl

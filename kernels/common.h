@@ -75,6 +75,8 @@ typedef struct {
     float store_cos, store_sin; /* half angle of the cone of eye directions around +z */
     float store_scale;          /* storage probability = clamp(scale * importance, qmin, 1) */
     float store_qmin;
+    int qmc;                    /* 1: emission (band, direction or footprint) from a shifted R3 sequence */
+    uint qmc_s0, qmc_s1, qmc_s2;  /* the pass's random shift (Cranley-Patterson), 2^-32 units */
 } Params;
 
 /* Interface k: (z if flat, zmin, zmax, var index as float; -1 = flat). */
@@ -117,6 +119,17 @@ HOT float rng_u01(Rng* g) {
     g->r.v[0] = g->r.v[1]; g->r.v[1] = g->r.v[2]; g->r.v[2] = g->r.v[3];
     g->used++;
     return ((float)(x >> 8) + 1.0f) * (1.0f / 16777216.0f);
+}
+
+/* Roberts' R3 sequence, point i, dimension k: frac(s_k + i a_k), a_k = g^-(k+1), g the root of
+ * x^4 = x + 1 (the generalised golden ratio), in 32-bit fixed point so any i is exact.  With a
+ * uniform random shift s per pass (Cranley & Patterson 1976) each point is uniform: unbiased,
+ * and the points of a pass fill the unit cube evenly in every projection. */
+#define R3_A0 3518319155u      /* 2^32 / g   */
+#define R3_A1 2882110345u      /* 2^32 / g^2 */
+#define R3_A2 2360945575u      /* 2^32 / g^3 */
+inline float r3_u01(uint i, uint a, uint shift) {
+    return ((float)((i * a + shift) >> 8) + 0.5f) * (1.0f / 16777216.0f);
 }
 
 /* ---------------------------------------------------------------- optics */

@@ -35,6 +35,7 @@
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #include "common.h"
 #include "grid.h"
+#include "spectral.h"
 
 #define FIX 4294967296.0f               /* 2^32 per unit of weight x phase */
 #define INV_FIX (1.0f / 4294967296.0f)
@@ -91,6 +92,7 @@ __kernel void gather(const GridParams gp,
                      __global const uint* cell_start,
                      __global const float4* spos_w,
                      __global const float4* sdir_b,
+                     __global const float* sextra,          /* HERO_C-1 band weights per photon */
                      __global const float4* hgtab,          /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
                      __global const float4* optics,         /* [NL*NB]: mua, mus, g, mut (um^-1) */
                      __global const uint* ray_start,        /* [nrays+1] first point of each ray */
@@ -140,11 +142,15 @@ __kernel void gather(const GridParams gp,
 #if ESTIMATOR == 2
                             if ((bl >> 8) != L) continue;
 #endif
-                            const int b = bl & 255;
-                            const float4 h = hg[b];
-                            const float q = h.x - h.y * dot(d.xyz, pd.xyz);
-                            const float rq = rsqrt(q);
-                            acc[b] += (long)fmin(h.z * rq * rq * rq * p.w * FIX, 9.0e18f);
+                            const float cw = dot(d.xyz, pd.xyz);
+                            for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
+                                const int b = sw_band(bl & 255, c);
+                                const float w = c == 0 ? p.w : sextra[(size_t)j * (HERO_C - 1) + c - 1];
+                                const float4 h = hg[b];
+                                const float q = h.x - h.y * cw;
+                                const float rq = rsqrt(q);
+                                acc[b] += (long)fmin(h.z * rq * rq * rq * w * FIX, 9.0e18f);
+                            }
                             ++M;
                         }
                     }
@@ -279,6 +285,7 @@ __kernel void gather_beam(const GridParams gp,
                           __global const uint* cell_start,
                           __global const float4* spos_w,
                           __global const float4* sdir_b,
+                          __global const float* sextra,     /* HERO_C-1 band weights per photon */
                           __global const float4* hgtab,     /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
                           __global const float4* optics,    /* [NL*NB]: ..., mut (um^-1) in .w */
                           __global const uint* ray_start,
@@ -348,12 +355,17 @@ __kernel void gather_beam(const GridParams gp,
                             if (!(ts >= 0.0f && ts < len && rho2 < R2)) continue;
                             const float4 dd = sdir_b[j];
                             const int bl = (int)dd.w;
-                            const int b = bl & 255;
-                            const float4 h = hgtab[(bl >> 8) * NB + b];
-                            const float q = h.x + h.y * dot(dd.xyz, d);         /* w_eye = -d */
-                            const float rq = rsqrt(q);
-                            const float T = exp(-(od[b] + mut_k[b].w * ts));
-                            acc[b] += (long)fmin(h.z * rq * rq * rq * p.w * T * wax * FIX, 9.0e18f);
+                            const float cw = dot(dd.xyz, d);                   /* w_eye = -d */
+                            __global const float4* hg = hgtab + (bl >> 8) * NB;
+                            for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
+                                const int b = sw_band(bl & 255, c);
+                                const float w = c == 0 ? p.w : sextra[(size_t)j * (HERO_C - 1) + c - 1];
+                                const float4 h = hg[b];
+                                const float q = h.x + h.y * cw;
+                                const float rq = rsqrt(q);
+                                const float T = exp(-(od[b] + mut_k[b].w * ts));
+                                acc[b] += (long)fmin(h.z * rq * rq * rq * w * T * wax * FIX, 9.0e18f);
+                            }
                             ++M;
                         }
                     }

@@ -77,6 +77,18 @@ __kernel void grid_permute(const uint n,
     sdir_b[j] = dir_b[i];
 }
 
+/* the same permutation for a record of `stride` floats (the extra band weights of a photon) */
+__kernel void grid_permute_extra(const uint n, const uint stride,
+                                 __global const int *idx,
+                                 __global const float *src,
+                                 __global float *dst)
+{
+    const uint j = get_global_id(0);
+    if (j >= n) return;
+    const size_t i = (size_t)idx[j];
+    for (uint k = 0; k < stride; ++k) dst[(size_t)j * stride + k] = src[i * stride + k];
+}
+
 /* n+1 work items; item i writes cell_start[c] = i for the cells c in
  * (skeys[i-1], skeys[i]] (with skeys[-1] = -1, skeys[n] = ncells): every entry of
  * cell_start[0..ncells] is written exactly once. */

@@ -10,6 +10,7 @@
  */
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #include "common.h"
+#include "spectral.h"
 
 #define W0F 274877906944.0f           /* 2^38 */
 #define W0L ((long)274877906944L)
@@ -77,15 +78,17 @@ inline int reenter(Track* t, VOLUME_ARGS, Rng* rng) {
  * A stored event of band b at depth z travelling along w counts, for an eye ray, as much as
  * HG(g, w . w_eye) T_b(z): most events travel away from the eye (the phase function of skin,
  * g = 0.73-0.85, peaks 20-50x above its mean) or lie where the eye rays' transmittance has
- * died.  Storing each event with probability q and weight 1/q is unbiased for any q > 0; with
+ * died, or carry little weight (absorbed on the way).  Storing each event with probability q
+ * and weight 1/q is unbiased for any q > 0; with
  * q proportional to that importance the stored events become near-equal contributors, and the
  * budget of stored events per pass buys many more independent paths.  The importance is
  * bounded by taking the most favourable eye direction within the cone around +z (half angle
  * from the eye pass), relative to the phase function's peak, times the transmittance of a
- * vertical eye ray down to z in band b (imp = optical depth at the layer's nominal top, that
- * top's z).  q never falls below store_qmin, which bounds the weight of a stored event. */
-inline float store_probability(__constant const Params* P, float3 d, float g, float mut, float2 imp,
-                               float z) {
+ * vertical eye ray down to z in each carried band (imp = optical depth at the layer's nominal
+ * top, that top's z), times the event's band weights (spectral.h).  q never falls below
+ * store_qmin, which bounds the weight of a stored event. */
+inline float store_probability(__constant const Params* P, float3 d, float g, int L, const float* F, int h,
+                               __global const float2* imp, __global const float4* optics, float z) {
     const float c = d.z;
     const float ce = c >= P->store_cos ? 1.0f
                      : c * P->store_cos + sqrt(fmax(0.0f, 1.0f - c * c)) * P->store_sin;
@@ -93,15 +96,22 @@ inline float store_probability(__constant const Params* P, float3 d, float g, fl
     const float a = 1.0f + g * g - 2.0f * g * ce;
     const float omg = 1.0f - ag;
     const float hrel = omg * omg * omg / (a * sqrt(a));          /* HG(g, ce) / max HG(g, .) */
-    const float od = imp.x + mut * fmax(0.0f, imp.y - z);
-    return clamp(P->store_scale * hrel * exp(-od), P->store_qmin, 1.0f);
+    float wt = 0.0f;                                             /* weight x transmittance */
+    for (int j = 0; j < HERO_C; ++j) {
+        const int bj = sw_band(h, j);
+        const float2 im = imp[L * NB + bj];
+        wt += F[j] * exp(-(im.x + optics[L * NB + bj].w * fmax(0.0f, im.y - z)));
+    }
+    return clamp(P->store_scale * hrel * wt, P->store_qmin, 1.0f);
 }
 
 __kernel void photon_pass(VOLUME_ARGS,
                           __global const float2* store_imp,  /* [NL*NB] see store_probability */
-                          __global const float* band_cdf,
-                          __global float4* store_pos_w,
-                          __global float4* store_dir_b,
+                          __global const float* band_cdf,    /* hero selection pi, as a cdf */
+                          __global const float2* band_spi,   /* [NB] light power s, pi (spectral.h) */
+                          __global float4* store_pos_w,      /* x, y, z, weight of the hero band */
+                          __global float4* store_dir_b,      /* direction, hero band + 256 layer */
+                          __global float* store_extra,       /* HERO_C-1 weights of the other bands */
                           __global volatile uint* store_count,
                           __global long* tallies)
 {
@@ -113,21 +123,34 @@ __kernel void photon_pass(VOLUME_ARGS,
     Rng srng;
     rng_init(&srng, id, P->pass, (2u * P->offset_hi) | 0x80000001u, P->seed_lo, P->seed_hi);
 
-    const int b = P->fixed_band >= 0 ? P->fixed_band : sample_band(band_cdf, rng_u01(&rng));
-    __global long* tal = tallies + (size_t)b * NC;
+    /* the emission's three uniforms: band, then direction (point) or footprint (wide beam) */
+    float ue0, ue1, ue2;
+    if (P->qmc) {
+        ue0 = r3_u01(id, R3_A0, P->qmc_s0);
+        ue1 = r3_u01(id, R3_A1, P->qmc_s1);
+        ue2 = r3_u01(id, R3_A2, P->qmc_s2);
+    } else {
+        ue0 = P->fixed_band >= 0 ? 0.5f : rng_u01(&rng);
+        ue1 = P->src_kind != 0 ? rng_u01(&rng) : 0.5f;
+        ue2 = P->src_kind != 0 ? rng_u01(&rng) : 0.5f;
+    }
+    const int b = P->fixed_band >= 0 ? P->fixed_band : sample_band(band_cdf, ue0);
+    __global long* tal = tallies + (size_t)b * NC;     /* the tallies follow the hero band alone */
+    Spectral sw;
+    sw_init(&sw, b);
 
     Track t;
     /* ---- launch */
     if (P->src_kind == 2) {                       /* isotropic point light, cone-sampled */
-        float ct = 1.0f - rng_u01(&rng) * (1.0f - P->cone_cos);
-        t.dir = scatter_dir((float3)(P->cax, P->cay, P->caz), ct, rng_u01(&rng));
+        float ct = 1.0f - ue1 * (1.0f - P->cone_cos);
+        t.dir = scatter_dir((float3)(P->cax, P->cay, P->caz), ct, ue2);
         t.pos = (float3)(P->sx, P->sy, P->sz);
     } else {
         float3 d = (float3)(P->sdx, P->sdy, P->sdz);
         float fx = P->sx, fy = P->sy;
         if (P->src_kind == 1) {
-            fx += (rng_u01(&rng) - 0.5f) * P->swx;
-            fy += (rng_u01(&rng) - 0.5f) * P->swy;
+            fx += (ue1 - 0.5f) * P->swx;
+            fy += (ue2 - 0.5f) * P->swy;
         }
         /* start above the relief on the line through the footprint point (fx, fy, 0) */
         float back = (P->z_top + 1.0f) / (-d.z);
@@ -177,32 +200,39 @@ __kernel void photon_pass(VOLUME_ARGS,
         if (s < db) {
             /* ---- collision: absorb by weight, store, scatter, roulette */
             t.pos += s * t.dir;
+            sw_flight(&sw, optics, t.L, mut, s);
+            sw_collide(&sw, optics, t.L, op);
             long dw = convert_long_rte((float)W * op.x);
             dw = dw < 0 ? 0 : (dw > W ? W : dw);
             absorbed[t.L] += dw; W -= dw;
             if (W > 0 && op.x < 1.0f) {
                 if (P->capacity > 0u && t.pos.z > P->store_zmin) {
-                    float ws = (float)W * (1.0f / W0F);
+                    float F[HERO_C];
+                    sw_weights(&sw, (float)W * (1.0f / W0F), band_spi, F);
                     int keep = 1;
                     if (P->store_rule == 1) {
-                        const float q = store_probability(P, t.dir, op.y, op.w, store_imp[t.L * NB + b], t.pos.z);
+                        const float q = store_probability(P, t.dir, op.y, t.L, F, sw.h, store_imp, optics, t.pos.z);
                         keep = rng_u01(&srng) <= q;
-                        ws /= q;
+                        const float iq = 1.0f / q;
+                        for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
                     }
                     if (keep) {
                         uint i = atomic_inc(store_count);
                         if (i < P->capacity) {
-                            store_pos_w[i] = (float4)(t.pos, ws);
+                            store_pos_w[i] = (float4)(t.pos, F[0]);
                             store_dir_b[i] = (float4)(t.dir, (float)(b + 256 * t.L));   /* band, layer */
+                            for (int j = 1; j < HERO_C; ++j) store_extra[(size_t)i * (HERO_C - 1) + j - 1] = F[j];
                         }
                     }
                 }
                 float ct = hg_sample_cos_t(op.y, op.z, rng_u01(&rng));
                 t.dir = scatter_dir(t.dir, ct, rng_u01(&rng));
+                sw_scatter(&sw, optics, t.L, op.y, ct);
                 if (W < rr_w) {
                     if (rng_u01(&rng) * P->rr_m <= 1.0f) {
                         long g2 = W * (long)(P->rr_m) - W;
                         gain += g2; W += g2;
+                        sw_roulette(&sw, P->rr_m);
                     } else {
                         loss += W; W = 0;
                     }
@@ -216,6 +246,7 @@ __kernel void photon_pass(VOLUME_ARGS,
         }
         /* ---- boundary */
         t.pos += db * t.dir;
+        sw_flight(&sw, optics, t.L, mut, db);
         if (mut > 0.0f) { tau -= db * mut; tau = tau > 0.0f ? tau : 0.0f; }
         if (ev == EV_NONE) { lost += W; W = 0; break; }   /* semi-infinite, direction flat */
         if (ev == EV_TOP || ev == EV_BOTTOM) {

@@ -1,0 +1,123 @@
+/* spectral.h -- the bands a photon path carries, and their weights (hero-wavelength sampling).
+ *
+ * A path is traced in its hero band h (free flights with mu_t(h), Henyey-Greenstein with g(h),
+ * absorption by weight with mu_a/mu_t of h) and carries HERO_C bands spaced evenly over the
+ * spectrum, b_j = (h + j NB/HERO_C) mod NB, j = 0 (the hero) .. HERO_C-1.  Every member of that
+ * set could have been the hero, with the hero-selection probability pi(b) of the host's band
+ * table; so the path is one sample of one-sample multiple importance sampling over the set's
+ * HERO_C techniques (Wilkie, Nawaz, Droske, Weidlich & Hanika 2014, "Hero wavelength spectral
+ * sampling"; pbrt-v4's SampledWavelengths carries the bands the same way), and the balance
+ * heuristic gives the weight of band b_j at a stored event
+ *
+ *     F_j = s(b_j) A_j rho_j / sum_k pi(b_k) rho_k,
+ *
+ * s the light's relative power per band, A_j the product of band b_j's single-scattering
+ * albedos along the path (its absorption, exact per band), rho_k the ratio of the path's pdf
+ * under band b_k to any common reference: per free-flight segment of length l in a layer
+ * exp(-mu_t(b_k) l), times mu_t(b_k) at a collision, times HG(g(b_k), cos) at a scattering;
+ * Fresnel decisions and roulette are the same for every band and cancel.  With HERO_C = 1 this
+ * is the one-band path of the paper, weight s(h)/pi(h) A_h.  Unbiased per band for any pi > 0
+ * on the set (tests/test_spectral.py).
+ *
+ * Far bands' rho drift apart over a long path (a path typical for red is atypical for blue), so
+ * the balance heuristic then gives the event to the band with the largest s pi-weighted pdf:
+ * bounded weights (F_j <= s A_j / pi(b_j)), never worse than one band per path in variance
+ * beyond a constant; the benefit is largest for the short paths near the surface.  rho is
+ * renormalised by its largest entry at every collision (only ratios enter F).
+ */
+#ifndef CLPPM_SPECTRAL_H
+#define CLPPM_SPECTRAL_H
+
+#ifndef HERO_C
+#define HERO_C 1
+#endif
+#if (NB % HERO_C) != 0
+#error "HERO_C must divide NB"
+#endif
+#define HERO_STEP (NB / HERO_C)
+
+typedef struct {
+    int h;
+#if HERO_C > 1
+    float rho[HERO_C];
+    float A[HERO_C];
+#endif
+} Spectral;
+
+inline int sw_band(int h, int j) {
+#if HERO_C > 1
+    const int b = h + j * HERO_STEP;
+    return b >= NB ? b - NB : b;
+#else
+    return h;
+#endif
+}
+
+inline void sw_init(Spectral* w, int h) {
+    w->h = h;
+#if HERO_C > 1
+    for (int j = 0; j < HERO_C; ++j) { w->rho[j] = 1.0f; w->A[j] = 1.0f; }
+#endif
+}
+
+/* a free-flight segment of length l in layer L (hero mu_t mut_h), ending anywhere */
+inline void sw_flight(Spectral* w, __global const float4* optics, int L, float mut_h, float l) {
+#if HERO_C > 1
+    for (int j = 1; j < HERO_C; ++j) {
+        const float m = optics[L * NB + sw_band(w->h, j)].w;
+        w->rho[j] *= exp(-(m - mut_h) * l);
+    }
+#endif
+}
+
+/* a collision in layer L: mu_t ratio of the collision density, absorption per band */
+inline void sw_collide(Spectral* w, __global const float4* optics, int L, float4 op_h) {
+#if HERO_C > 1
+    w->A[0] *= 1.0f - op_h.x;
+    for (int j = 1; j < HERO_C; ++j) {
+        const float4 o = optics[L * NB + sw_band(w->h, j)];
+        w->rho[j] *= o.w / op_h.w;
+        w->A[j] *= 1.0f - o.x;
+    }
+#endif
+}
+
+/* a scattering in layer L by cos_t (sampled with the hero's g): phase-function ratios */
+inline void sw_scatter(Spectral* w, __global const float4* optics, int L, float g_h, float cos_t) {
+#if HERO_C > 1
+    const float ph = hg_eval(g_h, cos_t);
+    float mx = w->rho[0];
+    for (int j = 1; j < HERO_C; ++j) {
+        const float g = optics[L * NB + sw_band(w->h, j)].y;
+        w->rho[j] *= hg_eval(g, cos_t) / ph;
+        mx = fmax(mx, w->rho[j]);
+    }
+    if (mx > 0.0f && isfinite(mx)) {
+        const float inv = 1.0f / mx;
+        for (int j = 0; j < HERO_C; ++j) w->rho[j] *= inv;
+    }
+#endif
+}
+
+/* Russian roulette survival: every band's weight grows by m */
+inline void sw_roulette(Spectral* w, float m) {
+#if HERO_C > 1
+    for (int j = 0; j < HERO_C; ++j) w->A[j] *= m;
+#endif
+}
+
+/* F_j of a stored event (see above); a_h is the hero's albedo product (its fixed-point weight) */
+inline void sw_weights(const Spectral* w, float a_h, __global const float2* band_spi, float* F) {
+#if HERO_C > 1
+    float den = 0.0f;
+    for (int j = 0; j < HERO_C; ++j) den += band_spi[sw_band(w->h, j)].y * w->rho[j];
+    const float inv = den > 0.0f ? 1.0f / den : 0.0f;
+    for (int j = 0; j < HERO_C; ++j)
+        F[j] = band_spi[sw_band(w->h, j)].x * w->A[j] * w->rho[j] * inv;
+#else
+    const float2 sp = band_spi[w->h];
+    F[0] = sp.x / sp.y * a_h;
+#endif
+}
+
+#endif
