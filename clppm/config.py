@@ -130,6 +130,8 @@ SCHEMA: dict[str, dict[str, F]] = {
                            "clip: all photons, sphere clipped at the surface; sphere: the paper"),
         "store_depth_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e6,
                             doc="store photons only this deep (default: all)"),
+        "pt_samples_per_pass": F("int", 16, lo=1, hi=4096,
+                                 doc="path tracer (--integrator pt): eye paths per pixel per pass"),
     },
 }
 
