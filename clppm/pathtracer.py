@@ -378,7 +378,7 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
                     res = _finish(cfg, tracer, tracer.state_arrays(), p, timing, dev, t_start, False)
                     image.write_png(progressive._sibling(out, ".preview.png"), res.rgb, res.exposure)
                 if stop:
-                    interrupted = intr.flag
+                    interrupted = intr.flag and p < n_passes
                     break
         except cl.Error as e:
             msg = " ".join(str(e).split())

@@ -328,6 +328,47 @@ def test_interrupted_and_resumed_is_byte_identical(dev, tmp_path):
         ckpt.load(ck)                                  # a PPM resume names the integrator
 
 
+def test_sigint_then_resume_is_byte_identical(dev, tmp_path):
+    """SIGINT to `clppm render --integrator pt` (a subprocess): the pass in flight finishes, the
+    image and a checkpoint are written, exit 0; resuming gives the uninterrupted run's bytes."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    text = FLAT_TOML.replace("passes = 1", "passes = 40\ncheckpoint_every = 1\npt_samples_per_pass = 64")
+    (tmp_path / "s.toml").write_text(text)
+    full, part = tmp_path / "full.exr", tmp_path / "part.exr"
+    assert cli.main(["render", str(tmp_path / "s.toml"), "--integrator", "pt", "-q", "-o", str(full)]) == 0
+    proc = subprocess.Popen([sys.executable, "-m", "clppm.cli", "render", str(tmp_path / "s.toml"),
+                             "--integrator", "pt", "-q", "-o", str(part)], cwd=tmp_path,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ck = ckpt.default_path(str(part))
+    try:
+        t_end = time.monotonic() + 60
+        while time.monotonic() < t_end and proc.poll() is None:
+            try:
+                if ckpt.load_pt(ck)["pass_index"] >= 1:
+                    break
+            except (ckpt.CheckpointError, OSError):
+                pass
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)
+        so, se = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, se
+    rep = json.loads(part.with_suffix(".json").read_text())
+    if not rep["interrupted"]:                          # pragma: no cover - a much faster device
+        pytest.skip("the render finished before the signal")
+    assert "--integrator pt --resume" in so and ckpt.load_pt(ck)["pass_index"] == rep["passes_done"] < 40
+    assert cli.main(["render", str(tmp_path / "s.toml"), "--integrator", "pt", "-q", "-o", str(part),
+                     "--resume", ck]) == 0
+    assert part.read_bytes() == full.read_bytes()
+
+
 def test_band_counts_are_exact():
     """Sample k of pixel q takes band (k + h(q)) mod NB: the host's counts equal a direct count."""
     off = pt.band_offsets(50, 7)
