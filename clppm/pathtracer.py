@@ -171,7 +171,7 @@ class PathTracer:
         self.pix_sq = cla.zeros(q, self.npix * nb, np.float64)
         self.pix_stats = cla.zeros(q, self.npix * 4, np.uint64)
         self.pix_bins = cla.zeros(q, self.npix * NBIN, np.float64)
-        self.launch = min(self.npix, 256)
+        self.launch = min(self.npix, max(P_.WG, 16384 // self.nspp))   # ~16k paths, then timed
         self.spectrum = transport.source_spectrum(cfg, vol.wl)
         self.offsets = band_offsets(self.npix, nb)
 
