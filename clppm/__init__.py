@@ -2,13 +2,19 @@
 __version__ = "0.1.0"
 
 
-def render(config, **kwargs):
+def render(config, integrator="ppm", **kwargs):
     """Render a config (a path or a validated dict); returns a RenderResult (image + report).
 
     Keyword arguments as ``clppm render``: method, passes, photons, resolution, seed,
-    spacing, device, out, progress, resume.
+    spacing, device, out, progress, resume.  ``integrator="pt"``: the path tracer
+    (``clppm.pathtracer.render_pt``: passes, seed, resolution, device, out, progress, resume).
     """
     from . import config as _config
     from . import progressive as _render
     cfg = _config.load(config) if isinstance(config, str) else config
+    if integrator == "pt":
+        from .pathtracer import render_pt
+        return render_pt(cfg, **kwargs)
+    if integrator != "ppm":
+        raise _config.ConfigError("clppm.render", "integrator", integrator, "must be 'ppm' or 'pt'")
     return _render.render(cfg, **kwargs)

@@ -16,6 +16,7 @@ import zlib
 import numpy as np
 
 VERSION = 2
+#: the arrays of a PPM checkpoint
 ARRAYS = ("pt_R", "pt_N", "R0", "pix_acc", "chunk_acc", "pix_pairs")
 
 
@@ -29,18 +30,28 @@ def default_path(out: str) -> str:
 
 
 def save(path: str, meta: dict, state: dict, **arrays) -> None:
-    """Write ``state`` (JSON-able) and the named arrays (:data:`ARRAYS`) atomically."""
+    """A PPM checkpoint: ``state`` (JSON-able) and the named arrays (:data:`ARRAYS`)."""
     header = {"version": VERSION, "meta": meta,
               "state": {k: state[k] for k in ("pass_index", "emitted_total", "store_zmin",
                                               "tallies_emitted", "stats", "timing")}}
     tallies = np.array([[str(v) for v in row] for row in state["tallies"]])   # exact big ints
+    _write(path, header, {**{k: np.asarray(arrays[k]) for k in ARRAYS}, "tallies": tallies})
+
+
+def save_pt(path: str, meta: dict, state: dict, arrays: dict) -> None:
+    """A path-tracer checkpoint: the header names the integrator, the arrays are its sums."""
+    header = {"version": VERSION, "integrator": "pt", "meta": meta, "state": state}
+    _write(path, header, {k: np.asarray(v) for k, v in arrays.items()})
+
+
+def _write(path: str, header: dict, arrays: dict) -> None:
+    """Atomically: a temporary file in the same folder, flushed, renamed over the old one."""
     d = os.path.dirname(os.path.abspath(path))
     os.makedirs(d, exist_ok=True)
     tmp = os.path.join(d, f".{os.path.basename(path)}.{os.getpid()}.tmp")
     try:
         with open(tmp, "wb") as f:
-            np.savez(f, header=np.array(json.dumps(header, default=str)), tallies=tallies,
-                     **{k: np.asarray(arrays[k]) for k in ARRAYS})
+            np.savez(f, header=np.array(json.dumps(header, default=str)), **arrays)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -67,7 +78,8 @@ def _fsync_dir(d: str) -> None:
         os.close(fd)
 
 
-def load(path: str, meta: dict | None = None) -> dict:
+def _read(path: str, names: tuple[str, ...]) -> tuple[dict, dict, callable]:
+    """Header and arrays of a checkpoint file, or a one-line CheckpointError."""
     name = os.path.basename(path)
     if not os.path.isfile(path):
         raise CheckpointError(f"checkpoint {name}: file not found ({path})")
@@ -83,13 +95,26 @@ def load(path: str, meta: dict | None = None) -> dict:
             raise ValueError("not a .npz archive")
         with z:
             header = json.loads(str(z["header"]))
-            arrays = {k: z[k] for k in ARRAYS + ("tallies",)}
+            kind = header.get("integrator", "ppm") if isinstance(header, dict) else "ppm"
+            want = "pt" if "pix_sum" in names else "ppm"
+            if kind != want:
+                raise CheckpointError(f"checkpoint {name} was made by the {kind} integrator; "
+                                      f"resume it with --integrator {kind}")
+            arrays = {k: z[k] for k in names}
     except ValueError as e:
+        if isinstance(e, CheckpointError):
+            raise
         if "pickle" in str(e):           # numpy's guess for bytes it does not recognise
             raise corrupt("not a .npz archive") from None
         raise corrupt(_one_line(e)) from None
     except (OSError, KeyError, zipfile.BadZipFile, EOFError, zlib.error, UnicodeDecodeError) as e:
         raise corrupt(_one_line(e) or type(e).__name__) from None
+    return header, arrays, corrupt
+
+
+def load(path: str, meta: dict | None = None) -> dict:
+    name = os.path.basename(path)
+    header, arrays, corrupt = _read(path, ARRAYS + ("tallies",))
     if not isinstance(header, dict):
         raise corrupt("header is not a table")
     if header.get("version") != VERSION:
@@ -150,3 +175,39 @@ def _diff(a, b, path="") -> list[str]:
             out += _diff(a.get(k), b.get(k), f"{path}.{k}" if path else k)
         return out
     return [] if a == b else [f"{path}: checkpoint {a!r}, now {b!r}"]
+
+
+PT_ARRAYS = ("pix_sum", "pix_sq", "pix_stats", "pix_bins")
+
+
+def load_pt(path: str, meta: dict | None = None) -> dict:
+    """A path-tracer checkpoint: pass index, timing and the per-pixel sums (checked as load())."""
+    name = os.path.basename(path)
+    header, arrays, corrupt = _read(path, PT_ARRAYS)
+    if not isinstance(header, dict) or not isinstance(header.get("meta"), dict) \
+            or not isinstance(header.get("state"), dict):
+        raise corrupt("header without meta or state")
+    if header.get("version") != VERSION:
+        raise CheckpointError(f"checkpoint {name} has version {header.get('version')!r}, "
+                              f"expected {VERSION}")
+    if meta is not None and header["meta"] != meta:
+        diffs = _diff(header["meta"], meta)
+        more = f"; and {len(diffs) - 8} more" if len(diffs) > 8 else ""
+        raise CheckpointError(f"checkpoint {name} was made with different parameters: "
+                              + "; ".join(diffs[:8]) + more)
+    st = dict(header["state"])
+    if not isinstance(st.get("pass_index"), int) or st["pass_index"] < 1:
+        raise corrupt(f"pass index {st.get('pass_index')!r}")
+    st.update(arrays)
+    for k in ("pix_sum", "pix_sq", "pix_bins"):
+        if st[k].dtype != np.float64 or not np.all(np.isfinite(st[k])):
+            raise CheckpointError(f"checkpoint {name} holds non-finite or non-numeric values in {k}")
+    if meta is not None:
+        npix, nb, nbin = meta["npix"], meta["nb"], meta["nbin"]
+        want = {"pix_sum": (npix, nb), "pix_sq": (npix, nb), "pix_stats": (npix, 4),
+                "pix_bins": (npix, nbin)}
+        for k, shape in want.items():
+            if tuple(st[k].shape) != shape:
+                raise CheckpointError(f"checkpoint {name} is corrupt: {k} has shape "
+                                      f"{tuple(st[k].shape)}, this render needs {shape}")
+    return st

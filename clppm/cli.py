@@ -92,6 +92,8 @@ def cmd_render(a) -> int:
     cfg = _load(a.config)
     if a.preview_every is not None:
         cfg = config.override(cfg, "render", "preview_every", a.preview_every)
+    if a.integrator == "pt":
+        return _render_pt(a, cfg)
     res = render.render(cfg, method=a.method, passes=a.passes, photons=a.photons,
                         resolution=a.resolution, seed=a.seed, spacing=a.spacing, device=a.device,
                         out=a.output, progress=not a.quiet, resume=a.resume,
@@ -100,6 +102,23 @@ def cmd_render(a) -> int:
     print(f"wrote {a.output} (+ .png, .json): method {r['scheme']}, {r['passes_done']} passes"
           f"{' (interrupted: resume with --resume ' + render.ckpt.default_path(a.output) + ')' if r['interrupted'] else ''}, "
           f"{r['photons_emitted']} photons emitted, {r['sample_points']} sample points, "
+          f"{r['seconds']['total']:.1f} s on {r['device']['name']}")
+    return 0
+
+
+def _render_pt(a, cfg) -> int:
+    from .checkpoint import default_path
+    from .pathtracer import render_pt
+    for flag, v in (("--method", a.method), ("--spacing", a.spacing), ("--photons", a.photons)):
+        if v is not None:
+            raise ConfigError("command line", flag, v, "applies to --integrator ppm only")
+    res = render_pt(cfg, passes=a.passes, resolution=a.resolution, seed=a.seed, device=a.device,
+                    out=a.output, progress=not a.quiet, resume=a.resume,
+                    source=os.path.basename(a.config))
+    r = res.report
+    print(f"wrote {a.output} (+ .png, .json): path tracer, {r['passes_done']} passes"
+          f"{' (interrupted: resume with --integrator pt --resume ' + default_path(a.output) + ')' if r['interrupted'] else ''}, "
+          f"{r['paths_traced']} paths, {r['mean_vertices_per_path']:.1f} vertices per path, "
           f"{r['seconds']['total']:.1f} s on {r['device']['name']}")
     return 0
 
@@ -149,8 +168,11 @@ def main(argv=None) -> int:
     _add_device(p)
     p.set_defaults(func=cmd_trace)
 
-    p = sub.add_parser("render", help="progressive photon mapping render")
+    p = sub.add_parser("render", help="progressive photon mapping render (or --integrator pt)")
     p.add_argument("config")
+    p.add_argument("--integrator", choices=("ppm", "pt"), default="ppm",
+                   help="ppm: progressive photon mapping (default); pt: the unbiased path tracer "
+                        "(flat scenes, point light; render.pt_samples_per_pass paths per pixel per pass)")
     p.add_argument("--method", choices=list("abcdef"))
     p.add_argument("--spacing", type=float, help="equal spacing in um (any value)")
     p.add_argument("--passes", type=int)

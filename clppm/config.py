@@ -153,6 +153,8 @@ SCHEMA: dict[str, dict[str, F]] = {
                              "store_min, 1)"),
         "store_min": F("float", 0.02, lo=0, lo_open=True, hi=1.0,
                        doc="importance storage: the smallest storage probability (bounds weights)"),
+        "pt_samples_per_pass": F("int", 16, lo=1, hi=4096,
+                                 doc="path tracer (--integrator pt): eye paths per pixel per pass"),
     },
 }
 

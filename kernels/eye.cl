@@ -163,23 +163,6 @@ inline int place(Emit* e, float3 p, float3 to_eye, int L, float tw, __constant c
     return 1;
 }
 
-/* GGX microfacet specular (Walter et al. 2007) times cos(light): the host multiplies by the
- * light's radiant intensity / d^2 (point) or irradiance (collimated). */
-inline float specular_geo(float3 n, float3 v, float3 l, float alpha, float n1, float n2) {
-    float nl = dot(n, l), nv = dot(n, v);
-    if (nl <= 0.0f || nv <= 0.0f) return 0.0f;
-    float3 h = normalize(l + v);
-    float nh = dot(n, h);
-    float a2 = alpha * alpha;
-    float den = nh * nh * (a2 - 1.0f) + 1.0f;
-    float D = a2 / (PI_F * den * den);
-    float g1l = 2.0f * nl / (nl + sqrt(a2 + (1.0f - a2) * nl * nl));
-    float g1v = 2.0f * nv / (nv + sqrt(a2 + (1.0f - a2) * nv * nv));
-    float ct;
-    float F = fresnel_R(n1, n2, dot(h, l), &ct);
-    return D * g1l * g1v * F / (4.0f * nl * nv) * nl;
-}
-
 __kernel void eye_pass(VOLUME_ARGS,
                        __constant const EyeParams* E,
                        __constant const float* rate,            /* per layer, um^-1 */

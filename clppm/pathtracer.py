@@ -1,0 +1,434 @@
+"""Unbiased path tracer (kernels/pt.cl): ground truth for the flat skin scene.
+
+Eye paths from the same pinhole camera as the eye pass, next-event estimation to the point
+light at every scattering vertex through the flat refracting interfaces (exact: Snell's law
+solved for the connection, the point source's divergence through the planes, Fresnel at every
+crossing; derivation in kernels/pt.cl).  Images have PPM's units, exposure and outputs, so the
+two integrators are directly comparable.
+
+The pixel value is the average radiance over the pixel's footprint (every sample is jittered
+uniformly in the pixel), where PPM with ``camera.spp = 1`` takes the pixel centre: on smooth
+images the two agree, at edges the path tracer is the box-filtered one.
+
+Spectral sampling: one band per path, stratified per pixel (sample k of pixel q takes band
+(k + h(q)) mod NB), so after K samples every band has floor or ceil of K/NB of them, known
+exactly on the host (``band_counts``); each band's radiance is the mean over its samples.
+A pass is N = ``render.pt_samples_per_pass`` paths per pixel, a pure function of (seed, pass):
+sums are float64, added per pixel in a fixed order, so a resumed render is byte-identical.
+
+Scope: flat scenes (``relief.kind = "flat"``, ``papillae.amplitude_um = 0``) and a point
+light; anything else is refused before any work (``check_scene``).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import checkpoint as ckpt
+from . import image, progressive, transport, volume
+from . import params as P_
+from .camera import from_config
+from .config import ConfigError
+from .device import Device, DeviceError, check_alloc, open_device
+
+NBIN = 8
+BIN_LABELS = ["1", "2", "3", "4", "5-8", "9-16", "17-64", "65+"]
+STATS = ["vertices", "nee_made", "nee_blocked", "paths_cut"]
+SCHEME = "path tracer: NEE through the flat interfaces, one band per path"
+FLAT_REF = "configs/forearm_flat.toml"
+
+PT_DTYPE = np.dtype([
+    ("cpx", "f4"), ("cpy", "f4"), ("cpz", "f4"),
+    ("fx", "f4"), ("fy", "f4"), ("fz", "f4"),
+    ("rx", "f4"), ("ry", "f4"), ("rz", "f4"),
+    ("ux", "f4"), ("uy", "f4"), ("uz", "f4"),
+    ("tan_half", "f4"), ("aspect", "f4"),
+    ("width", "i4"), ("height", "i4"),
+    ("nspp", "i4"), ("pass_", "u4"), ("band0", "u4"), ("pix_offset", "u4"), ("count", "u4"),
+    ("seed_lo", "u4"), ("seed_hi", "u4"),
+    ("lx", "f4"), ("ly", "f4"), ("lz", "f4"),
+    ("alpha", "f4"), ("specular", "i4"),
+    ("rr_threshold", "f4"), ("rr_m", "f4"), ("max_vertices", "i4"),
+    ("nee_od", "f4"), ("nee_q_floor", "f4"),
+])
+assert PT_DTYPE.itemsize == 4 * len(PT_DTYPE.names)
+
+RR_THRESHOLD = 1e-3      # roulette below this fraction of the weight after entering the skin
+RR_M = 10.0
+MAX_VERTICES = 1_000_000
+# NEE roulette: above this optical depth straight up (exp(-6) = 0.25 %) the connection is made
+# with probability exp(6 - od) (>= 1e-6) and weighted by its inverse: unbiased, and deep
+# vertices, whose light is attenuated by at least exp(-od), skip the connection solve.
+NEE_OD = 6.0
+NEE_Q_FLOOR = 1e-6
+LAUNCH_SECONDS = 1.0     # target duration of one kernel launch (PoCL: keep the host responsive)
+
+
+def check_scene(cfg: dict, source: str = "<config>") -> None:
+    """Refuse what the path tracer does not handle, before any work (one line, key and value)."""
+    rel, pap, L = cfg["relief"], cfg["papillae"], cfg["light"]
+    why = ("the path tracer handles flat scenes only: manifold next-event estimation through "
+           f"the relief is not implemented; {FLAT_REF} is the reference scene")
+    if rel["kind"] != "flat":
+        raise ConfigError(source, "relief.kind", rel["kind"], why)
+    if pap["amplitude_um"] > 0:
+        raise ConfigError(source, "papillae.amplitude_um", pap["amplitude_um"], why)
+    if L["kind"] != "point":
+        raise ConfigError(source, "light.kind", L["kind"],
+                          "the path tracer's next-event estimation needs a point light "
+                          f"(a collimated beam cannot be connected to); {FLAT_REF} is the reference scene")
+    if L["position_mm"][2] <= 0:
+        raise ConfigError(source, "light.position_mm", L["position_mm"],
+                          "the path tracer needs the point light above the skin surface (z > 0)")
+
+
+def chain_tables(vol: volume.Volume) -> np.ndarray:
+    """r0[i] (normal-incidence Fresnel R of interface i; 0 for equal indices and below a
+    semi-infinite layer) and tail[i] = sum_{j >= i} r0[j]: the chain sampling probabilities."""
+    n = np.concatenate([[vol.n_above], vol.n, [vol.n_below]])
+    r0 = ((n[:-1] - n[1:]) / (n[:-1] + n[1:])) ** 2
+    if not np.isfinite(vol.thickness[-1]):
+        r0[-1] = 0.0
+    tail = np.concatenate([np.cumsum(r0[::-1])[::-1], [0.0]])
+    return np.ascontiguousarray(np.concatenate([r0, tail]), np.float32)
+
+
+def lowbias32(x: np.ndarray) -> np.ndarray:
+    """The kernel's pixel hash (C. Wellons' lowbias32), in uint32 arithmetic."""
+    x = np.asarray(x, np.uint32).copy()
+    x ^= x >> np.uint32(16)
+    x *= np.uint32(0x7FEB352D)
+    x ^= x >> np.uint32(15)
+    x *= np.uint32(0x846CA68B)
+    x ^= x >> np.uint32(16)
+    return x
+
+
+def band_offsets(npix: int, nb: int) -> np.ndarray:
+    return (lowbias32(np.arange(npix, dtype=np.uint32)) % np.uint32(nb)).astype(np.int64)
+
+
+def band_counts(offsets: np.ndarray, nb: int, samples: int) -> np.ndarray:
+    """(npix, nb) number of the first ``samples`` samples of each pixel that took each band:
+    sample k takes band (k + h) mod nb, so band b gets the k = r, r + nb, ... with
+    r = (b - h) mod nb."""
+    r = (np.arange(nb)[None, :] - offsets[:, None]) % nb
+    return np.maximum(0, (samples - r + nb - 1) // nb)
+
+
+def fp64(dev: Device) -> bool:
+    return bool(dev.info()["fp64"])
+
+
+def build(dev: Device, vol: volume.Volume):
+    return dev.build("pt.cl", {**transport.defines(vol), "PT_FP64": fp64(dev)})
+
+
+def _camera_fields(e: np.ndarray, cam) -> None:
+    e["cpx"], e["cpy"], e["cpz"] = cam.position
+    e["fx"], e["fy"], e["fz"] = cam.forward
+    e["rx"], e["ry"], e["rz"] = cam.right
+    e["ux"], e["uy"], e["uz"] = cam.up
+    e["tan_half"], e["aspect"] = cam.tan_half, cam.aspect
+    e["width"], e["height"] = cam.width, cam.height
+
+
+class PathTracer:
+    """Device state of one path-traced render: the volume, the parameters, the pixel sums."""
+
+    def __init__(self, dev: Device, vol: volume.Volume, cfg: dict):
+        import pyopencl as cl
+        import pyopencl.array as cla
+        self.dev, self.vol, self.cfg = dev, vol, cfg
+        self.cam = cam = from_config(cfg["camera"])
+        self.npix = cam.width * cam.height
+        self.nspp = int(cfg["render"]["pt_samples_per_pass"])
+        q, mf = dev.queue, cl.mem_flags
+        self.kernel = cl.Kernel(build(dev, vol), "pt_pass")
+        self.vbuf = transport.upload_volume(dev, vol)
+        p = P_.new_params()
+        transport.volume_params(p, vol)
+        self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
+        self.chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
+        e = np.zeros(1, PT_DTYPE)
+        _camera_fields(e, cam)
+        rc, L = cfg["render"], cfg["light"]
+        e["nspp"] = self.nspp
+        e["seed_lo"], e["seed_hi"] = P_.split_seed(rc["seed"])
+        e["lx"], e["ly"], e["lz"] = np.asarray(L["position_mm"], float) * 1000.0
+        e["alpha"] = rc["roughness"]
+        e["specular"] = 1 if rc["specular"] else 0
+        e["rr_threshold"], e["rr_m"], e["max_vertices"] = RR_THRESHOLD, RR_M, MAX_VERTICES
+        e["nee_od"], e["nee_q_floor"] = NEE_OD, NEE_Q_FLOOR
+        self.e = e
+        self.ebuf = cl.Buffer(dev.ctx, mf.READ_ONLY, PT_DTYPE.itemsize)
+        nb = vol.nb
+        self.pix_sum = cla.zeros(q, self.npix * nb, np.float64)
+        self.pix_sq = cla.zeros(q, self.npix * nb, np.float64)
+        self.pix_stats = cla.zeros(q, self.npix * 4, np.uint64)
+        self.pix_bins = cla.zeros(q, self.npix * NBIN, np.float64)
+        self.launch = min(self.npix, max(P_.WG, 16384 // self.nspp))   # ~16k paths, then timed
+        self.spectrum = transport.source_spectrum(cfg, vol.wl)
+        self.offsets = band_offsets(self.npix, nb)
+
+    def run_pass(self, p: int) -> int:
+        """Trace pass ``p`` (N paths per pixel) in launches of about LAUNCH_SECONDS; returns the
+        number of launches.  The launch partition does not change any result."""
+        import pyopencl as cl
+        q = self.dev.queue
+        self.e["pass_"] = p & 0xFFFFFFFF
+        self.e["band0"] = (p * self.nspp) % self.vol.nb
+        done, launches = 0, 0
+        while done < self.npix:
+            n = min(self.launch, self.npix - done)
+            self.e["pix_offset"], self.e["count"] = done, n
+            cl.enqueue_copy(q, self.ebuf, self.e)
+            t0 = time.perf_counter()
+            self.kernel(q, (P_.global_size(n),), (P_.WG,), self.pbuf, *self.vbuf.args(), self.ebuf,
+                        self.chain, self.pix_sum.data, self.pix_sq.data, self.pix_stats.data,
+                        self.pix_bins.data)
+            q.finish()
+            dt = time.perf_counter() - t0
+            done += n
+            launches += 1
+            if n == self.launch:
+                grow = LAUNCH_SECONDS / max(dt, 1e-3)
+                self.launch = int(min(max(self.launch * min(grow, 4.0), P_.WG), self.npix))
+        return launches
+
+    def state_arrays(self) -> dict:
+        nb = self.vol.nb
+        return {"pix_sum": self.pix_sum.get().reshape(self.npix, nb),
+                "pix_sq": self.pix_sq.get().reshape(self.npix, nb),
+                "pix_stats": self.pix_stats.get().reshape(self.npix, 4),
+                "pix_bins": self.pix_bins.get().reshape(self.npix, NBIN)}
+
+    def set_state(self, st: dict) -> None:
+        self.pix_sum.set(np.ascontiguousarray(st["pix_sum"].reshape(-1), np.float64))
+        self.pix_sq.set(np.ascontiguousarray(st["pix_sq"].reshape(-1), np.float64))
+        self.pix_stats.set(np.ascontiguousarray(st["pix_stats"].reshape(-1), np.uint64))
+        self.pix_bins.set(np.ascontiguousarray(st["pix_bins"].reshape(-1), np.float64))
+
+
+def run_identity(cfg: dict, dev: Device, tracer: PathTracer) -> dict:
+    """What a path-tracer checkpoint must match to be resumed."""
+    keep = json.loads(json.dumps(cfg, default=str))
+    keep["render"] = {k: v for k, v in keep["render"].items()
+                      if k not in ("passes", "preview_every", "checkpoint_every")}
+    return {"integrator": "pt", "config": keep, "device": dev.name, "npix": tracer.npix,
+            "nb": tracer.vol.nb, "nbin": NBIN}
+
+
+def band_scale(cfg: dict, wl: np.ndarray, spectrum: np.ndarray) -> np.ndarray:
+    """Per band: kernel value (um^-2 per unit intensity) -> W m^-2 sr^-1 nm^-1.
+    I_b = P s_b / 4 pi (W/sr), 1e12 um^2/m^2, per nm of the band (the PPM units)."""
+    dl = float(wl[1] - wl[0]) if len(wl) > 1 else 1.0
+    return cfg["light"]["power_w"] * spectrum / (4 * math.pi) * 1e12 / dl
+
+
+def radiance(sums: np.ndarray, counts: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """(npix, nb) radiance: each band's mean over its samples (0 where a band has none yet)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
+    return mean * scale[None, :]
+
+
+def noise(sums, sq, counts, scale, wl) -> dict:
+    """Per-pixel standard error of the luminance Y from the per-band sample variances
+    (bands are independent estimates: Var Y = sum_b (ybar_b dl s_b)^2 Var(mean_b)); pixels
+    where a band has fewer than 2 samples get none."""
+    dl = float(wl[1] - wl[0]) if len(wl) > 1 else 1.0
+    ybar = image.cmfs(wl)[:, 1] * dl * scale
+    c = np.maximum(counts, 1).astype(float)
+    mean = sums / c
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = np.maximum(sq / c - mean * mean, 0.0) / (c - 1)
+    ok = (counts >= 2).all(1)
+    Y = (mean * ybar[None, :]).sum(1)
+    varY = (var * (ybar ** 2)[None, :]).sum(1)
+    good = ok & (Y > 0)
+    rel = np.sqrt(varY[good]) / Y[good]
+    out = {"pixels_with_estimate": int(good.sum()),
+           "median_rel_se_Y": float(np.median(rel)) if rel.size else None,
+           "mean_rel_se_Y": float(rel.mean()) if rel.size else None,
+           "p90_rel_se_Y": float(np.percentile(rel, 90)) if rel.size else None,
+           "image_mean_Y_rel_se": float(math.sqrt(varY[ok].sum()) / Y[ok].sum())
+           if ok.any() and Y[ok].sum() > 0 else None}
+    return out
+
+
+def _finish(cfg, tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_start,
+            interrupted) -> progressive.RenderResult:
+    vol, cam = tracer.vol, tracer.cam
+    H, W, nb, wl = cam.height, cam.width, vol.nb, vol.wl
+    rc = cfg["render"]
+    samples = passes_done * tracer.nspp
+    counts = band_counts(tracer.offsets, nb, samples)
+    scale = band_scale(cfg, wl, tracer.spectrum)
+    L = radiance(arrays["pix_sum"], counts, scale)
+    nonfinite = int(np.size(L) - np.count_nonzero(np.isfinite(L)))
+    L = np.nan_to_num(L, nan=0.0, posinf=0.0, neginf=0.0).reshape(H, W, nb)
+    if nb > 1:
+        xyz = image.spectral_to_xyz(L, wl)
+    else:
+        xyz = L * image.cmfs(wl)[None, None, 0, :]
+    rgb = image.xyz_to_linear_srgb(xyz)
+    white = progressive.white_reference(cfg, cam, wl, tracer.spectrum)
+    dl = float(wl[1] - wl[0]) if nb > 1 else 1.0
+    Yw = float(image.spectral_to_xyz(white[None, :], wl)[0, 1]) if nb > 1 \
+        else float((white * image.cmfs(wl)[:, 1] * dl).sum())
+    exposure = rc["exposure"] if rc["exposure"] is not None else (1.0 / Yw if Yw > 0 else 1.0)
+    st = [int(v) for v in arrays["pix_stats"].sum(0)]
+    stats = dict(zip(STATS, st))
+    paths = tracer.npix * samples
+    bins = arrays["pix_bins"].sum(0)
+    btot = float(bins.sum())
+    total = time.perf_counter() - t_start
+    trace_s = timing.get("trace", 0.0)
+    report = {
+        "clppm": __import__("clppm").__version__,
+        "config": json.loads(json.dumps(cfg, default=str)),
+        "integrator": "pt", "method": "pt", "scheme": SCHEME,
+        "device": dev.info(),
+        "passes_done": passes_done, "passes_requested": rc["passes"], "interrupted": interrupted,
+        "samples_per_pass": tracer.nspp, "samples_per_pixel": samples,
+        "samples_per_pixel_per_band": [int(counts.min()), int(counts.max())] if counts.size else [0, 0],
+        "paths_traced": paths, "photons_emitted": 0,
+        "scattering_vertices": stats["vertices"],
+        "mean_vertices_per_path": stats["vertices"] / paths if paths else 0.0,
+        "nee_connections_made": stats["nee_made"], "nee_connections_blocked": stats["nee_blocked"],
+        "paths_cut_at_vertex_bound": stats["paths_cut"],
+        "paths_per_second": paths / trace_s if trace_s > 0 else None,
+        "nee_connections_per_second": (stats["nee_made"] + stats["nee_blocked"]) / trace_s
+        if trace_s > 0 else None,
+        "nee_value_by_vertex_index": {k: (float(v) / btot if btot > 0 else 0.0)
+                                      for k, v in zip(BIN_LABELS, bins)},
+        "noise": noise(arrays["pix_sum"], arrays["pix_sq"], counts, scale, wl),
+        "seconds": dict(timing, total=total),
+        "exposure": exposure, "white_reference_Y": Yw,
+        "volume": vol.info,
+        "accumulation": "per pixel and band: float64 sums of path values in a fixed order",
+        "nonfinite_values_zeroed": nonfinite,
+        "units": "spectral radiance W m^-2 sr^-1 nm^-1 (EXR spectral channels); RGB linear sRGB; "
+                 "pixel = average over the pixel footprint",
+    }
+    return progressive.RenderResult(spectral=L, xyz=xyz, rgb=rgb, wl=wl, report=report,
+                                    exposure=exposure)
+
+
+def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str | None = None,
+              dev: Device | None = None, out: str | None = None, progress: bool = False,
+              resume: str | None = None, checkpoint_path: str | None = None,
+              source: str = "<config>", stop_after: int | None = None) -> progressive.RenderResult:
+    """Path-trace ``cfg`` (flat scene, point light); the image and report as ``render``."""
+    import pyopencl as cl
+    t_start = time.perf_counter()
+    cfg = progressive.apply_overrides(cfg, passes=passes, resolution=resolution, seed=seed)
+    check_scene(cfg, source)
+    rc = cfg["render"]
+    w, h = cfg["camera"]["resolution"]
+    if w * h * rc["pt_samples_per_pass"] > 2**32:
+        raise ConfigError(source, "render.pt_samples_per_pass", rc["pt_samples_per_pass"],
+                          f"{w}x{h} pixels x {rc['pt_samples_per_pass']} exceeds the 2^32 path ids "
+                          "of a pass")
+    dev = dev or open_device(device)
+    timing = {"volume": 0.0, "trace": 0.0, "output": 0.0}
+    t0 = time.perf_counter()
+    vol = volume.build(cfg, source)
+    assert vol.flat, "check_scene admits flat scenes only"
+    timing["volume"] = time.perf_counter() - t0
+    npix, nb = w * h, vol.nb
+    check_alloc(dev, {"pixel sums": npix * nb * 8, "pixel sums of squares": npix * nb * 8,
+                      "pixel statistics": npix * 32, "value by vertex index": npix * NBIN * 8,
+                      **vol.device_bytes()})
+    if resume:
+        ckpt.load_pt(resume)                    # fail fast on a missing or corrupt file
+    tracer = PathTracer(dev, vol, cfg)
+    meta = run_identity(cfg, dev, tracer)
+    start = 0
+    if resume:
+        st = ckpt.load_pt(resume, meta)
+        tracer.set_state(st)
+        start = st["pass_index"]
+        timing.update({k: v for k, v in st.get("timing", {}).items() if k == "trace"})
+    n_passes = int(rc["passes"])
+    cp_every = int(rc["checkpoint_every"])
+    ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
+    bar = progressive._progress(n_passes, start, progress)
+    p, interrupted, last_ckpt = start, False, (start if resume else None)
+    with progressive._Interrupt() as intr:
+        try:
+            while p < n_passes:
+                t0 = time.perf_counter()
+                tracer.run_pass(p)
+                timing["trace"] += time.perf_counter() - t0
+                p += 1
+                if bar is not None:
+                    bar.update(1)
+                stop = intr.flag or (stop_after is not None and p >= stop_after)
+                if ckpath and ((cp_every and p % cp_every == 0) or stop or p == n_passes):
+                    ckpt.save_pt(ckpath, meta, {"pass_index": p, "timing": timing},
+                                 tracer.state_arrays())
+                    last_ckpt = p
+                if rc["preview_every"] and out and p % rc["preview_every"] == 0 and p < n_passes:
+                    res = _finish(cfg, tracer, tracer.state_arrays(), p, timing, dev, t_start, False)
+                    image.write_png(progressive._sibling(out, ".preview.png"), res.rgb, res.exposure)
+                if stop:
+                    interrupted = intr.flag and p < n_passes
+                    break
+        except cl.Error as e:
+            msg = " ".join(str(e).split())
+            keep = (f"checkpoint {ckpath} (pass {last_ckpt}) is kept: resume with --integrator pt "
+                    f"--resume {ckpath}" if last_ckpt else "no checkpoint was written yet")
+            raise DeviceError(f"device '{dev.name}' failed in pass {p + 1} of {n_passes} ({msg}); "
+                              f"{keep}") from None
+    if bar is not None:
+        bar.close()
+    t0 = time.perf_counter()
+    res = _finish(cfg, tracer, tracer.state_arrays(), p, timing, dev, t_start, interrupted)
+    if out:
+        progressive.write_outputs(out, res)
+    res.report["seconds"]["output"] = time.perf_counter() - t0
+    if out:
+        progressive._write_report(out, res.report)
+    return res
+
+
+# ----------------------------------------------------------------------------- test entry point
+def connect_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mode: int = 0) -> dict:
+    """Run the kernel's connection for vertices ``verts`` (n, 4: x, y, z um, layer) to the light
+    at ``light_um``: mode 0 the direct chain, j > 0 reflected once at interface j, -1 sampled.
+    Returns p, dOmega/dA_h, the connection factor (band 0), cos theta_L, the selection
+    probability, ok, and the chain's points (vertex first, light last)."""
+    import pyopencl as cl
+    import pyopencl.cltypes as cltypes
+    prg = build(dev, vol)
+    real = np.float64 if fp64(dev) else np.float32
+    vb = transport.upload_volume(dev, vol)
+    p = P_.new_params()
+    transport.volume_params(p, vol)
+    mf = cl.mem_flags
+    pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
+    chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
+    v = np.ascontiguousarray(verts, np.float32)
+    n = len(v)
+    maxp = 4 * vol.nl + 10
+    out = np.zeros((n, 8), real)
+    pts = np.zeros((n, maxp, 4), real)
+    vbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=v)
+    obuf = cl.Buffer(dev.ctx, mf.READ_WRITE, out.nbytes)
+    qbuf = cl.Buffer(dev.ctx, mf.READ_WRITE, pts.nbytes)
+    light = np.array([*light_um, 0.0], np.float32).view(cltypes.float4)[0]
+    cl.Kernel(prg, "t_connect")(dev.queue, (P_.global_size(n),), (P_.WG,), pbuf, *vb.args(), chain,
+                                light, np.int32(mode), np.uint32(n), vbuf, obuf, qbuf)
+    cl.enqueue_copy(dev.queue, out, obuf)
+    cl.enqueue_copy(dev.queue, pts, qbuf)
+    dev.queue.finish()
+    npts = out[:, 6].astype(int)
+    return {"p": out[:, 0], "domega_dA": out[:, 1], "factor": out[:, 2], "cos_L": out[:, 3],
+            "wsel": out[:, 4], "ok": out[:, 5] > 0,
+            "points": [pts[i, :npts[i]] for i in range(n)]}

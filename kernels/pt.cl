@@ -1,0 +1,457 @@
+/* Path tracer: unbiased ground truth for flat layered skin under a point light.
+ *
+ * One work item owns one pixel and traces the pass's N eye paths of it in order, adding each
+ * path's value into the pixel's float64 accumulator of the path's band (no races, fixed order:
+ * the bytes do not depend on the launch partition).  Path s of pixel q in pass p draws from
+ * Philox keyed by (seed, p, q N + s), domain 5.  Band of the k-th sample of a pixel (k = p N + s):
+ * (k + h(q)) mod NB, h a hash of the pixel (stratified bands; the host knows every count).
+ *
+ * Eye path (the adjoint of the photon pass).  Pinhole ray as eye.cl builds it, jittered over
+ * the pixel; at the surface: the GGX highlight (as eye.cl) plus refraction with the Fresnel
+ * transmittance weight tw and the radiance factor (n_outside/n_0)^2 (the reflected branch sees
+ * black sky: the point light cannot be hit).  Inside: exact free flight with a residual optical
+ * depth (photon.cl), absorption by weight (albedo), HG scattering, Fresnel at every index change
+ * sampled (reflect with R, refract with 1 - R and radiance factor (n_from/n_to)^2), out through
+ * the top, a finite bottom or an open side ends the path, unbiased roulette.
+ *
+ * Next-event estimation at every scattering vertex: the light reaches the vertex along specular
+ * chains through the flat interfaces, the direct one (refracted straight down to the vertex)
+ * and ones with Fresnel reflections at interfaces (a reflection below the vertex brings the
+ * light up to it).  One chain is sampled per vertex (backwards from the vertex: reflect at an
+ * interface with probability ~ its normal-incidence R0), weighted by (product of R or T at the
+ * solved angles) / (selection probability): the sum over all chains is estimated without bias.
+ * All segments share p = n sin(theta) (Snell; reflection keeps it).  With H_k the total vertical
+ * distance the chain runs in medium k (air: the light's height above the surface), the lateral
+ * offset is rho(p) = p S(p), S(p) = sum_k H_k / sqrt(n_k^2 - p^2), increasing and convex in p;
+ * rho(p) = rho_target (vertex to light, horizontally) is solved by Newton from the air-only
+ * root (an upper bound: the tissue terms only add offset), which converges monotonically on a
+ * convex function, safeguarded by a bisection bracket; in float64 where the device has it.
+ *
+ * Divergence of the point source through the planes.  Emission angles (theta0, phi) in air,
+ * dOmega = sin theta0 dtheta0 dphi.  The chain lands on the vertex's horizontal plane at
+ * distance rho(p) from below the light, azimuth phi: dA_h = rho drho dphi = rho rho'(p) dp dphi,
+ * and p = n_air sin theta0 gives dp = n_air cos theta0 dtheta0.  So
+ *     dOmega/dA_h = sin theta0 / (n_air rho rho'(p) cos theta0) = p / (n_air^2 rho cos theta0 rho'(p))
+ *                 = 1 / (n_air^2 cos theta0 S(p) rho'(p)),   rho'(p) = sum_k H_k n_k^2 / (n_k^2 - p^2)^(3/2)
+ * (the last form is finite at p = 0).  n = 1 everywhere: rho = H tan theta, rho' = H / cos^3,
+ * dOmega/dA_h = cos^3 theta / H^2 = cos theta / r^2.  The irradiance on the plane normal to the
+ * light's direction at the vertex is E_perp = I T_F T_att (dOmega/dA_h) / cos theta_L,
+ * T_F the Fresnel factors, T_att = exp(-sum_k mu_t,k H_k / cos theta_k), theta_L the angle in
+ * the vertex's layer.  The contribution is beta * HG(cos(light travel dir, to-eye dir)) * E_perp;
+ * the kernel works per unit intensity (um^-2) and the host multiplies by I_b = P s_b / 4 pi,
+ * 1e12 um^2/m^2 and 1/dlambda: the PPM units.  A chain whose surface crossing falls outside the
+ * model's footprint (lateral open or periodic) gives 0: no skin there (photons miss it too);
+ * the in-tissue part then stays inside too, as its horizontal projection is the straight segment
+ * from the crossing to the vertex.  Periodic sides: the light's images one period away are
+ * connected as well (a photon entering the footprint reaches the vertex through the wrap).
+ */
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable      /* the accumulators are double (as gather.cl) */
+#include "common.h"
+
+#ifdef PT_FP64
+typedef double real;
+#define REL_TOL 1e-15
+#else
+typedef float real;
+#define REL_TOL 1e-7f
+#endif
+
+/* Mirrors clppm/pathtracer.py PT_DTYPE: 4-byte fields only, in this order. */
+typedef struct {
+    float cpx, cpy, cpz;
+    float fx, fy, fz;
+    float rx, ry, rz;
+    float ux, uy, uz;
+    float tan_half, aspect;
+    int width, height;
+    int nspp;                   /* samples per pixel in this pass */
+    uint pass_;
+    uint band0;                 /* (pass * nspp) mod NB */
+    uint pix_offset, count;     /* pixels of this launch */
+    uint seed_lo, seed_hi;
+    float lx, ly, lz;           /* point light (um) */
+    float alpha;                /* GGX roughness */
+    int specular;
+    float rr_threshold;         /* roulette below this fraction of the weight after entry */
+    float rr_m;                 /* survive with probability 1/rr_m */
+    int max_vertices;           /* safety bound per path (counted as cut) */
+    float nee_od;               /* NEE roulette: optical depth straight up beyond which ... */
+    float nee_q_floor;          /* ... the connection is made with probability exp(nee_od - od) */
+} PtParams;
+
+#define MAXE (4 * NL + 8)       /* chain events; a longer chain (R^4 smaller) counts as blocked */
+#define NBIN 8                  /* contribution by vertex index: 1, 2, 3, 4, 5-8, 9-16, 17-64, 65+ */
+
+/* The chain tables (host, clppm/pathtracer.py chain_tables): r0[i] normal-incidence Fresnel R
+ * of interface i (0 where the indices are equal or below a semi-infinite layer) and
+ * tail[i] = sum_{j >= i} r0[j]; 2 NL + 3 floats. */
+#define R0(i) (chain[(i)])
+#define TAIL(i) (chain[NL + 1 + (i)])
+
+inline uint lowbias32(uint x) {
+    x ^= x >> 16; x *= 0x7feb352du; x ^= x >> 15; x *= 0x846ca68bu; x ^= x >> 16;
+    return x;
+}
+
+inline int vertex_bin(int v) {
+    return v <= 4 ? v - 1 : (v <= 8 ? 4 : (v <= 16 ? 5 : (v <= 64 ? 6 : 7)));
+}
+
+/* n of the medium on the other side of interface i seen from layer k */
+inline float n_across(__constant const Params* P, __constant const float* layer_n, int i, int k) {
+    const int o = (i == k) ? k - 1 : k + 1;
+    return o < 0 ? P->n_above : (o >= NL ? P->n_below : layer_n[o]);
+}
+
+/* ---------------------------------------------------------------- specular chains */
+typedef struct {
+    real H[NL];                 /* vertical distance run in each layer (um) */
+    real Hair;                  /* the light's height above the surface */
+    int ne;
+    int ev[MAXE];               /* interface | from layer << 8 | reflected << 16, vertex first */
+    float wsel;                 /* probability of having sampled this chain */
+    int up;                     /* 1: the light arrives at the vertex travelling down */
+} Chain;
+
+inline real thick(__constant const float4* iface, int k) { return (real)IF_Z(k) - (real)IF_Z(k + 1); }
+
+/* Build a chain backwards from the vertex (layer k, height zv).  sampled = 1: reflections are
+ * drawn (probabilities as above); sampled = 0: the direct chain (force_j < 0) or the one
+ * reflected once at interface force_j below the vertex.  Returns 0 if the chain cannot carry
+ * light (out through the bottom, too long). */
+inline int chain_build(Chain* ch, int k, float zv, float lz, int sampled, int force_j, Rng* rng,
+                       __constant const float4* iface, __constant const float* chain) {
+    for (int i = 0; i < NL; ++i) ch->H[i] = 0;
+    ch->ne = 0; ch->wsel = 1.0f;
+    ch->Hair = (real)lz - (real)IF_Z(0);
+    int up = 1;
+    if (sampled) {
+        const float qd = fmin(TAIL(k + 1), 0.5f);
+        if (qd > 0.0f) {
+            up = rng_u01(rng) > qd;
+            ch->wsel *= up ? 1.0f - qd : qd;
+        }
+    } else {
+        up = force_j < 0;
+    }
+    ch->up = up;
+    ch->H[k] = up ? (real)IF_Z(k) - (real)zv : (real)zv - (real)IF_Z(k + 1);
+    for (int guard = 0; guard < MAXE; ++guard) {
+        if (ch->ne == MAXE) return 0;
+        if (up) {
+            const int i = k;
+            int refl = 0;
+            if (sampled && R0(i) > 0.0f && TAIL(i + 1) > 0.0f) {
+                const float r = fmin(R0(i), 0.5f);
+                refl = rng_u01(rng) <= r;
+                ch->wsel *= refl ? r : 1.0f - r;
+            }
+            ch->ev[ch->ne++] = i | (k << 8) | (refl << 16);
+            if (refl) { up = 0; ch->H[k] += thick(iface, k); continue; }
+            if (k == 0) return 1;                           /* into the air: complete */
+            k -= 1;
+            ch->H[k] += thick(iface, k);
+        } else {
+            const int i = k + 1;
+            int refl;
+            if (sampled) {
+                if (TAIL(i) <= 0.0f) return 0;              /* nothing below reflects */
+                const float r = fmin(R0(i) / TAIL(i), 1.0f);
+                refl = r >= 1.0f || rng_u01(rng) <= r;
+                ch->wsel *= refl ? r : 1.0f - r;
+            } else {
+                refl = i == force_j;
+            }
+            if (IF_Z(i) < -1e29f) return 0;                 /* a semi-infinite layer has no bottom */
+            ch->ev[ch->ne++] = i | (k << 8) | (refl << 16);
+            if (refl) { up = 1; ch->H[k] += thick(iface, k); continue; }
+            if (i >= NL) return 0;                          /* out through the bottom */
+            k += 1;
+            ch->H[k] += thick(iface, k);
+        }
+    }
+    return 0;
+}
+
+/* Solve rho(p) = rt for the chain; returns p and S(p), rho'(p). */
+inline real solve_p(const Chain* ch, real rt, real na, __constant const float* layer_n,
+                    real* S_out, real* dR_out) {
+    real pmax = na;
+    for (int k = 0; k < NL; ++k)
+        if (ch->H[k] > 0) pmax = fmin(pmax, (real)layer_n[k]);
+    const real p0 = rt > 0 ? na * rt / sqrt(rt * rt + ch->Hair * ch->Hair) : 0;
+    real lo = 0, hi = fmin(p0, pmax);
+    real p = p0 < pmax ? p0 : 0.5 * hi;
+    real S = 0, dR = 0;
+    for (int it = 0; it < 100; ++it) {
+        const real a2 = na * na - p * p;
+        const real ra = 1 / sqrt(a2);
+        S = ch->Hair * ra;
+        dR = ch->Hair * na * na * ra * ra * ra;
+        for (int k = 0; k < NL; ++k) {
+            const real h = ch->H[k];
+            if (h > 0) {
+                const real n = layer_n[k];
+                const real r = 1 / sqrt(n * n - p * p);
+                S += h * r;
+                dR += h * n * n * r * r * r;
+            }
+        }
+        if (rt <= 0) break;
+        const real f = p * S - rt;
+        if (f == 0) break;
+        if (f > 0) hi = p; else lo = p;
+        real pn = p - f / dR;
+        if (!(pn > lo && pn < hi)) pn = 0.5 * (lo + hi);
+        if (fabs(pn - p) <= REL_TOL * p || hi - lo <= REL_TOL * hi) { p = pn; rt = -rt; continue; }
+        p = pn;
+    }
+    /* (rt < 0 marks "converged: evaluate S, rho' once more at the final p and stop") */
+    *S_out = S; *dR_out = dR;
+    return p;
+}
+
+/* The light's irradiance factor at the vertex along chain ch (per unit intensity and excluding
+ * the phase function): T_F T_att (dOmega/dA_h) / cos theta_L / (selection probability).
+ * lpos is the light (or its periodic image), shift the image offset (the footprint test uses
+ * the footprint shifted back).  *dirL: the light's travel direction at the vertex. */
+inline float connect(const Chain* ch, float3 v, int Lv, float3 lpos, float2 shift, int b,
+                     __constant const Params* P, __constant const float* layer_n,
+                     __global const float4* optics, float3* dirL, real* p_out, real* G_out) {
+    const real dx = (real)lpos.x - (real)v.x, dy = (real)lpos.y - (real)v.y;
+    const real rt = sqrt(dx * dx + dy * dy);
+    const real na = P->n_above;
+    real S, dR;
+    const real p = solve_p(ch, rt, na, layer_n, &S, &dR);
+    *p_out = p;
+    const real ca = sqrt(fmax((real)0, 1 - (p / na) * (p / na)));
+    const real ux = rt > 0 ? dx / rt : 1, uy = rt > 0 ? dy / rt : 0;
+    if (P->lateral != 0) {
+        /* surface crossing: Hair tan(theta0) from below the light toward the vertex */
+        const real back = ca > 0 ? ch->Hair * (p / na) / ca : 0;
+        const float sx = (float)((real)lpos.x - back * ux) + shift.x;
+        const float sy = (float)((real)lpos.y - back * uy) + shift.y;
+        if (sx < P->x0 || sx > P->x0 + P->xw || sy < P->y0 || sy > P->y0 + P->yw) { *G_out = 0; return 0.0f; }
+    }
+    const real nL = layer_n[Lv];
+    const real sL = p / nL;
+    const real cL = sqrt(fmax((real)0, 1 - sL * sL));
+    const real G = 1 / (na * na * ca * S * dR * cL);
+    *G_out = G;
+    /* attenuation along the chain and the Fresnel factors of its events */
+    real od = 0;
+    for (int k = 0; k < NL; ++k) {
+        const real h = ch->H[k];
+        if (h > 0) {
+            const real n = layer_n[k];
+            od += (real)optics[k * NB + b].w * h / sqrt(fmax((real)1e-300, 1 - (p / n) * (p / n)));
+        }
+    }
+    float F = 1.0f;
+    for (int e = 0; e < ch->ne; ++e) {
+        const int i = ch->ev[e] & 255, k = (ch->ev[e] >> 8) & 255, refl = ch->ev[e] >> 16;
+        const float n1 = layer_n[k], n2 = n_across(P, layer_n, i, k);
+        const float sk = (float)(p / (real)n1);
+        float ct;
+        const float R = fresnel_R(n1, n2, sqrt(fmax(0.0f, 1.0f - sk * sk)), &ct);
+        F *= refl ? R : 1.0f - R;
+    }
+    *dirL = (float3)((float)(-sL * ux), (float)(-sL * uy), (float)(ch->up ? -cL : cL));
+    if (!(G > 0) || !isfinite((float)G)) return 0.0f;
+    return (float)G * F * exp(-(float)od) / ch->wsel;
+}
+
+/* ---------------------------------------------------------------- the pass */
+__kernel void pt_pass(VOLUME_ARGS,
+                      __constant const PtParams* E,
+                      __constant const float* chain,
+                      __global double* pix_sum,         /* [npix * NB] sum of path values */
+                      __global double* pix_sq,          /* [npix * NB] sum of their squares */
+                      __global ulong* pix_stats,        /* [npix * 4] vertices, NEE made, blocked, cut */
+                      __global double* pix_bins)        /* [npix * NBIN] value by vertex index */
+{
+    const uint gid = (uint)get_global_id(0);
+    if (gid >= E->count) return;
+    const uint pix = E->pix_offset + gid;
+    const int px = (int)(pix % (uint)E->width), py = (int)(pix / (uint)E->width);
+    const uint hb = lowbias32(pix) % (uint)NB;
+    const float3 fwd = (float3)(E->fx, E->fy, E->fz), right = (float3)(E->rx, E->ry, E->rz);
+    const float3 upv = (float3)(E->ux, E->uy, E->uz);
+    const float3 lpos = (float3)(E->lx, E->ly, E->lz);
+    ulong nvert = 0, nmade = 0, nblock = 0, ncut = 0;
+    double bins[NBIN];
+    for (int i = 0; i < NBIN; ++i) bins[i] = 0.0;
+    const int nimg = P->lateral == 2 ? 1 : 0;           /* periodic: images -1..1 in x and y */
+
+    for (int s = 0; s < E->nspp; ++s) {
+        const int b = (int)((E->band0 + (uint)s + hb) % (uint)NB);
+        Rng rng;
+        rng_init(&rng, pix * (uint)E->nspp + (uint)s, E->pass_, 5u, E->seed_lo, E->seed_hi);
+        const float jx = rng_u01(&rng), jy = rng_u01(&rng);
+        const float sx = (2.0f * ((float)px + jx) / (float)E->width - 1.0f) * E->tan_half * E->aspect;
+        const float sy = (1.0f - 2.0f * ((float)py + jy) / (float)E->height) * E->tan_half;
+        Track t;
+        t.pos = (float3)(E->cpx, E->cpy, E->cpz);
+        t.dir = normalize(fwd + sx * right + sy * upv);
+        t.L = -1; t.ix = 0; t.iy = 0;
+        float value = 0.0f;
+        float3 gn;
+        if (hit_surface(&t, P, iface, heights, &gn)) {
+            /* ---- surface: highlight, then refraction with tw and (n_outside / n_0)^2 */
+            const float3 sn = (float3)(0.0f, 0.0f, 1.0f);
+            if (E->specular) {
+                const float3 lp = lpos - t.pos;
+                const float d2 = dot(lp, lp);
+                value += specular_geo(sn, -t.dir, lp * rsqrt(d2), E->alpha, P->n_above, layer_n[0]) / d2;
+            }
+            const float ci = -t.dir.z;
+            float ct;
+            const float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
+            float beta = (1.0f - R) * (P->n_above / layer_n[0]) * (P->n_above / layer_n[0]);
+            t.dir = refract3(t.dir, sn, P->n_above / layer_n[0], ci, ct);
+            t.L = 0;
+            const float rr_w = E->rr_threshold * beta;
+            float tau = neg_log_u01(rng_u01(&rng));
+            int nv = 0;
+            while (beta > 0.0f) {
+                const float4 op = optics[t.L * NB + b];  /* mua/mut, g, 1/(2g), mut */
+                const float mut = op.w;
+                int ev;
+                const float db = next_boundary(&t, P, iface, heights, &ev);
+                const float sfl = mut > 0.0f ? tau / mut : BIG;
+                if (sfl < db) {
+                    /* ---- scattering vertex */
+                    t.pos += sfl * t.dir;
+                    if (++nv > E->max_vertices) { ncut++; break; }
+                    beta *= 1.0f - op.x;
+                    if (!(beta > 0.0f)) break;
+                    /* next-event estimation, with roulette where the light is hopelessly far */
+                    float odv = 0.0f;
+                    odv += optics[t.L * NB + b].w * (IF_Z(t.L) - t.pos.z);
+                    for (int k = 0; k < t.L; ++k) odv += optics[k * NB + b].w * (IF_Z(k) - IF_Z(k + 1));
+                    float q = 1.0f;
+                    if (odv > E->nee_od) q = fmax(exp(E->nee_od - odv), E->nee_q_floor);
+                    if (q >= 1.0f || rng_u01(&rng) <= q) {
+                        Chain ch;
+                        float c = 0.0f;
+                        if (chain_build(&ch, t.L, t.pos.z, lpos.z, 1, -1, &rng, iface, chain)) {
+                            for (int ix = -nimg; ix <= nimg; ++ix)
+                                for (int iy = -nimg; iy <= nimg; ++iy) {
+                                    const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
+                                    float3 dl;
+                                    real pp, G;
+                                    const float f = connect(&ch, t.pos, t.L, lpos - (float3)(sh, 0.0f), sh, b,
+                                                            P, layer_n, optics, &dl, &pp, &G);
+                                    if (f > 0.0f) c += f * hg_eval(op.y, -dot(dl, t.dir));
+                                }
+                        }
+                        if (c > 0.0f) {
+                            c *= beta / q;
+                            value += c;
+                            bins[vertex_bin(nv)] += (double)c;
+                            nmade++;
+                        } else {
+                            nblock++;
+                        }
+                    }
+                    /* scatter and roulette */
+                    const float cth = hg_sample_cos_t(op.y, op.z, rng_u01(&rng));
+                    t.dir = scatter_dir(t.dir, cth, rng_u01(&rng));
+                    if (beta < rr_w) {
+                        if (rng_u01(&rng) * E->rr_m <= 1.0f) beta *= E->rr_m;
+                        else break;
+                    }
+                    tau = neg_log_u01(rng_u01(&rng));
+                    continue;
+                }
+                /* ---- boundary */
+                t.pos += db * t.dir;
+                if (mut > 0.0f) tau = fmax(tau - db * mut, 0.0f);
+                if (ev == EV_NONE) break;
+                if (ev == EV_TOP || ev == EV_BOTTOM) {
+                    const int up = ev == EV_TOP;
+                    const int L2 = up ? t.L - 1 : t.L + 1;
+                    t.pos.z = IF_Z(up ? t.L : t.L + 1);
+                    const float n1 = layer_n[t.L];
+                    const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+                    if (n1 != n2) {
+                        const float c1 = fabs(t.dir.z);
+                        float c2;
+                        const float Rf = fresnel_R(n1, n2, c1, &c2);
+                        if (rng_u01(&rng) <= Rf) { t.dir.z = -t.dir.z; continue; }
+                        if (L2 < 0 || L2 >= NL) break;
+                        t.dir = refract3(t.dir, (float3)(0.0f, 0.0f, up ? -1.0f : 1.0f), n1 / n2, c1, c2);
+                        beta *= (n1 / n2) * (n1 / n2);
+                    } else if (L2 < 0 || L2 >= NL) {
+                        break;
+                    }
+                    t.L = L2;
+                    continue;
+                }
+                /* a domain side: open ends the path, periodic wraps it */
+                if (cross_wall(&t, P, (ev == EV_DOMAIN_X || ev == EV_WALL_X) ? 0 : 1, 1)) break;
+            }
+            nvert += (ulong)nv;
+        }
+        pix_sum[(size_t)pix * NB + b] += (double)value;
+        pix_sq[(size_t)pix * NB + b] += (double)value * (double)value;
+    }
+    __global ulong* st = pix_stats + (size_t)pix * 4;
+    st[0] += nvert; st[1] += nmade; st[2] += nblock; st[3] += ncut;
+    for (int i = 0; i < NBIN; ++i) pix_bins[(size_t)pix * NBIN + i] += bins[i];
+}
+
+/* ---------------------------------------------------------------- test entry point */
+/* For each vertex (xyz, layer in w): the chain (mode -1: sampled with Philox (seed, 0, i),
+ * mode 0: direct, mode j > 0: reflected once at interface j), the solved p, dOmega/dA_h,
+ * the factor connect() returns, cos theta_L and the chain's points from the vertex to the
+ * light (the last should be the light): out[i * 8 + ...] = p, dOmega/dA_h, factor, cos theta_L,
+ * selection probability, ok, number of points; pts[(i * (MAXE + 2) + j) * 4 + ...] = x, y, z, layer. */
+__kernel void t_connect(VOLUME_ARGS, __constant const float* chain, const float4 light,
+                        const int mode, const uint n, __global const float4* verts,
+                        __global real* out, __global real* pts) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    const float4 vw = verts[i];
+    const float3 v = vw.xyz;
+    const int Lv = (int)vw.w;
+    Rng rng;
+    rng_init(&rng, i, 0u, 6u, 12345u, 0u);
+    Chain ch;
+    const int ok = chain_build(&ch, Lv, v.z, light.z, mode < 0, mode > 0 ? mode : -1, &rng, iface, chain);
+    __global real* o = out + (size_t)i * 8;
+    for (int j = 0; j < 8; ++j) o[j] = 0;
+    o[5] = ok;
+    if (!ok) return;
+    float3 dl;
+    real p, G;
+    const float f = connect(&ch, v, Lv, light.xyz, (float2)(0.0f), 0, P, layer_n, optics, &dl, &p, &G);
+    const real nL = layer_n[Lv];
+    o[0] = p; o[1] = G * sqrt(fmax((real)0, 1 - (p / nL) * (p / nL))); o[2] = f;
+    o[3] = sqrt(fmax((real)0, 1 - (p / nL) * (p / nL))); o[4] = ch.wsel;
+    /* the points: walk the events from the vertex */
+    const real dx = (real)light.x - v.x, dy = (real)light.y - v.y;
+    const real rt = sqrt(dx * dx + dy * dy);
+    const real ux = rt > 0 ? dx / rt : 1, uy = rt > 0 ? dy / rt : 0;
+    real qx = v.x, qy = v.y, qz = v.z;
+    int up = ch.up, np = 0;
+    __global real* pp = pts + (size_t)i * (MAXE + 2) * 4;
+#define PUT(k) { pp[4 * np] = qx; pp[4 * np + 1] = qy; pp[4 * np + 2] = qz; pp[4 * np + 3] = (k); np++; }
+    PUT(Lv);
+    for (int e = 0; e < ch.ne; ++e) {
+        const int fi = ch.ev[e] & 255, k = (ch.ev[e] >> 8) & 255, refl = ch.ev[e] >> 16;
+        const real n = layer_n[k];
+        const real tn = (p / n) / sqrt(1 - (p / n) * (p / n));
+        const real zi = IF_Z(fi);
+        const real adv = fabs(zi - qz) * tn;
+        qx += adv * ux; qy += adv * uy; qz = zi;
+        PUT(k);
+        if (refl) up = !up;
+    }
+    const real na = P->n_above;
+    const real adv = ((real)light.z - qz) * (p / na) / sqrt(1 - (p / na) * (p / na));
+    qx += adv * ux; qy += adv * uy; qz = light.z;
+    PUT(-1);
+#undef PUT
+    o[6] = np;
+}
