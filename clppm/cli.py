@@ -86,16 +86,45 @@ def cmd_trace(a) -> int:
     return 0
 
 
+def _scheduler(a) -> tuple[str | None, str]:
+    """--scheduler, else CLPPM_SCHEDULER unless a local device was chosen; and its name."""
+    if a.scheduler:
+        if a.devices or a.device:
+            raise ConfigError("command line", "--scheduler", a.scheduler,
+                              "give --scheduler, --devices or --device, not two of them")
+        return a.scheduler, "--scheduler"
+    env = os.environ.get("CLPPM_SCHEDULER") or None
+    if a.devices and a.device:
+        raise ConfigError("command line", "--devices", a.devices, "give --devices or --device, not both")
+    return (None if a.devices or a.device else env), "CLPPM_SCHEDULER"
+
+
 def cmd_render(a) -> int:
     from . import config
     from . import progressive as render
     cfg = _load(a.config)
     if a.preview_every is not None:
         cfg = config.override(cfg, "render", "preview_every", a.preview_every)
-    res = render.render(cfg, method=a.method, passes=a.passes, photons=a.photons,
-                        resolution=a.resolution, seed=a.seed, spacing=a.spacing, device=a.device,
-                        out=a.output, progress=not a.quiet, resume=a.resume,
-                        source=os.path.basename(a.config))
+    if a.radius is not None:
+        cfg = config.override(cfg, "render", "radius", a.radius)
+    scheduler, flag = _scheduler(a)
+    kw = dict(method=a.method, passes=a.passes, photons=a.photons, resolution=a.resolution, seed=a.seed,
+              spacing=a.spacing, out=a.output, progress=not a.quiet, resume=a.resume,
+              source=os.path.basename(a.config))
+    if scheduler or a.devices:
+        try:
+            from . import executor
+        except ImportError as e:
+            raise ConfigError("command line", flag if scheduler else "--devices", scheduler or a.devices,
+                              f"needs dask.distributed ({e}): pip install 'clppm[dask]'") from None
+        try:
+            res = executor.render_distributed(cfg, scheduler=scheduler, devices=a.devices,
+                                              scheduler_flag=flag, **kw)
+        except executor.ExecutorError as e:
+            print(f"clppm: error: {e}", file=sys.stderr)
+            return 2
+    else:
+        res = render.render(cfg, device=a.device, **kw)
     r = res.report
     print(f"wrote {a.output} (+ .png, .json): method {r['scheme']}, {r['passes_done']} passes"
           f"{' (interrupted: resume with --resume ' + render.ckpt.default_path(a.output) + ')' if r['interrupted'] else ''}, "
@@ -159,8 +188,14 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int)
     p.add_argument("--resume", help="continue from a checkpoint (.ckpt.npz)")
     p.add_argument("--preview-every", type=int, help="write a preview PNG every K passes")
+    p.add_argument("--radius", choices=("ppm", "global"),
+                   help="render.radius: per-point (ppm) or global (Knaus & Zwicker; needed to distribute)")
     p.add_argument("-o", "--output", default="out/render.exr")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--devices", help="'all' or P:D,P:D: a local Dask cluster, one worker per listed "
+                   "device (a device listed twice gets two workers)")
+    p.add_argument("--scheduler", help="address of a running Dask scheduler (default: "
+                   "$CLPPM_SCHEDULER unless --device/--devices is given)")
     _add_device(p)
     p.set_defaults(func=cmd_render)
 
