@@ -49,8 +49,14 @@ def _load(path):
     return config.load(path)
 
 
+def _write_json(path: str, obj) -> None:
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(obj, f, indent=1)
+
+
 def cmd_trace(a) -> int:
-    from . import config, device, transport, volume
+    from . import config, device, paths, transport, volume
     if (a.config is None) == (a.slab is None):
         raise ConfigError("clppm trace", "CONFIG/--slab", None, "give a config file or --slab, not both")
     if a.slab is not None:
@@ -65,6 +71,7 @@ def cmd_trace(a) -> int:
         raise ConfigError("command line", "--photons", a.photons, "must be > 0")
     if a.batches < 2:
         raise ConfigError("command line", "--batches", a.batches, "must be >= 2 (standard errors)")
+    paths.check_writable(a.json, "--json")
     vol = volume.build(cfg, src)
     dev = device.open_device(a.device)
     pp = transport.PhotonPass(dev, vol, cfg)
@@ -81,8 +88,7 @@ def cmd_trace(a) -> int:
         for wl, r in rep["per_band"].items():
             print(f"  {wl:>5s}  {r['Rd']:.4f}  {r['Tt']:.4f}  {r['A']:.4f}")
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump(rep, f, indent=1)
+        _write_json(a.json, rep)
     return 0
 
 
@@ -134,11 +140,12 @@ def cmd_render(a) -> int:
 
 
 def cmd_samples(a) -> int:
-    from . import device, eyepass, transport, volume
+    from . import device, eyepass, paths, transport, volume
     from . import progressive as render
     from .skin import PAPER_TABLE1
     cfg = render.apply_overrides(_load(a.config), method=a.method, spacing=a.spacing,
                                  resolution=a.resolution)
+    paths.check_writable(a.json, "--json")
     vol = volume.build(cfg, os.path.basename(a.config))
     dev = device.open_device(a.device)
     vb = transport.upload_volume(dev, vol)
@@ -155,8 +162,7 @@ def cmd_samples(a) -> int:
         extra = f"   paper {pv:6.2f}  ({100 * (v / pv - 1):+.0f} %)" if pv else ""
         print(f"  {n:24s} {v:7.2f}{extra}")
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump(out, f, indent=1)
+        _write_json(a.json, out)
     return 0
 
 
