@@ -96,12 +96,23 @@ class ClppmWorker(WorkerPlugin):
         return self.loaded
 
 
+def dask_setup(worker) -> None:
+    """Preload hook of :func:`local_cluster`'s workers (``preload=["clppm.executor"]``): they share
+    the client's terminal, and Ctrl-C is the client's to handle (stop, checkpoint, image), not a
+    reason for its workers to die under it."""
+    import signal
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:                    # not the main thread: nothing to do
+        pass
+
+
 def _plugin() -> ClppmWorker:
     from distributed import get_worker
     w = get_worker()
     plug = w.plugins.get(PLUGIN)
-    if plug is None:                      # registered before this worker joined: not possible,
-        plug = ClppmWorker()              # but a plain worker is no reason to fail
+    if plug is None:                      # joined while the plugin was being registered
+        plug = ClppmWorker()
         plug.setup(w)
         w.plugins[PLUGIN] = plug
     return plug
@@ -244,10 +255,11 @@ def local_cluster(devices: list[str] | None = None, envs: list[dict] | None = No
     import logging
     from distributed import Nanny, Scheduler, SpecCluster
     envs = envs if envs is not None else worker_env(devices or [])
-    workers = {f"clppm-{i}": {"cls": Nanny, "options": {"nthreads": 1, "env": e, "memory_limit": 0,
-                                                             "silence_logs": logging.ERROR}}
-               for i, e in enumerate(envs)}
-    sched = {"cls": Scheduler, "options": {"host": "127.0.0.1", "port": 0, "dashboard": False}}
+    # task errors come back to the client as exceptions: the workers' own logs would repeat them
+    opts = {"nthreads": 1, "memory_limit": 0, "silence_logs": logging.CRITICAL, "preload": [__name__]}
+    workers = {f"clppm-{i}": {"cls": Nanny, "options": {**opts, "env": e}} for i, e in enumerate(envs)}
+    sched = {"cls": Scheduler, "options": {"host": "127.0.0.1", "port": 0, "dashboard": False,
+                                           "dashboard_address": ":0"}}
     return SpecCluster(workers=workers, scheduler=sched, silence_logs=logging.ERROR, name="clppm")
 
 
@@ -408,69 +420,25 @@ def render_distributed(cfg: dict, *, scheduler: str | None = None, devices=None,
     (a checkpoint is written).  ``on_chunk(ChunkDone)``: called as each chunk arrives."""
     t_start = time.perf_counter()
     cfg = progressive.apply_overrides(cfg, method, passes, photons, resolution, seed, spacing, spp)
-    how = scheduler_flag if scheduler else "--devices" if devices else "render_distributed"
-    check_distributable(cfg, how)
-    rc = cfg["render"]
+    check_distributable(cfg, scheduler_flag if scheduler else "--devices" if devices else "executor")
     ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
     paths.check_outputs(out=out, checkpoint=ckpath)
     if resume:
         ckpt.load(resume)                               # fail fast on a missing or corrupt file
     if isinstance(devices, str):
         devices = parse_devices(devices)
+    where = scheduler or ("local cluster" if devices else "client" if client else "in-process")
     with connect(scheduler, devices, client, scheduler_flag) as c:
-        where = f"scheduler {scheduler}" if scheduler else "the cluster"
-        workers = check_workers(c, where)
-        return _run(c, cfg, workers, t_start=t_start, out=out, progress=progress, resume=resume,
-                    ckpath=ckpath, source=source, stop_after=stop_after, on_chunk=on_chunk,
-                    where=scheduler or ("local cluster" if devices else "in-process"))
-
-
-def _run(c, cfg, workers, *, t_start, out, progress, resume, ckpath, source, stop_after, on_chunk,
-         where) -> progressive.RenderResult:
-    rc = cfg["render"]
-    n_passes, k = int(rc["passes"]), int(rc["chunk_passes"])
-    key, run = scene_hash(cfg), uuid.uuid4().hex[:8]
-    cfg_f = c.submit(_value, cfg, key=f"clppm-config-{key}-{run}", pure=False)
-    first = c.submit(scene_task, cfg_f, key, source, not resume, key=f"clppm-scene-{key}-{run}",
-                     pure=False).result()
-    meta = first["meta"]
-    kinds = sorted({w["device"] for w in workers.values()})
-    if len(kinds) > 1:                       # chunks may land on any kind: say so in the identity
-        meta["device"] = " + ".join(kinds)
-    if resume:
-        st = ckpt.load(resume, meta)
-        cal = ppm.Calibration(R0=st["R0"].astype(np.float32), store_zmin=st["store_zmin"],
-                              first_search_mean=st["stats"].get("first_search_mean"))
-        red = Reduction.load(st, os.path.basename(resume), k, n_passes)
-        timing = {kk: v for kk, v in st["timing"].items() if kk not in ppm.STAGES}
-    else:
-        cal = first["cal"]
-        red = Reduction.empty(first["npix"], first["nb"], first["tallies"])
-        timing = dict(first["timing"])
-    ck = cal_hash(cal)
-    cal_f = c.submit(_value, cal, key=f"clppm-cal-{ck}-{run}", pure=False)
-    todo = [q for q in pieces(red.next_pass, n_passes, k) if not red.covers(q)]
-    futs = {c.submit(chunk_task, cfg_f, key, cal_f, ck, q, source, key=f"clppm-chunk-{q[0]}-{key}-{run}",
-                     pure=False): q for q in todo}
-    save = (lambda: red.save(ckpath, meta, cal, first["nb"], timing)) if ckpath else (lambda: None)
-    image_now = lambda interrupted: _image(c, cfg_f, key, cal_f, ck, cal, red, timing, t_start,  # noqa: E731
-                                           interrupted, source)
-    log = {"chunks": [], "bytes": 0}
-    bar = progressive._progress(n_passes, min(red.finished, n_passes), progress)
-    with progressive._Interrupt() as intr, c.as_current():
-        try:
-            _collect(futs, red, intr, stop_after, bar, log, on_chunk, save, int(rc["checkpoint_every"]),
-                     ckpath, preview=(int(rc["preview_every"]), out, n_passes, image_now))
-        finally:
-            for f in futs:
-                f.cancel()
-    if bar is not None:
-        bar.close()
-    save()
-    t0 = time.perf_counter()
-    res = image_now(intr.flag)
+        workers = check_workers(c, f"scheduler {scheduler}" if scheduler else "the cluster")
+        job = _Job.start(c, cfg, source, resume, t_start, workers)
+        red = job.reduction(resume)
+        log = {"chunks": [], "bytes": 0}
+        interrupted = _collect(job, red, ckpath, progress, stop_after, on_chunk, out, log)
+        job.save(red, ckpath)
+        t0 = time.perf_counter()
+        res = job.image(red, interrupted)
     res.report["executor"] = {
-        "engine": "dask.distributed", "where": where, "chunk_passes": k,
+        "engine": "dask.distributed", "where": where, "chunk_passes": job.k,
         "workers": {a: {kk: w[kk] for kk in ("device", "type")} for a, w in workers.items()},
         "chunks": log["chunks"], "bytes_moved": log["bytes"], "held_passes": sorted(red.held)}
     if out:
@@ -481,53 +449,133 @@ def _run(c, cfg, workers, *, t_start, out, progress, resume, ckpath, source, sto
     return res
 
 
-def _collect(futs: dict, red: Reduction, intr, stop_after, bar, log, on_chunk, save, cp_every, ckpath,
-             preview) -> None:
-    """Reduce chunks as they finish until all are in, a signal, or ``stop_after`` passes."""
+@dataclass
+class _Job:
+    """One render on a cluster: the config and calibration as futures, and the run's identity."""
+
+    client: object
+    cfg: dict
+    key: str                         # scene hash
+    run: str                         # this call's token: task keys never collide across calls
+    cfg_f: object
+    meta: dict
+    first: dict                      # scene_task's answer
+    source: str
+    t_start: float
+    cal: ppm.Calibration | None = None
+    cal_f: object = None
+    cal_key: str = ""
+    timing: dict = field(default_factory=dict)
+
+    @classmethod
+    def start(cls, c, cfg, source, resume, t_start, workers) -> "_Job":
+        """Ship the config; one worker builds the scene and (no resume) calibrates."""
+        key, run = scene_hash(cfg), uuid.uuid4().hex[:8]
+        cfg_f = c.submit(_value, cfg, key=f"clppm-config-{key}-{run}", pure=False)
+        first = c.submit(scene_task, cfg_f, key, source, not resume, key=f"clppm-scene-{key}-{run}",
+                         pure=False).result()
+        meta = first["meta"]
+        kinds = sorted({w["device"] for w in workers.values()})
+        if len(kinds) > 1:                   # chunks may land on any kind: say so in the identity
+            meta["device"] = " + ".join(kinds)
+        return cls(client=c, cfg=cfg, key=key, run=run, cfg_f=cfg_f, meta=meta, first=first,
+                   source=source, t_start=t_start)
+
+    @property
+    def n_passes(self) -> int:
+        return int(self.cfg["render"]["passes"])
+
+    @property
+    def k(self) -> int:
+        return int(self.cfg["render"]["chunk_passes"])
+
+    def reduction(self, resume: str | None) -> Reduction:
+        """The calibration (new, or the checkpoint's) on every worker, and the sums so far."""
+        if resume:
+            st = ckpt.load(resume, self.meta)
+            self.cal = ppm.Calibration(R0=st["R0"].astype(np.float32), store_zmin=st["store_zmin"],
+                                       first_search_mean=st["stats"].get("first_search_mean"))
+            red = Reduction.load(st, os.path.basename(resume), self.k, self.n_passes)
+            self.timing = {k: v for k, v in st["timing"].items() if k not in ppm.STAGES}
+        else:
+            self.cal = self.first["cal"]
+            red = Reduction.empty(self.first["npix"], self.first["nb"], self.first["tallies"])
+            self.timing = dict(self.first["timing"])
+        self.cal_key = cal_hash(self.cal)
+        self.cal_f = self.client.submit(_value, self.cal, key=f"clppm-cal-{self.cal_key}-{self.run}",
+                                        pure=False)
+        self.client.replicate([self.cfg_f, self.cal_f])    # on every worker: no pull toward one
+        return red
+
+    def submit_chunk(self, passes: list):
+        return self.client.submit(chunk_task, self.cfg_f, self.key, self.cal_f, self.cal_key, passes,
+                                  self.source, key=f"clppm-chunk-{passes[0]}-{self.key}-{self.run}",
+                                  pure=False)
+
+    def save(self, red: Reduction, path: str | None) -> None:
+        if path:
+            red.save(path, self.meta, self.cal, self.first["nb"], self.timing)
+
+    def image(self, red: Reduction, interrupted: bool) -> progressive.RenderResult:
+        """The image of the reduced passes (finished on a worker, which holds the scene)."""
+        c = self.client
+        pix_f = c.scatter(red.pix, hash=False)
+        stats = {"stored": red.stored, "first_search_mean": self.cal.first_search_mean}
+        f = c.submit(finish_task, self.cfg_f, self.key, self.cal_f, self.cal_key, pix_f,
+                     int(red.pairs.sum()), sum(red.emitted), red.next_pass, {**self.timing, **red.seconds},
+                     stats, time.perf_counter() - self.t_start, interrupted, self.source, pure=False)
+        return f.result()
+
+
+def _collect(job: _Job, red: Reduction, ckpath, progress, stop_after, on_chunk, out, log) -> bool:
+    """Submit the chunks not yet done and reduce them as they finish, until all are in, a signal,
+    or ``stop_after`` passes; checkpoints and previews on the way.  Returns: stopped by a signal."""
     from distributed import wait
-    every, out, n_passes, image_now = preview
+    rc = job.cfg["render"]
+    cp_every, preview = int(rc["checkpoint_every"]), int(rc["preview_every"])
+    futs = {job.submit_chunk(q): q for q in pieces(red.next_pass, job.n_passes, job.k) if not red.covers(q)}
+    bar = progressive._progress(job.n_passes, min(red.finished, job.n_passes), progress)
     last_cp = red.finished
-    while futs and not intr.flag and (stop_after is None or red.finished < stop_after):
-        try:                              # wake up now and then to see a signal
-            done, _ = wait(list(futs), timeout=0.5, return_when="FIRST_COMPLETED")
-        except TimeoutError:
-            continue
-        for f in done:
-            q = futs.pop(f)
-            d = _result(f, q, ckpath)
-            before, reduced = red.finished, red.next_pass
-            red.add(d.result)
-            log["bytes"] += d.result.pix.nbytes + d.result.pairs.nbytes
-            log["chunks"].append({"passes": [q[0], q[-1]], "worker": d.worker, "seconds": d.wall})
+    with progressive._Interrupt() as intr, job.client.as_current():
+        try:
+            while futs and not intr.flag and (stop_after is None or red.finished < stop_after):
+                try:                          # wake up now and then to see a signal
+                    done, _ = wait(list(futs), timeout=0.5, return_when="FIRST_COMPLETED")
+                except TimeoutError:
+                    continue
+                for f in done:
+                    q = futs.pop(f)
+                    d = _result(f, q, ckpath)
+                    before, reduced = red.finished, red.next_pass
+                    red.add(d.result)
+                    log["bytes"] += d.result.pix.nbytes + d.result.pairs.nbytes
+                    log["chunks"].append({"passes": [q[0], q[-1]], "worker": d.worker, "seconds": d.wall})
+                    if bar is not None:
+                        bar.update(red.finished - before)
+                    if on_chunk is not None:
+                        on_chunk(d)
+                    if cp_every and red.finished // cp_every > last_cp // cp_every:
+                        job.save(red, ckpath)
+                        last_cp = red.finished
+                    if (preview and out and 0 < red.next_pass < job.n_passes
+                            and red.next_pass // preview > reduced // preview):
+                        res = job.image(red, False)
+                        image.write_png(progressive._sibling(out, ".preview.png"), res.rgb, res.exposure)
+        finally:
+            for f in futs:
+                f.cancel()
             if bar is not None:
-                bar.update(red.finished - before)
-            if on_chunk is not None:
-                on_chunk(d)
-            if cp_every and red.finished // cp_every > last_cp // cp_every:
-                save()
-                last_cp = red.finished
-            if every and out and 0 < red.next_pass < n_passes and red.next_pass // every > reduced // every:
-                res = image_now(False)
-                image.write_png(progressive._sibling(out, ".preview.png"), res.rgb, res.exposure)
+                bar.close()
+    return intr.flag
 
 
 def _result(f, passes, ckpath) -> ChunkDone:
     """A finished chunk, or the failure as one line (the last checkpoint is kept)."""
     from distributed import KilledWorker
+    keep = f"; resume from {ckpath} with --resume" if ckpath and os.path.exists(ckpath) else ""
     try:
         return f.result()
     except KilledWorker as e:
-        keep = f"; resume from {ckpath} with --resume" if ckpath and os.path.exists(ckpath) else ""
         raise ExecutorError(f"passes {passes[0]}-{passes[-1]} killed their workers repeatedly ({e}){keep}") from None
     except DeviceError as e:
-        keep = f"; resume from {ckpath} with --resume" if ckpath and os.path.exists(ckpath) else ""
         raise DeviceError(f"{' '.join(str(e).split())} (passes {passes[0]}-{passes[-1]}){keep}") from None
-
-
-def _image(c, cfg_f, key, cal_f, ck, cal, red: Reduction, timing, t_start, interrupted, source):
-    pix_f = c.scatter(red.pix, hash=False)
-    stats = {"stored": red.stored, "first_search_mean": cal.first_search_mean}
-    f = c.submit(finish_task, cfg_f, key, cal_f, ck, pix_f, int(red.pairs.sum()), sum(red.emitted),
-                 red.next_pass, {**timing, **red.seconds}, stats, time.perf_counter() - t_start,
-                 interrupted, source, pure=False)
-    return f.result()
