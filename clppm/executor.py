@@ -308,7 +308,11 @@ def check_workers(client, where: str) -> dict:
 
 
 def scene_hash(cfg: dict) -> str:
-    return hashlib.sha256(json.dumps(cfg, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    """What a worker's scene depends on: the config but the pass count and the host's cadences
+    (a longer or resumed render reuses the scenes its workers hold)."""
+    keep = dict(cfg, render={k: v for k, v in cfg["render"].items()
+                             if k not in ("passes", "preview_every", "checkpoint_every")})
+    return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def cal_hash(cal: ppm.Calibration) -> str:
@@ -433,14 +437,17 @@ def render_distributed(cfg: dict, *, scheduler: str | None = None, devices=None,
         job = _Job.start(c, cfg, source, resume, t_start, workers)
         red = job.reduction(resume)
         log = {"chunks": [], "bytes": 0}
+        t0 = time.perf_counter()
         interrupted = _collect(job, red, ckpath, progress, stop_after, on_chunk, out, log)
+        passes_wall = time.perf_counter() - t0
         job.save(red, ckpath)
         t0 = time.perf_counter()
         res = job.image(red, interrupted)
     res.report["executor"] = {
         "engine": "dask.distributed", "where": where, "chunk_passes": job.k,
         "workers": {a: {kk: w[kk] for kk in ("device", "type")} for a, w in workers.items()},
-        "chunks": log["chunks"], "bytes_moved": log["bytes"], "held_passes": sorted(red.held)}
+        "chunks": log["chunks"], "bytes_moved": log["bytes"], "held_passes": sorted(red.held),
+        "passes_wall_s": passes_wall}
     if out:
         progressive.write_outputs(out, res)
     res.report["seconds"]["output"] = time.perf_counter() - t0
