@@ -170,8 +170,10 @@ def main(argv=None) -> int:
     cfg = bench_cfg(a.config, res, a.photons, a.chunk, a.chunks)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     W = a.workers
+    load0 = os.getloadavg()[0]
     print(f"bench/scale.py: {os.path.basename(a.config)} {res[0]}x{res[1]}, {a.photons:,} stored photons/pass, "
-          f"chunks of {a.chunk} passes, {a.chunks} chunks, best of {a.repeat}, {cores} cores", flush=True)
+          f"chunks of {a.chunk} passes, {a.chunks} chunks, best of {a.repeat}, {cores} cores "
+          f"(load average {load0:.1f}: other work shares them)", flush=True)
     rows = [in_process(cfg, a.repeat)]
     print(f"  {rows[-1]['label']}: {min(rows[-1]['seconds']):.2f} s", flush=True)
     for label, w, t, over in (("1 worker x all cores", 1, cores, False), ("1 worker x 1 core", 1, 1, False),
@@ -229,6 +231,7 @@ def main(argv=None) -> int:
     with open(path, "w") as f:
         json.dump({"config": os.path.abspath(a.config), "resolution": list(res), "photons": a.photons,
                    "chunk_passes": a.chunk, "chunks": a.chunks, "cores": cores, "runs": rows,
+                   "load_average": [load0, os.getloadavg()[0]],
                    "overhead": ov, "projection": scen,
                    "model": "passes/s = min(W k/(k t_pass + B/bw + lat), k/(B/bw_client + t_reduce))"},
                   f, indent=1, default=str)

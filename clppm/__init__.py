@@ -6,9 +6,15 @@ def render(config, **kwargs):
     """Render a config (a path or a validated dict); returns a RenderResult (image + report).
 
     Keyword arguments as ``clppm render``: method, passes, photons, resolution, seed,
-    spacing, device, out, progress, resume.
+    spacing, device, out, progress, resume; ``devices`` ("all" or "P:D,P:D") or ``scheduler``
+    (an address) render on a Dask cluster (:func:`clppm.executor.render_distributed`).
     """
     from . import config as _config
     from . import progressive as _render
     cfg = _config.load(config) if isinstance(config, str) else config
+    if kwargs.get("devices") or kwargs.get("scheduler"):
+        from .executor import render_distributed
+        return render_distributed(cfg, **kwargs)
+    kwargs.pop("devices", None)
+    kwargs.pop("scheduler", None)
     return _render.render(cfg, **kwargs)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
 import socket
 import subprocess
@@ -225,6 +224,19 @@ def test_worker_killed_mid_chunk_is_rerun(work, cfg, reference, client):
     rerun = next(c for c in chunks if c["passes"][0] == first)
     assert rerun["worker"] != killed["worker"], "the killed chunk must have run on another worker"
     assert res.report["photons_emitted"] == reference[1]["photons_emitted"]
+
+
+def test_cli_devices_gives_the_in_process_bytes(work, dev, reference):
+    """`clppm render --devices P:D,P:D`: its own local cluster, two workers on one device."""
+    spec = _spec(dev)
+    env = executor.worker_env([spec, spec])
+    cores = len(os.sched_getaffinity(0))
+    assert env == [{"PYOPENCL_CTX": spec, "POCL_MAX_PTHREAD_COUNT": str(max(1, cores // 2))}] * 2
+    out = work / "cli" / "c.exr"
+    r = _clppm("render", work / "skin.toml", "--devices", f"{spec},{spec}", "-o", out, "-q", timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert out.read_bytes() == reference[0]
+    assert len(json.loads(out.with_suffix(".json").read_text())["executor"]["workers"]) == 2
 
 
 # ------------------------------------------------------------------------------- one-line refusals
