@@ -14,7 +14,9 @@ is byte-identical to ``progressive.render`` with the same seed and ``render.chun
 the same kind of device.  A chunk whose worker dies is rerun by Dask; since a chunk is a pure
 function of (config, calibration, passes), the rerun gives the same bits, and each chunk is
 added once, by its first pass.  Checkpoints hold the reduced sums, the held chunks and which
-passes they cover (:mod:`clppm.checkpoint`).
+passes they cover (:mod:`clppm.checkpoint`); they are in-process checkpoints too, and an
+in-process checkpoint taken inside a chunk resumes here by continuing that chunk from its sums
+(:func:`continue_chunk`).
 
 Worker (:class:`ClppmWorker`, a ``WorkerPlugin``): the device is the one the worker process
 was started with (``PYOPENCL_CTX``, else clppm's default choice); the scene (volume, eye pass,
@@ -171,15 +173,38 @@ class ChunkDone:
 
 @_worker_errors
 def chunk_task(cfg: dict, key: str, cal: ppm.Calibration, cal_key: str, passes: list,
-               source: str = "<config>") -> ChunkDone:
+               source: str = "<config>", start: np.ndarray | None = None) -> ChunkDone:
+    """One chunk of passes (``start``: the sums of the chunk's earlier passes, to continue)."""
     from distributed import get_worker
     plug = _plugin()
     with plug.lock:
         t0 = time.perf_counter()
         ld = plug.scene(cfg, key, source).calibrated(cal, cal_key)
-        k = int(cfg["render"]["chunk_passes"])
-        res = ppm.run_chunk(ld.sc, cal, ld.points, passes[0] // k, passes, ld.acc)
+        chunk = passes[0] // int(cfg["render"]["chunk_passes"])
+        if start is None:
+            res = ppm.run_chunk(ld.sc, cal, ld.points, chunk, passes, ld.acc)
+        else:
+            res = continue_chunk(ld.sc, cal, ld.points, chunk, passes, ld.acc, start)
         return ChunkDone(result=res, worker=get_worker().address, wall=time.perf_counter() - t0)
+
+
+def continue_chunk(sc: ppm.Scene, cal: ppm.Calibration, st: ppm.PointState, chunk: int, passes,
+                   acc: ppm.Accumulators, start: np.ndarray) -> ppm.ChunkResult:
+    """The rest of a chunk whose first passes an in-process run summed (its checkpoint's open
+    chunk): the passes add onto those sums on the device, as they would have in that run."""
+    acc.clear()
+    acc.pix.set(np.ascontiguousarray(start, np.float64))
+    tallies = transport.Tallies(sc.vol.nb, sc.vol.nl)
+    before = dict(sc.timing)
+    emitted, stored = [], 0
+    for p in passes:
+        info = ppm.run_pass(sc, cal, st, p, acc, tallies)
+        emitted.append(info["emitted"])
+        stored += min(info["stored"], sc.capacity)
+    pix, pairs = acc.host()
+    return ppm.ChunkResult(chunk=chunk, passes=list(passes), pix=pix, pairs=pairs, tallies=tallies.counts,
+                           emitted=emitted, stored=stored,
+                           seconds={k: sc.timing[k] - before.get(k, 0.0) for k in ppm.STAGES})
 
 
 @_worker_errors
@@ -338,7 +363,9 @@ class Reduction:
     pix: np.ndarray                  # float64 (npix * NB): chunks before ``next_pass``
     pairs: np.ndarray                # uint64 (npix)
     tallies: list                    # [band][category] python ints (exact)
-    next_pass: int = 0               # passes before this are in pix
+    next_pass: int = 0               # passes before this are in pix (or in open_pix)
+    open_pix: np.ndarray | None = None   # an in-process checkpoint's open chunk: its passes before
+    #                                      next_pass, continued by the chunk that starts there
     held: dict = field(default_factory=dict)     # first pass -> ChunkResult
     emitted: list = field(default_factory=list)  # per pass, passes before next_pass
     stored: int = 0
@@ -355,6 +382,7 @@ class Reduction:
         self.held[r.passes[0]] = r
         while self.next_pass in self.held:
             c = self.held.pop(self.next_pass)
+            self.open_pix = None             # c continued it: its sums include the open ones
             self.pix += c.pix
             self.pairs += c.pairs
             self.tallies = [[x + y for x, y in zip(a, b)] for a, b in zip(self.tallies, c.tallies)]
@@ -383,20 +411,18 @@ class Reduction:
                      held=[{"passes": r.passes, "emitted": r.emitted, "stored": r.stored,
                             "tallies": r.tallies, "seconds": r.seconds} for r in held])
         zero = np.zeros_like(cal.R0)
+        open_pix = self.open_pix if self.open_pix is not None else np.zeros(self.pix.size)
         ckpt.save(path, meta, state, pt_R=cal.R0, pt_N=zero, R0=cal.R0, pix_acc=self.pix.reshape(-1, nb),
-                  chunk_acc=np.zeros((self.pix.size // nb, nb)), pix_pairs=self.pairs,
+                  chunk_acc=open_pix.reshape(-1, nb), pix_pairs=self.pairs,
                   held_pix=np.stack([r.pix for r in held]) if held else None,
                   held_pairs=np.stack([r.pairs for r in held]) if held else None)
 
     @classmethod
     def load(cls, st: dict, name: str, k: int, n_passes: int) -> "Reduction":
         p = st["pass_index"]
-        if np.any(st["chunk_acc"]):
-            raise ckpt.CheckpointError(
-                f"checkpoint {name} ends inside a chunk (pass {p}, render.chunk_passes {k}): an "
-                "in-process checkpoint; resume it without --devices/--scheduler")
+        open_pix = st["chunk_acc"].reshape(-1).astype(np.float64) if np.any(st["chunk_acc"]) else None
         red = cls(pix=st["pix_acc"].reshape(-1).astype(np.float64), pairs=st["pix_pairs"].astype(np.uint64),
-                  tallies=st["tallies"], next_pass=p, emitted=list(st["stats"]["emitted"]),
+                  tallies=st["tallies"], next_pass=p, open_pix=open_pix, emitted=list(st["stats"]["emitted"]),
                   stored=int(st["stats"]["stored"]),
                   seconds={k_: float(st["timing"].get(k_, 0.0)) for k_ in ppm.STAGES})
         plan = {tuple(q) for q in pieces(p, n_passes, k)}
@@ -513,9 +539,12 @@ class _Job:
         self.client.replicate([self.cfg_f, self.cal_f])    # on every worker: no pull toward one
         return red
 
-    def submit_chunk(self, passes: list):
+    def submit_chunk(self, passes: list, red: Reduction):
+        start = None
+        if red.open_pix is not None and passes[0] == red.next_pass:
+            start = self.client.scatter(red.open_pix, hash=False)
         return self.client.submit(chunk_task, self.cfg_f, self.key, self.cal_f, self.cal_key, passes,
-                                  self.source, key=f"clppm-chunk-{passes[0]}-{self.key}-{self.run}",
+                                  self.source, start, key=f"clppm-chunk-{passes[0]}-{self.key}-{self.run}",
                                   pure=False)
 
     def save(self, red: Reduction, path: str | None) -> None:
@@ -539,7 +568,7 @@ def _collect(job: _Job, red: Reduction, ckpath, progress, stop_after, on_chunk, 
     from distributed import wait
     rc = job.cfg["render"]
     cp_every, preview = int(rc["checkpoint_every"]), int(rc["preview_every"])
-    futs = {job.submit_chunk(q): q for q in pieces(red.next_pass, job.n_passes, job.k) if not red.covers(q)}
+    futs = {job.submit_chunk(q, red): q for q in pieces(red.next_pass, job.n_passes, job.k) if not red.covers(q)}
     bar = progressive._progress(job.n_passes, min(red.finished, job.n_passes), progress)
     last_cp = red.finished
     with progressive._Interrupt() as intr, job.client.as_current():
