@@ -299,6 +299,9 @@ def no_work(monkeypatch):
     (["render", "{cfg}", "-o", "{bad}/r.exr", "--devices", "all"], "-o/--output"),
     (["trace", "{cfg}", "--photons", "1000", "--json", "{bad}/t.json"], "--json"),
     (["samples", "{cfg}", "--json", "{bad}/s.json"], "--json"),
+    (["reflectance", "{cfg}", "--plot", "{bad}/r.png"], "--plot"),
+    (["fit", "--subject", "3", "-o", "{bad}/f.toml"], "-o/--output"),
+    (["compare", "{cfg}", "-o", "{bad}/cmp"], "-o/--out"),
 ])
 def test_unwritable_outputs_fail_before_work(work, capsys, no_work, args, flag):
     bad = work / "a-file"
