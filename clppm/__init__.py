@@ -6,8 +6,10 @@ def render(config, integrator="ppm", **kwargs):
     """Render a config (a path or a validated dict); returns a RenderResult (image + report).
 
     Keyword arguments as ``clppm render``: method, passes, photons, resolution, seed,
-    spacing, device, out, progress, resume.  ``integrator="pt"``: the path tracer
-    (``clppm.pathtracer.render_pt``: passes, seed, resolution, device, out, progress, resume).
+    spacing, device, out, progress, resume; ``devices`` ("all" or "P:D,P:D") or ``scheduler``
+    (an address) render on a Dask cluster (:func:`clppm.executor.render_distributed`).
+    ``integrator="pt"``: the path tracer (``clppm.pathtracer.render_pt``: passes, seed,
+    resolution, device, out, progress, resume).
     """
     from . import config as _config
     from . import progressive as _render
@@ -17,4 +19,9 @@ def render(config, integrator="ppm", **kwargs):
         return render_pt(cfg, **kwargs)
     if integrator != "ppm":
         raise _config.ConfigError("clppm.render", "integrator", integrator, "must be 'ppm' or 'pt'")
+    if kwargs.get("devices") or kwargs.get("scheduler"):
+        from .executor import render_distributed
+        return render_distributed(cfg, **kwargs)
+    kwargs.pop("devices", None)
+    kwargs.pop("scheduler", None)
     return _render.render(cfg, **kwargs)

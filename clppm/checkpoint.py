@@ -5,6 +5,12 @@ temporary file in the same folder, flushed to disk and renamed over the old one,
 kill at any moment leaves either the previous checkpoint or the new one, never half of
 one.  Loading checks that the checkpoint was made by the same parameters (everything but
 the number of passes), the same device and the same eye pass.
+
+A distributed run (:mod:`clppm.executor`) writes the same file.  Its reduced sums cover the
+passes before ``pass_index`` (whole chunks, added in order); chunks that finished ahead of a
+missing one are kept apart, unreduced, as ``held`` (their passes and counts in the header,
+their sums in ``held_pix``/``held_pairs``).  Those are optional: an in-process resume ignores
+them and simply runs those passes again.
 """
 from __future__ import annotations
 
@@ -18,6 +24,7 @@ import numpy as np
 VERSION = 2
 #: the arrays of a PPM checkpoint
 ARRAYS = ("pt_R", "pt_N", "R0", "pix_acc", "chunk_acc", "pix_pairs")
+HELD = ("held_pix", "held_pairs")      # optional: chunk sums not yet reduced (distributed runs)
 
 
 class CheckpointError(ValueError):
@@ -34,8 +41,13 @@ def save(path: str, meta: dict, state: dict, **arrays) -> None:
     header = {"version": VERSION, "meta": meta,
               "state": {k: state[k] for k in ("pass_index", "emitted_total", "store_zmin",
                                               "tallies_emitted", "stats", "timing")}}
+    held = {}
+    if state.get("held"):
+        header["state"]["held"] = [dict(h, tallies=[[str(v) for v in row] for row in h["tallies"]])
+                                   for h in state["held"]]
+        held = {k: np.asarray(arrays[k]) for k in HELD}
     tallies = np.array([[str(v) for v in row] for row in state["tallies"]])   # exact big ints
-    _write(path, header, {**{k: np.asarray(arrays[k]) for k in ARRAYS}, "tallies": tallies})
+    _write(path, header, {**{k: np.asarray(arrays[k]) for k in ARRAYS}, "tallies": tallies, **held})
 
 
 def save_pt(path: str, meta: dict, state: dict, arrays: dict) -> None:
@@ -101,6 +113,7 @@ def _read(path: str, names: tuple[str, ...]) -> tuple[dict, dict, callable]:
                 raise CheckpointError(f"checkpoint {name} was made by the {kind} integrator; "
                                       f"resume it with --integrator {kind}")
             arrays = {k: z[k] for k in names}
+            arrays.update({k: z[k] for k in HELD if k in z.files})
     except ValueError as e:
         if isinstance(e, CheckpointError):
             raise
@@ -137,7 +150,8 @@ def load(path: str, meta: dict | None = None) -> dict:
         st["tallies"] = [[int(v) for v in row] for row in arrays["tallies"].tolist()]
     except (TypeError, ValueError) as e:
         raise corrupt(f"tallies: {_one_line(e)}") from None
-    if not isinstance(st["pass_index"], int) or st["pass_index"] < 1:
+    _check_held(name, st, arrays, corrupt)
+    if not isinstance(st["pass_index"], int) or st["pass_index"] < (0 if st["held"] else 1):
         raise corrupt(f"pass index {st['pass_index']!r}")
     for k in ("pt_R", "pt_N", "R0", "pix_acc", "chunk_acc"):
         if st[k].dtype.kind not in "fiu" or not np.all(np.isfinite(st[k])):
@@ -145,6 +159,30 @@ def load(path: str, meta: dict | None = None) -> dict:
     if meta is not None:
         _check_shapes(name, st, meta)
     return st
+
+
+def _check_held(name: str, st: dict, arrays: dict, corrupt) -> None:
+    """``st["held"]``: the held chunks (each with exact int tallies and its sums), or []."""
+    held = st.get("held") or []
+    try:
+        for h in held:
+            h["tallies"] = [[int(v) for v in row] for row in h["tallies"]]
+            h["passes"] = [int(p) for p in h["passes"]]
+            h["emitted"] = [int(e) for e in h["emitted"]]
+            h["stored"] = int(h["stored"])
+    except (TypeError, ValueError, KeyError) as e:
+        raise corrupt(f"held chunks: {_one_line(e) or type(e).__name__}") from None
+    if held:
+        if any(k not in arrays for k in HELD):
+            raise corrupt("held chunks without their sums")
+        pix, pairs = arrays["held_pix"], arrays["held_pairs"]
+        if (pix.ndim != 2 or pairs.ndim != 2 or len(pix) != len(held) or len(pairs) != len(held)
+                or pix.shape[1] != arrays["pix_acc"].size or pairs.shape[1] != arrays["pix_pairs"].size):
+            raise CheckpointError(f"checkpoint {name} is corrupt: held chunk sums of shape "
+                                  f"{pix.shape}, {pairs.shape} for {len(held)} chunks")
+        if pix.dtype.kind != "f" or not np.all(np.isfinite(pix)):
+            raise CheckpointError(f"checkpoint {name} holds non-finite or non-numeric values in held_pix")
+    st["held"] = held
 
 
 def _one_line(e) -> str:

@@ -49,8 +49,14 @@ def _load(path):
     return config.load(path)
 
 
+def _write_json(path: str, obj) -> None:
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(obj, f, indent=1)
+
+
 def cmd_trace(a) -> int:
-    from . import config, device, transport, volume
+    from . import config, device, paths, transport, volume
     if (a.config is None) == (a.slab is None):
         raise ConfigError("clppm trace", "CONFIG/--slab", None, "give a config file or --slab, not both")
     if a.slab is not None:
@@ -65,6 +71,7 @@ def cmd_trace(a) -> int:
         raise ConfigError("command line", "--photons", a.photons, "must be > 0")
     if a.batches < 2:
         raise ConfigError("command line", "--batches", a.batches, "must be >= 2 (standard errors)")
+    paths.check_writable(a.json, "--json")
     vol = volume.build(cfg, src)
     dev = device.open_device(a.device)
     pp = transport.PhotonPass(dev, vol, cfg)
@@ -81,9 +88,21 @@ def cmd_trace(a) -> int:
         for wl, r in rep["per_band"].items():
             print(f"  {wl:>5s}  {r['Rd']:.4f}  {r['Tt']:.4f}  {r['A']:.4f}")
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump(rep, f, indent=1)
+        _write_json(a.json, rep)
     return 0
+
+
+def _scheduler(a) -> tuple[str | None, str]:
+    """--scheduler, else CLPPM_SCHEDULER unless a local device was chosen; and its name."""
+    if a.scheduler:
+        if a.devices or a.device:
+            raise ConfigError("command line", "--scheduler", a.scheduler,
+                              "give --scheduler, --devices or --device, not two of them")
+        return a.scheduler, "--scheduler"
+    env = os.environ.get("CLPPM_SCHEDULER") or None
+    if a.devices and a.device:
+        raise ConfigError("command line", "--devices", a.devices, "give --devices or --device, not both")
+    return (None if a.devices or a.device else env), "CLPPM_SCHEDULER"
 
 
 def cmd_render(a) -> int:
@@ -94,10 +113,26 @@ def cmd_render(a) -> int:
         cfg = config.override(cfg, "render", "preview_every", a.preview_every)
     if a.integrator == "pt":
         return _render_pt(a, cfg)
-    res = render.render(cfg, method=a.method, passes=a.passes, photons=a.photons,
-                        resolution=a.resolution, seed=a.seed, spacing=a.spacing, device=a.device,
-                        out=a.output, progress=not a.quiet, resume=a.resume,
-                        source=os.path.basename(a.config))
+    if a.radius is not None:
+        cfg = config.override(cfg, "render", "radius", a.radius)
+    scheduler, flag = _scheduler(a)
+    kw = dict(method=a.method, passes=a.passes, photons=a.photons, resolution=a.resolution, seed=a.seed,
+              spacing=a.spacing, out=a.output, progress=not a.quiet, resume=a.resume,
+              source=os.path.basename(a.config))
+    if scheduler or a.devices:
+        try:
+            from . import executor
+        except ImportError as e:
+            raise ConfigError("command line", flag if scheduler else "--devices", scheduler or a.devices,
+                              f"needs dask.distributed ({e}): pip install 'clppm[dask]'") from None
+        try:
+            res = executor.render_distributed(cfg, scheduler=scheduler, devices=a.devices,
+                                              scheduler_flag=flag, **kw)
+        except executor.ExecutorError as e:
+            print(f"clppm: error: {e}", file=sys.stderr)
+            return 2
+    else:
+        res = render.render(cfg, device=a.device, **kw)
     r = res.report
     print(f"wrote {a.output} (+ .png, .json): method {r['scheme']}, {r['passes_done']} passes"
           f"{' (interrupted: resume with --resume ' + render.ckpt.default_path(a.output) + ')' if r['interrupted'] else ''}, "
@@ -124,11 +159,12 @@ def _render_pt(a, cfg) -> int:
 
 
 def cmd_samples(a) -> int:
-    from . import device, eyepass, transport, volume
+    from . import device, eyepass, paths, transport, volume
     from . import progressive as render
     from .skin import PAPER_TABLE1
     cfg = render.apply_overrides(_load(a.config), method=a.method, spacing=a.spacing,
                                  resolution=a.resolution)
+    paths.check_writable(a.json, "--json")
     vol = volume.build(cfg, os.path.basename(a.config))
     dev = device.open_device(a.device)
     vb = transport.upload_volume(dev, vol)
@@ -145,8 +181,7 @@ def cmd_samples(a) -> int:
         extra = f"   paper {pv:6.2f}  ({100 * (v / pv - 1):+.0f} %)" if pv else ""
         print(f"  {n:24s} {v:7.2f}{extra}")
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump(out, f, indent=1)
+        _write_json(a.json, out)
     return 0
 
 
@@ -181,8 +216,14 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int)
     p.add_argument("--resume", help="continue from a checkpoint (.ckpt.npz)")
     p.add_argument("--preview-every", type=int, help="write a preview PNG every K passes")
+    p.add_argument("--radius", choices=("ppm", "global"),
+                   help="render.radius: per-point (ppm) or global (Knaus & Zwicker; needed to distribute)")
     p.add_argument("-o", "--output", default="out/render.exr")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--devices", help="'all' or P:D,P:D: a local Dask cluster, one worker per listed "
+                   "device (a device listed twice gets two workers)")
+    p.add_argument("--scheduler", help="address of a running Dask scheduler (default: "
+                   "$CLPPM_SCHEDULER unless --device/--devices is given)")
     _add_device(p)
     p.set_defaults(func=cmd_render)
 

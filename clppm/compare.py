@@ -426,7 +426,7 @@ def _ref_R(ref) -> str:
 
 
 def cmd_compare(a) -> int:
-    from . import config
+    from . import config, paths
     from .device import open_device
     d = QUICK if a.quick else FULL
     cfg = config.load(a.config)
@@ -439,6 +439,8 @@ def cmd_compare(a) -> int:
     budget = a.budget if a.budget is not None else d["budget"]
     max_passes = a.max_passes or d["max_passes"]
     out = a.out or ("out/compare-quick" if a.quick else "out/compare")
+    paths.check_folder(out, "-o/--out")
+    paths.check_folder(a.cache, "--cache")
     os.makedirs(os.path.join(out, "images"), exist_ok=True)
     flip = flip_available() and not a.no_flip
     dev = open_device(a.device)

@@ -134,9 +134,9 @@ SCHEMA: dict[str, dict[str, F]] = {
                            "layer; clip: all photons, sphere clipped at the surface; sphere: the paper"),
         "store_depth_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e6,
                             doc="store photons only this deep (default: all)"),
-        "bands_per_path": F("int", 1, lo=1, hi=512,
+        "bands_per_path": F("int", 0, lo=0, hi=512,
                             doc="wavelength bands a photon path carries (hero wavelength sampling; "
-                                "must divide the number of bands)"),
+                                "must divide the number of bands); 0: the largest divisor up to 9"),
         "band_sampling": F("choice", "power", choices=("power", "visual"),
                            doc="the hero band's pdf: power (the light's spectrum, the paper) or "
                                "visual (light x CIE colour matching functions, with a floor)"),
@@ -148,7 +148,7 @@ SCHEMA: dict[str, dict[str, F]] = {
                      doc="importance: store a scattering event with a probability that follows "
                          "its weight toward the eye (unbiased, weight 1/probability); all: every "
                          "event (the paper)"),
-        "store_scale": F("float", 1.0, lo=0, lo_open=True, hi=1e6,
+        "store_scale": F("float", 10.0, lo=0, lo_open=True, hi=1e6,
                          doc="importance storage: probability = clamp(scale * importance, "
                              "store_min, 1)"),
         "store_min": F("float", 0.02, lo=0, lo_open=True, hi=1.0,
@@ -380,7 +380,7 @@ def _cross_checks(src: str, cfg: dict) -> None:
                               f"{last:g} nm); use light.spectrum = 'flat' or stop_nm <= 780")
     nb = int(round((sp["stop_nm"] - sp["start_nm"]) / sp["step_nm"])) + 1
     C = cfg["render"]["bands_per_path"]
-    if nb % C:
+    if C and nb % C:
         ok = [d for d in range(1, nb + 1) if nb % d == 0]
         raise ConfigError(src, "render.bands_per_path", C,
                           f"must divide the {nb} bands (one of {', '.join(map(str, ok[:12]))})")
@@ -428,6 +428,15 @@ def paper_mode(cfg: dict, source: str = "--paper") -> dict:
     for k, v in PAPER_MODE.items():
         cfg = override(cfg, "render", k, v, source)
     return cfg
+
+
+def bands_per_path(cfg: dict) -> int:
+    """render.bands_per_path, with 0 resolved to the largest divisor of the band count <= 9."""
+    C = int(cfg["render"]["bands_per_path"])
+    if C:
+        return C
+    nb = len(wavelengths(cfg))
+    return max(d for d in range(1, min(nb, 9) + 1) if nb % d == 0)
 
 
 def wavelengths(cfg: dict):

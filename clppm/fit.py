@@ -712,6 +712,7 @@ def load_measured(path: str | None, subject: int | None, bands) -> tuple[np.ndar
 
 
 def cmd_fit(a) -> int:
+    from . import paths
     cfg_path = a.config or default_config_path()
     cfg = C.load(cfg_path)
     src = os.path.basename(cfg_path)
@@ -725,6 +726,11 @@ def cmd_fit(a) -> int:
             raise ConfigError("command line", name, v, "must be > 0")
     if not 0 <= a.angle <= 85:
         raise ConfigError("command line", "--angle", a.angle, "must be in 0..85 degrees")
+    base = os.path.splitext(a.output)[0]
+    plot_path = a.plot or base + ".png"
+    json_path = a.json or base + ".json"
+    for flag, p in (("-o/--output", a.output), ("--plot", plot_path), ("--json", json_path)):
+        paths.check_writable(p, flag)
 
     def log(it, p, rms):
         if not a.quiet:
@@ -749,15 +755,13 @@ def cmd_fit(a) -> int:
         f"{bands[0]:g}:{bands[1]:g}:{bands[2]:g} nm, seed {a.seed}, {a.angle:g} deg, specular {a.specular}",
     ]
     write_toml(fitted_cfg, a.output, header)
-    base = os.path.splitext(a.output)[0]
-    plot_path = a.plot or base + ".png"
-    json_path = a.json or base + ".json"
     native = None
     mw = np.asarray(wl); sel = (mw >= bands[0] - 10) & (mw <= bands[1] + 10)
     native = (mw[sel], np.asarray(R)[sel])
     plot_fit(plot_path, res, native, title=f"{src} fitted to {label}")
     rep = res.to_dict()
     rep["output"] = os.path.abspath(a.output)
+    os.makedirs(os.path.dirname(os.path.abspath(json_path)), exist_ok=True)
     with open(json_path, "w") as f:
         json.dump(rep, f, indent=1)
 

@@ -32,6 +32,25 @@ def writable_problem(path: str) -> str | None:
     return None
 
 
+def folder_problem(path: str) -> str | None:
+    """Why files cannot be written into the folder ``path`` (made if missing), or None."""
+    p = os.path.abspath(path)
+    if os.path.exists(p) and not os.path.isdir(p):
+        return "is not a folder"
+    if os.path.isdir(p):
+        return None if os.access(p, os.W_OK | os.X_OK) else "folder is not writable"
+    return writable_problem(os.path.join(p, "x"))
+
+
+def check_folder(path: str | None, flag: str, source: str = "command line") -> None:
+    """Raise :class:`ConfigError` if files cannot be written into the folder ``path``."""
+    if path is None:
+        return
+    why = folder_problem(path)
+    if why:
+        raise ConfigError(source, flag, path, f"cannot be written ({why})")
+
+
 def check_writable(path: str | None, flag: str, source: str = "command line") -> None:
     """Raise :class:`ConfigError` (one line: flag, path, reason) if ``path`` cannot be written."""
     if path is None:

@@ -136,7 +136,8 @@ class PointState:
 def device_needs(cfg: dict, vol: volume.Volume, eye_bytes: int, npix: int) -> dict:
     target = int(cfg["render"]["photons"])
     capacity = int(target * 1.2) + 4096
-    rec = 32 + 4 * (int(cfg["render"]["bands_per_path"]) - 1)      # photon record bytes
+    from .config import bands_per_path
+    rec = 32 + 4 * (bands_per_path(cfg) - 1)                   # photon record bytes
     return {"stored photons": capacity * rec, "sorted photons": capacity * (rec + 4),
             "grid cells": 4 * (hashgrid.DEFAULT_MAX_CELLS + 1) * 2,
             "sample points": eye_bytes,
@@ -163,7 +164,8 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height))
     target = int(rc["photons"])
     capacity = int(target * 1.2) + 4096
-    hero = int(rc["bands_per_path"])
+    from .config import bands_per_path
+    hero = bands_per_path(cfg)
     pp = transport.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf, hero=hero,
                               band_sampling=rc["band_sampling"])
     pp.set_storage(rc["storage"], eye.cone_deg, rc["store_scale"], rc["store_min"])
@@ -204,14 +206,18 @@ def calibrate(sc: Scene) -> Calibration:
     A photon pass of its own (index CAL_PASS) is stored; the radius is estimated per point
     from the grid's cell counts (kernel ``init_radius``), then scaled by one global factor so
     that exact counts on a subsample average K.  Photons deeper than any point's sphere can
-    reach are not stored afterwards: they could never be gathered."""
+    reach are not stored afterwards: they could never be gathered.  The calibration pass
+    stores a quarter of a pass's photons and looks for K/4 of them (the same radius, in
+    expectation): with importance storage a pass is hundreds of thousands of paths."""
     import pyopencl.array as cla
     q = sc.dev.queue
     npts = sc.npts
     if npts == 0:
         return Calibration(R0=np.zeros(0, np.float32), store_zmin=None, first_search_mean=None)
-    K = float(sc.cfg["render"]["initial_photons"])
-    info = sc.pp.run_pass(CAL_PASS, sc.target, tallies=transport.Tallies(sc.vol.nb, sc.vol.nl))
+    frac = 0.25 if sc.target >= 4 * 20_000 else 1.0
+    n_cal = int(math.ceil(sc.target * frac))
+    K = float(sc.cfg["render"]["initial_photons"]) * n_cal / sc.target
+    info = sc.pp.run_pass(CAL_PASS, n_cal, tallies=transport.Tallies(sc.vol.nb, sc.vol.nl))
     n = min(info["stored"], sc.capacity)
     x0, y0, x1, y1, zdeep, ztop = sc.box
     depth = max(ztop - zdeep, 1.0)
@@ -243,7 +249,7 @@ def calibrate(sc: Scene) -> Calibration:
     # the beam's disc has no depth extent: nothing below the deepest piece is ever gathered
     reach = float(R0.max()) * 1.001 if (not sc.beam or sc.eye.grazing) else 0.0
     return Calibration(R0=R0, store_zmin=zdeep - reach - 1.0,
-                       first_search_mean=mean_m if mean_m > 0 else None)
+                       first_search_mean=mean_m / frac if mean_m > 0 else None)
 
 
 def point_state(sc: Scene, cal: Calibration) -> PointState:

@@ -447,7 +447,7 @@ def _res_arg(s: str):
 
 
 def cmd_reflectance(a) -> int:
-    from . import nist
+    from . import nist, paths
     from .device import open_device
     cfg = C.load(a.config)
     src = os.path.basename(a.config)
@@ -460,6 +460,8 @@ def cmd_reflectance(a) -> int:
                     ("--passes", a.passes), ("--batches", a.batches)):
         if v is not None and v <= 0:
             raise ConfigError("command line", name, v, "must be > 0")
+    paths.check_writable(a.json, "--json")
+    paths.check_writable(a.plot, "--plot")
     dev = open_device(a.device)
     bands = a.bands
     res = spectral_reflectance(cfg, photons=band_photons, angle_deg=a.angle, specular=spec,

@@ -226,6 +226,9 @@ class PhotonPass:
         if fixed_band(cfg, wl) >= 0:
             spi[:] = 1.0                    # every photon is of the one band: weight 1
         self.band_spi = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spi)
+        with np.errstate(divide="ignore"):
+            logmu = np.log(np.maximum(vol.mut, 1e-30)).astype(np.float32).ravel()
+        self.logmu = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(logmu))
         p = P_.new_params()
         volume_params(p, vol)
         self.power_fraction = source_params(p, cfg, vol)
@@ -277,7 +280,7 @@ class PhotonPass:
         self.p["count"] = n
         cl.enqueue_copy(q, self.pbuf, self.p)
         self.kernel(q, (P_.global_size(n),), (P_.WG,), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
-                    self.band_spi, self.pos_w, self.dir_b, self.extra, self.count_buf, self.tally_buf)
+                    self.band_spi, self.logmu, self.pos_w, self.dir_b, self.extra, self.count_buf, self.tally_buf)
 
     def _flush(self, emitted: int, into: Tallies | None = None) -> np.ndarray:
         import pyopencl as cl

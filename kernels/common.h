@@ -210,6 +210,20 @@ inline float neg_log_u01(float u) {
     return -(lnm + (float)e * 0.693147180559945f);
 }
 
+/* exp(-x) for x >= 0 without a library call (the beam gather takes one per band and photon):
+ * 2^-y, y = x log2(e) = n + f, n an integer, f in [0, 1); 2^-f = 2^-1/2 exp(-t), t = (f - 1/2) ln 2
+ * in [-0.347, 0.347] by its Taylor polynomial to t^6 (truncation < 1.3e-7), 2^-n into the exponent
+ * bits.  0 for y >= 126 (and for NaN). */
+inline float exp_neg(float x) {
+    const float y = fmax(x, 0.0f) * 1.44269504088896f;
+    if (!(y < 126.0f)) return 0.0f;
+    const float n = floor(y);
+    const float t = (y - n - 0.5f) * 0.693147180559945f;
+    const float p = 1.0f - t * (1.0f - t * (0.5f - t * (1.0f / 6.0f - t * (1.0f / 24.0f
+                    - t * (1.0f / 120.0f - t * (1.0f / 720.0f))))));
+    return as_float((127 - (int)n) << 23) * (p * 0.707106781186548f);
+}
+
 /* (cos 2 pi u, sin 2 pi u) for u in [0, 1]: the quadrant from 4u, then a = the remaining angle
  * minus pi/4, |a| <= pi/4, by Taylor polynomials (truncation < 4e-9), and a rotation by pi/4. */
 inline float2 azimuth_cs(float u) {

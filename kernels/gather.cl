@@ -149,7 +149,7 @@ __kernel void gather(const GridParams gp,
                                 const float4 h = hg[b];
                                 const float q = h.x - h.y * cw;
                                 const float rq = rsqrt(q);
-                                acc[b] += (long)fmin(h.z * rq * rq * rq * w * FIX, 9.0e18f);
+                                acc[b] = add_sat(acc[b], (long)fmin(h.z * rq * rq * rq * w * FIX, 9.0e18f));
                             }
                             ++M;
                         }
@@ -362,9 +362,9 @@ __kernel void gather_beam(const GridParams gp,
                                 const float w = c == 0 ? p.w : sextra[(size_t)j * (HERO_C - 1) + c - 1];
                                 const float4 h = hg[b];
                                 const float q = h.x + h.y * cw;
-                                const float rq = rsqrt(q);
-                                const float T = exp(-(od[b] + mut_k[b].w * ts));
-                                acc[b] += (long)fmin(h.z * rq * rq * rq * w * T * wax * FIX, 9.0e18f);
+                                const float rq = native_rsqrt(q);
+                                const float T = exp_neg(od[b] + mut_k[b].w * ts);
+                                acc[b] = add_sat(acc[b], (long)fmin(h.z * rq * rq * rq * w * T * wax * FIX, 9.0e18f));
                             }
                             ++M;
                         }

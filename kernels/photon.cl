@@ -84,11 +84,11 @@ inline int reenter(Track* t, VOLUME_ARGS, Rng* rng) {
  * budget of stored events per pass buys many more independent paths.  The importance is
  * bounded by taking the most favourable eye direction within the cone around +z (half angle
  * from the eye pass), relative to the phase function's peak, times the transmittance of a
- * vertical eye ray down to z in each carried band (imp = optical depth at the layer's nominal
- * top, that top's z), times the event's band weights (spectral.h).  q never falls below
- * store_qmin, which bounds the weight of a stored event. */
-inline float store_probability(__constant const Params* P, float3 d, float g, int L, const float* F, int h,
-                               __global const float2* imp, __global const float4* optics, float z) {
+ * vertical eye ray down to z in the hero band (imp = optical depth at the layer's nominal
+ * top, that top's z), times the hero's weight.  Only a kept event computes its band weights
+ * (spectral.h).  q never falls below store_qmin, which bounds the weight of a stored event. */
+inline float store_probability(__constant const Params* P, float3 d, float g, float a_h, float2 imp,
+                               float mut, float z) {
     const float c = d.z;
     const float ce = c >= P->store_cos ? 1.0f
                      : c * P->store_cos + sqrt(fmax(0.0f, 1.0f - c * c)) * P->store_sin;
@@ -96,19 +96,15 @@ inline float store_probability(__constant const Params* P, float3 d, float g, in
     const float a = 1.0f + g * g - 2.0f * g * ce;
     const float omg = 1.0f - ag;
     const float hrel = omg * omg * omg / (a * sqrt(a));          /* HG(g, ce) / max HG(g, .) */
-    float wt = 0.0f;                                             /* weight x transmittance */
-    for (int j = 0; j < HERO_C; ++j) {
-        const int bj = sw_band(h, j);
-        const float2 im = imp[L * NB + bj];
-        wt += F[j] * exp(-(im.x + optics[L * NB + bj].w * fmax(0.0f, im.y - z)));
-    }
-    return clamp(P->store_scale * hrel * wt, P->store_qmin, 1.0f);
+    const float T = exp_neg(imp.x + mut * fmax(0.0f, imp.y - z));
+    return clamp(P->store_scale * hrel * a_h * T, P->store_qmin, 1.0f);
 }
 
 __kernel void photon_pass(VOLUME_ARGS,
                           __global const float2* store_imp,  /* [NL*NB] see store_probability */
                           __global const float* band_cdf,    /* hero selection pi, as a cdf */
                           __global const float2* band_spi,   /* [NB] light power s, pi (spectral.h) */
+                          __global const float* logmu,       /* [NL*NB] log mu_t (spectral.h) */
                           __global float4* store_pos_w,      /* x, y, z, weight of the hero band */
                           __global float4* store_dir_b,      /* direction, hero band + 256 layer */
                           __global float* store_extra,       /* HERO_C-1 weights of the other bands */
@@ -187,6 +183,7 @@ __kernel void photon_pass(VOLUME_ARGS,
         }
     }
 
+    sw_scale(&sw, (float)W * (1.0f / W0F));           /* the entry's Fresnel transmission */
     const long rr_w = (long)(P->rr_threshold * W0F);
     float tau = neg_log_u01(rng_u01(&rng));
     int events = 0;
@@ -201,22 +198,24 @@ __kernel void photon_pass(VOLUME_ARGS,
             /* ---- collision: absorb by weight, store, scatter, roulette */
             t.pos += s * t.dir;
             sw_flight(&sw, optics, t.L, mut, s);
-            sw_collide(&sw, optics, t.L, op);
+            sw_collide(&sw, optics, logmu, t.L, op);
             long dw = convert_long_rte((float)W * op.x);
             dw = dw < 0 ? 0 : (dw > W ? W : dw);
             absorbed[t.L] += dw; W -= dw;
             if (W > 0 && op.x < 1.0f) {
                 if (P->capacity > 0u && t.pos.z > P->store_zmin) {
-                    float F[HERO_C];
-                    sw_weights(&sw, (float)W * (1.0f / W0F), band_spi, F);
+                    const float a_h = (float)W * (1.0f / W0F);
+                    float q = 1.0f;
                     int keep = 1;
                     if (P->store_rule == 1) {
-                        const float q = store_probability(P, t.dir, op.y, t.L, F, sw.h, store_imp, optics, t.pos.z);
+                        q = store_probability(P, t.dir, op.y, a_h, store_imp[t.L * NB + b], op.w, t.pos.z);
                         keep = rng_u01(&srng) <= q;
-                        const float iq = 1.0f / q;
-                        for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
                     }
                     if (keep) {
+                        float F[HERO_C];
+                        sw_weights(&sw, a_h, band_spi, F);
+                        const float iq = 1.0f / q;
+                        for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
                         uint i = atomic_inc(store_count);
                         if (i < P->capacity) {
                             store_pos_w[i] = (float4)(t.pos, F[0]);
@@ -232,7 +231,7 @@ __kernel void photon_pass(VOLUME_ARGS,
                     if (rng_u01(&rng) * P->rr_m <= 1.0f) {
                         long g2 = W * (long)(P->rr_m) - W;
                         gain += g2; W += g2;
-                        sw_roulette(&sw, P->rr_m);
+                        sw_scale(&sw, P->rr_m);
                     } else {
                         loss += W; W = 0;
                     }

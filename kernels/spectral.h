@@ -22,8 +22,10 @@
  * Far bands' rho drift apart over a long path (a path typical for red is atypical for blue), so
  * the balance heuristic then gives the event to the band with the largest s pi-weighted pdf:
  * bounded weights (F_j <= s A_j / pi(b_j)), never worse than one band per path in variance
- * beyond a constant; the benefit is largest for the short paths near the surface.  rho is
- * renormalised by its largest entry at every collision (only ratios enter F).
+ * beyond a constant; the benefit is largest for the short paths near the surface.  rho is kept
+ * as exp(lr) hr: the free-flight and collision factors as a log (a multiply-add per band and
+ * segment, no exponential on the hot path), the phase-function factors as a product
+ * renormalised at every scattering (only ratios enter F).
  */
 #ifndef CLPPM_SPECTRAL_H
 #define CLPPM_SPECTRAL_H
@@ -39,7 +41,8 @@
 typedef struct {
     int h;
 #if HERO_C > 1
-    float rho[HERO_C];
+    float lr[HERO_C];   /* log of the flight part of rho: -(mu_t(b_k) - mu_t(h)) l, log mu_t ratios */
+    float hr[HERO_C];   /* the phase-function part of rho, renormalised by its largest entry */
     float A[HERO_C];
 #endif
 } Spectral;
@@ -56,51 +59,56 @@ inline int sw_band(int h, int j) {
 inline void sw_init(Spectral* w, int h) {
     w->h = h;
 #if HERO_C > 1
-    for (int j = 0; j < HERO_C; ++j) { w->rho[j] = 1.0f; w->A[j] = 1.0f; }
+    for (int j = 0; j < HERO_C; ++j) { w->lr[j] = 0.0f; w->hr[j] = 1.0f; w->A[j] = 1.0f; }
 #endif
 }
 
-/* a free-flight segment of length l in layer L (hero mu_t mut_h), ending anywhere */
+/* a free-flight segment of length l in layer L (hero mu_t mut_h), ending anywhere: kept in the
+ * log domain, one multiply-add per band (no exponential on the hot path) */
 inline void sw_flight(Spectral* w, __global const float4* optics, int L, float mut_h, float l) {
 #if HERO_C > 1
-    for (int j = 1; j < HERO_C; ++j) {
-        const float m = optics[L * NB + sw_band(w->h, j)].w;
-        w->rho[j] *= exp(-(m - mut_h) * l);
-    }
+    for (int j = 1; j < HERO_C; ++j)
+        w->lr[j] -= (optics[L * NB + sw_band(w->h, j)].w - mut_h) * l;
 #endif
 }
 
-/* a collision in layer L: mu_t ratio of the collision density, absorption per band */
-inline void sw_collide(Spectral* w, __global const float4* optics, int L, float4 op_h) {
+/* a collision in layer L: the mu_t ratio of the collision density (log mu_t from the table
+ * logmu), absorption per band */
+inline void sw_collide(Spectral* w, __global const float4* optics, __global const float* logmu,
+                       int L, float4 op_h) {
 #if HERO_C > 1
     w->A[0] *= 1.0f - op_h.x;
+    const float lh = logmu[L * NB + w->h];
     for (int j = 1; j < HERO_C; ++j) {
-        const float4 o = optics[L * NB + sw_band(w->h, j)];
-        w->rho[j] *= o.w / op_h.w;
-        w->A[j] *= 1.0f - o.x;
+        const int b = sw_band(w->h, j);
+        w->lr[j] += logmu[L * NB + b] - lh;
+        w->A[j] *= 1.0f - optics[L * NB + b].x;
     }
 #endif
 }
 
-/* a scattering in layer L by cos_t (sampled with the hero's g): phase-function ratios */
+/* a scattering in layer L by cos_t (sampled with the hero's g): phase-function ratios,
+ * HG(g_j)/HG(g_h) = (1-g_j^2)/(1-g_h^2) (a_h/a_j)^(3/2), a = 1 + g^2 - 2 g cos */
 inline void sw_scatter(Spectral* w, __global const float4* optics, int L, float g_h, float cos_t) {
 #if HERO_C > 1
-    const float ph = hg_eval(g_h, cos_t);
-    float mx = w->rho[0];
+    const float ah = 1.0f + g_h * g_h - 2.0f * g_h * cos_t;
+    const float nh = 1.0f / (1.0f - g_h * g_h);
+    float mx = w->hr[0];
     for (int j = 1; j < HERO_C; ++j) {
         const float g = optics[L * NB + sw_band(w->h, j)].y;
-        w->rho[j] *= hg_eval(g, cos_t) / ph;
-        mx = fmax(mx, w->rho[j]);
+        const float r = ah / (1.0f + g * g - 2.0f * g * cos_t);
+        w->hr[j] *= (1.0f - g * g) * nh * r * sqrt(r);
+        mx = fmax(mx, w->hr[j]);
     }
     if (mx > 0.0f && isfinite(mx)) {
         const float inv = 1.0f / mx;
-        for (int j = 0; j < HERO_C; ++j) w->rho[j] *= inv;
+        for (int j = 0; j < HERO_C; ++j) w->hr[j] *= inv;
     }
 #endif
 }
 
-/* Russian roulette survival: every band's weight grows by m */
-inline void sw_roulette(Spectral* w, float m) {
+/* a band-independent weight factor (the Fresnel transmission at entry, Russian roulette's m) */
+inline void sw_scale(Spectral* w, float m) {
 #if HERO_C > 1
     for (int j = 0; j < HERO_C; ++j) w->A[j] *= m;
 #endif
@@ -109,11 +117,17 @@ inline void sw_roulette(Spectral* w, float m) {
 /* F_j of a stored event (see above); a_h is the hero's albedo product (its fixed-point weight) */
 inline void sw_weights(const Spectral* w, float a_h, __global const float2* band_spi, float* F) {
 #if HERO_C > 1
+    float lm = w->lr[0];
+    for (int j = 1; j < HERO_C; ++j) lm = fmax(lm, w->lr[j]);
+    float rho[HERO_C];
     float den = 0.0f;
-    for (int j = 0; j < HERO_C; ++j) den += band_spi[sw_band(w->h, j)].y * w->rho[j];
+    for (int j = 0; j < HERO_C; ++j) {
+        rho[j] = w->hr[j] * exp_neg(lm - w->lr[j]);
+        den += band_spi[sw_band(w->h, j)].y * rho[j];
+    }
     const float inv = den > 0.0f ? 1.0f / den : 0.0f;
     for (int j = 0; j < HERO_C; ++j)
-        F[j] = band_spi[sw_band(w->h, j)].x * w->A[j] * w->rho[j] * inv;
+        F[j] = band_spi[sw_band(w->h, j)].x * w->A[j] * rho[j] * inv;
 #else
     const float2 sp = band_spi[w->h];
     F[0] = sp.x / sp.y * a_h;

@@ -77,3 +77,10 @@ __kernel void t_fastmath(float g, uint n, __global const float* u, __global floa
     cs[i] = azimuth_cs(u[i]);
     hg[i] = hg_sample_cos(g, u[i]);
 }
+
+/* exp_neg of common.h (the beam gather's transmittance) */
+__kernel void t_exp_neg(uint n, __global const float* x, __global float* out) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    out[i] = exp_neg(x[i]);
+}

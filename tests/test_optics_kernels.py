@@ -337,6 +337,24 @@ def test_fast_log_azimuth_hg(dev, prg):
     np.testing.assert_allclose(hg, hg_quantile(float(g), ud), atol=3e-5)
 
 
+def test_exp_neg(dev, prg):
+    """common.h's library-free exp(-x) against float64 over the optical depths the beam gather
+    meets (0 .. 90, dense near 0 and at every power-of-two seam), and 0 beyond exp(-87)."""
+    x = np.concatenate([np.linspace(0, 90, 200_001), 2.0 ** np.arange(-24, 7),
+                        np.log(2) * np.arange(0, 126) + np.float32(1e-7), [0.0, 1e30, np.inf]])
+    x32 = x.astype(np.float32)
+    n = len(x32)
+    out, ob = _out(dev, n)
+    prg.t_exp_neg(dev.queue, (global_size(n),), None, np.uint32(n), _buf(dev, x32), ob)
+    out = _get(dev, out, ob)
+    want = np.exp(-x32.astype(np.float64))
+    ok = want > 1.2e-38
+    # float32 y = x log2(e) carries a relative error of 2^-24 y: ~6e-8 x in the result
+    rel = np.abs(out[ok] / want[ok] - 1)
+    assert np.all(rel < 3e-7 + 8e-8 * x32[ok]), float(np.max(rel / (3e-7 + 8e-8 * x32[ok])))
+    assert np.all(out[x32 > 88] == 0.0) and np.all(out >= 0)
+
+
 # ----------------------------------------------------------------------- Fresnel
 @pytest.mark.parametrize("n1,n2", [(1.0, 1.4), (1.4, 1.0), (1.0, 1.5), (1.5, 1.34), (1.34, 1.4)])
 def test_fresnel_vs_analytic(dev, prg, n1, n2):
