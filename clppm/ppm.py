@@ -300,7 +300,8 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
             np.float64(pass_scale))
     extra = grid.sextra.data if grid.sextra is not None else sc.pp.extra
     if sc.beam:
-        sc.kernels["gather_beam"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,
+        sc.kernels["gather_beam"](q, (_round(sc.npix),), (64,), grid.params, sc.pp.pbuf, sc.vbuf.iface,
+                                  sc.vbuf.heights, grid.cell_start.data,
                                   grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
                                   e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, *tail)
     else:

@@ -268,20 +268,60 @@ __kernel void count_within(const GridParams gp,
  * normalised kernel K, the integral over t can be done for each photon exactly:
  *   L ~ tw * sum_p Phi_p HG(w_p . w_eye) * integral T(t) K(x(t) - x_p) dt.
  * K here is a disc of radius R in the horizontal plane times a delta in depth:
- *   K(u) = delta(u.z) [|u.xy| < R] / (pi R^2)   ->   integral = T(t*) [rho < R] / (pi R^2 |d.z|),
- * t* where the ray reaches the photon's depth, rho the horizontal distance there.  The kernel never
- * reaches across depth, so the jumps of S at the flat layer interfaces (mu_s changes 4x between
- * epidermis and dermis) and the steep depth profile of S cost no bias at all: what is smoothed is
- * only the lateral variation, and a symmetric disc's bias is second order in R there
- * (R^2/8 laplacian_xy S).  The sample points keep the paper's role as owners of path cells: each
- * has its own R (progressive per point, in 2-D: R'^2 = R^2 (N + alpha M)/(N + M)), and its cell's
- * pieces (straight, one layer each) are integrated exactly, so no quadrature error is left from
- * the point placement either.  A piece nearly parallel to the surface (|d.z| < 1/2: after total
+ *   K(u) = delta(u.z) [|u.xy| < R] / A   ->   integral = T(t*) [rho < R] / (A |d.z|),
+ * t* where the ray reaches the photon's depth, rho the horizontal distance there, A the disc's
+ * area (pi R^2, less what lies beyond the model's sides: no skin, no photons there).  The kernel
+ * never reaches across depth, so the jumps of S at the layer interfaces (mu_s changes 4x between
+ * epidermis and dermis) and the steep depth profile of S cost no bias: what is smoothed is only
+ * the lateral variation, and a symmetric disc's bias is second order in R there (R^2/8 lap_xy S).
+ *
+ * Depth is measured in the layers' own coordinates.  Where a layer's top or bottom follows the
+ * relief or the papillae, a photon's depth is its fractional depth within its layer at its own
+ * column, placed at the same fraction of the layer at the eye ray's column (weight h_ray / h_photon,
+ * the Jacobian of that map): so the disc follows the furrows instead of reaching into the air
+ * over them (40 % of the plane 2 um below the plateau is furrow) and layers meet only layers.
+ * A photon of another layer never counts.  Flat layers: plain z (compiled away with FLAT).
+ *
+ * The sample points keep the paper's role as owners of path cells: each has its own R
+ * (progressive per point, in 2-D: R'^2 = R^2 (N + alpha M)/(N + M)), and its cell's pieces
+ * (straight, one layer each) are integrated exactly, so no quadrature error is left from the
+ * point placement either.  A piece nearly parallel to the surface (|d.z| < 1/2: after total
  * internal reflection at a furrow wall) uses the disc perpendicular to itself instead (the beam
- * radiance estimate of Jarosz, Zwicker & Jensen 2008), whose depth smoothing is then unavoidable.
+ * radiance estimate of Jarosz, Zwicker & Jensen 2008), whose depth smoothing is unavoidable.
  * T(t*) is per band, from the optical depth at the piece's start plus mu_t of the piece's layer.
- * Phase: the photon's own layer's g (the scattering happens at the photon). */
+ * Phase: the photon's layer's g (the scattering happens at the photon). */
+
+/* Area of the disc (centre c, radius R) inside the model's footprint [x0, x0 + xw] x [y0, y0 + yw]:
+ * pi R^2 less the circular segments beyond the nearest x and y sides, plus their overlap beyond
+ * the corner (R is far below the model's size, so no two parallel sides are within R). */
+inline float seg_area(float d, float R) {          /* beyond a line at distance d from the centre */
+    if (d >= R) return 0.0f;
+    d = fmax(d, -R);
+    return R * R * acos(d / R) - d * sqrt(fmax(R * R - d * d, 0.0f));
+}
+
+inline float prim_circ(float x, float R) {         /* integral of sqrt(R^2 - x^2) dx */
+    x = clamp(x, -R, R);
+    return 0.5f * (x * sqrt(fmax(R * R - x * x, 0.0f)) + R * R * asin(x / R));
+}
+
+inline float disc_area(__constant const Params* P, float2 c, float R) {
+    const float full = PI_F * R * R;
+    if (P->lateral == 0) return full;
+    const float dx = fmin(c.x - P->x0, P->x0 + P->xw - c.x);
+    const float dy = fmin(c.y - P->y0, P->y0 + P->yw - c.y);
+    float a = full - seg_area(dx, R) - seg_area(dy, R);
+    if (dx < R && dy < R && dx * dx + dy * dy < R * R) {        /* the corner's part, removed twice */
+        const float xe = sqrt(fmax(R * R - dy * dy, 0.0f));
+        a += prim_circ(xe, R) - prim_circ(dx, R) - dy * (xe - dx);
+    }
+    return fmax(a, 1e-3f * full);
+}
+
 __kernel void gather_beam(const GridParams gp,
+                          __constant const Params* P,       /* the volume: columns, sides */
+                          __constant const float4* iface,
+                          __global const float* heights,
                           __global const uint* cell_start,
                           __global const float4* spos_w,
                           __global const float4* sdir_b,
@@ -328,9 +368,20 @@ __kernel void gather_beam(const GridParams gp,
                     const int vert = fabs(d.z) >= 0.5f;
                     const float inv_dz = vert ? 1.0f / d.z : 0.0f;
                     const float wax = vert ? fabs(inv_dz) : 1.0f;       /* 1 / |d . axis| */
+                    /* layer-conforming depth (see above): the layer at the ray's column */
+                    int conform = 0;
+                    float2 tb_r = (float2)(0.0f);
+                    float zpad = 0.0f;
+#ifndef FLAT
+                    if (vert && (IF_VAR(Lk) >= 0 || (Lk + 1 <= NL && IF_VAR(Lk + 1) >= 0))) {
+                        conform = 1;
+                        tb_r = layer_slab(P, iface, heights, s0 + 0.5f * len * d, Lk);
+                        zpad = fmax(IF_ZMAX(Lk) - IF_ZMIN(Lk), IF_ZMAX(Lk + 1) - IF_ZMIN(Lk + 1)) + 1.0f;
+                    }
+#endif
                     const float3 e = s0 + len * d;
                     const float Rp = R * (1.0f + GRID_R_PAD);
-                    const float zp = vert ? 1e-3f + 1e-6f * fabs(s0.z) : Rp;
+                    const float zp = vert ? 1e-3f + 1e-6f * fabs(s0.z) + zpad : Rp;
                     const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, fmin(s0.z, e.z) - zp);
                     const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, fmax(s0.z, e.z) + zp);
                     const int4 c0 = grid_coords(gp, lo), c1 = grid_coords(gp, hi);
@@ -341,9 +392,24 @@ __kernel void gather_beam(const GridParams gp,
                         const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
                         for (uint j = jb; j < je; ++j) {
                             const float4 p = spos_w[j];
+                            const float4 dd = sdir_b[j];
+                            const int bl = (int)dd.w;
+                            float pz = p.z, wl = 1.0f;
+#ifndef FLAT
+                            if (conform) {
+                                if ((bl >> 8) != Lk) continue;
+                                const float2 tb_p = layer_slab(P, iface, heights, p.xyz, Lk);
+                                if (tb_p.y > -1e29f && tb_r.y > -1e29f) {
+                                    wl = (tb_r.x - tb_r.y) / fmax(tb_p.x - tb_p.y, 1e-3f);
+                                    pz = tb_r.x - (tb_p.x - p.z) * wl;
+                                } else {
+                                    pz = tb_r.x - (tb_p.x - p.z);
+                                }
+                            }
+#endif
                             float ts, rho2;
                             if (vert) {
-                                ts = (p.z - s0.z) * inv_dz;
+                                ts = (pz - s0.z) * inv_dz;
                                 const float qx = s0.x + ts * d.x - p.x, qy = s0.y + ts * d.y - p.y;
                                 rho2 = qx * qx + qy * qy;
                             } else {
@@ -353,18 +419,17 @@ __kernel void gather_beam(const GridParams gp,
                                 rho2 = dot(q, q);
                             }
                             if (!(ts >= 0.0f && ts < len && rho2 < R2)) continue;
-                            const float4 dd = sdir_b[j];
-                            const int bl = (int)dd.w;
                             const float cw = dot(dd.xyz, d);                   /* w_eye = -d */
+                            const float wk = p.w * wax * wl;
                             __global const float4* hg = hgtab + (bl >> 8) * NB;
                             for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
                                 const int b = sw_band(bl & 255, c);
-                                const float w = c == 0 ? p.w : sextra[(size_t)j * (HERO_C - 1) + c - 1];
+                                const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl;
                                 const float4 h = hg[b];
                                 const float q = h.x + h.y * cw;
                                 const float rq = native_rsqrt(q);
                                 const float T = exp_neg(od[b] + mut_k[b].w * ts);
-                                acc[b] = add_sat(acc[b], (long)fmin(h.z * rq * rq * rq * w * T * wax * FIX, 9.0e18f));
+                                acc[b] = add_sat(acc[b], (long)fmin(h.z * rq * rq * rq * w * T * FIX, 9.0e18f));
                             }
                             ++M;
                         }
@@ -373,7 +438,7 @@ __kernel void gather_beam(const GridParams gp,
                 for (int b = 0; b < NB; ++b) od[b] += optics[Lk * NB + b].w * len;
             }
             if (R > 0.0f) {
-                const float f = pp.w / (PI_F * R2) * INV_FIX;
+                const float f = pp.w / disc_area(P, pp.xy, R) * INV_FIX;
                 for (int b = 0; b < NB; ++b)
                     if (acc[b] != 0) accp[b] += f * (float)acc[b];
             }
