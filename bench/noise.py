@@ -74,7 +74,6 @@ def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, m
     for k, v in overrides.items():
         c = C.override(c, "render", k, v)
     snaps = []
-    mask_exp = {}
     for s in seeds:
         shots = {}
         sched = schedule(max_passes)
@@ -94,13 +93,11 @@ def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, m
 
         if snaps:                               # the second seed runs the first one's passes
             limit["passes"] = max(snaps[0].keys())
-        res = None
         try:
-            res = render(c, seed=s, passes=max_passes, dev=dev, snapshot_every=1, on_snapshot=on_snapshot)
+            render(c, seed=s, passes=max_passes, dev=dev, snapshot_every=1, on_snapshot=on_snapshot)
         except Stop:
             pass
         snaps.append(shots)
-    from clppm.progressive import RenderResult   # noqa: F401  (type only)
     common = sorted(set(snaps[0]) & set(snaps[1]))
     # skin pixels and exposure from a one-pass render's report (same for both seeds)
     rep0 = snaps[0][common[-1]][2]

@@ -1,34 +1,39 @@
-"""``clppm compare``: speed against accuracy of the sampling schemes a-f.
+"""``clppm compare``: speed against accuracy of the sampling schemes a-f, both estimators and
+the path tracer.
 
-For one scene, every method is rendered progressively until its time budget is spent; at a
-geometric schedule of passes (and at the last one) the image is compared with a converged
-reference (:mod:`clppm.reference`, computed once and cached) over the skin pixels:
+For one scene, every method is rendered progressively until its time budget is spent, in the
+new default mode and in the paper's mode (config.PAPER_MODE: every event stored, one band per
+path, the sphere estimator); the path tracer runs too, where the scene allows it.  At a
+geometric schedule of passes (and at the last one) each image is compared with a converged
+reference (:mod:`clppm.reference`, computed once and cached): the unbiased path tracer where
+the scene allows it (flat, point light), else a long PPM run.  The comparison is over squares
+of ``block`` x ``block`` skin pixels (the path tracer's reference pixels), so that it measures
+bias plus the noise left at that scale:
 
-* RMSE of linear XYZ (white diffuser at the image centre = 1),
-* mean CIEDE2000,
-* mean chromaticity shift u'v', signed (test - reference), per pixel and of the mean skin
-  colour, and mean signed Δb* (b* < 0: bluer) -- so a bluish cast of method a shows as a
-  negative Δv' / Δb*,
-* mean FLIP (LDR, of the displayed images) when ``flip-evaluator`` is installed.
+* ``block_Y_rms`` / ``block_Y_max``: relative error of Y per square (RMS, largest),
+* ``de2000``: mean CIEDE2000 of the squares, ``de_mean``: CIEDE2000 of the mean skin colour,
+* ``group_max``: largest relative error of the mean skin radiance in a 50-nm band group,
+* RMSE of linear XYZ, mean signed Δb*, chromaticity of the mean colour (as before).
 
-Time is the render's own stage time (eye + photon + grid + gather seconds from its report):
-the host-side volume build (shared by all methods, memoised here) and the snapshot overhead
-(reading the image back and converting it) are left out.
+The per-pixel noise of one image is measured by ``bench/noise.py`` (two seeds).
 
-Outputs (``-o DIR``): ``compare.png`` (error against seconds, log-log, one curve per method),
-``compare.md`` and ``compare.json`` (the same numbers; Table 1 of sample points per layer
-beside the paper's; the colour-shift experiment), and the final image of each method.
+Time is the render's own stage time (eye + calibration + photon + grid + gather seconds, or
+the path tracer's trace seconds): the host-side volume build (memoised here) and the snapshot
+overhead are left out.
+
+Outputs (``-o DIR``): ``compare.png`` (error against seconds, log-log, one curve per method and
+mode, the path tracer in black), ``compare.md`` and ``compare.json`` (the same numbers; Table 1
+of sample points per layer beside the paper's; the colour-shift experiment), and the final
+image of each run.
 
 The colour-shift experiment (:func:`colour_shift_experiment`) tests the paper's explanation
 of method a's bluish cast ("with closely spaced sample points the same stored photon is
 reused by many sample points, and short-wavelength photons, stored more often near the
-surface, weigh in more"): it renders equal spacings (4, 7, 14, 28 um ...) at several stored
-photon counts per pass with the same seed (common random numbers: the same photons for every
-spacing) and records the mean skin colour's shift against the reference next to the reuse
-factor (gather pairs / stored photons: how many sample points count a stored photon on
-average).  If reuse caused a colour bias, the shift would grow with the reuse factor:
-with spacing at fixed photons, and fall with more photons per pass (smaller radius) at fixed
-spacing.
+surface, weigh in more"): it renders equal spacings (4, 7, 14, 28 um ...) in paper mode at
+several stored photon counts per pass with the same seed (the same photons for every spacing)
+and records the mean skin colour's shift against the reference next to the reuse factor
+(gather pairs / stored photons).  If reuse caused a colour bias, the shift would grow with the
+reuse factor.
 """
 from __future__ import annotations
 
@@ -41,32 +46,38 @@ import time
 
 import numpy as np
 
+from . import config as C
 from . import image
-from .reference import RefSpec, cached_volumes, error_metrics, flip_available, get_reference, skin_mask
+from .reference import (RefSpec, accuracy, cached_volumes, error_metrics, get_reference, pt_possible,
+                        skin_mask)
 
 METHODS = "abcdef"
-STAGES = ("eye", "photon", "grid", "gather")
+STAGES = ("eye", "calibration", "photon", "grid", "gather", "trace")
+MODES = {"default": {}, "paper": C.PAPER_MODE}
 
 QUICK = {
     "resolution": (80, 60),
-    "photons": 50_625,            # the paper's 810,000 per 320x240, per pixel
     "budget": 20.0,
-    "max_passes": 200,
-    "ref": {"photons": 405_000, "passes": 40, "initial_photons": 200},
+    "max_passes": 400,
+    "paper_methods": "e",
+    "ref_paths": 300_000,         # path-tracer reference: paths per 10x10-pixel square and half
+    "ref_ppm_passes": 40,         # PPM reference (scenes the path tracer cannot render)
     "shift_spacings": (4.0, 7.0, 14.0, 28.0),
     "shift_photons": (12_656, 50_625, 202_500),
     "shift_passes": 2,
 }
-FULL = {
-    "resolution": (160, 120),
-    "photons": 202_500,
-    "budget": 600.0,
-    "max_passes": 200,
-    "ref": {"photons": 1_620_000, "passes": 120, "initial_photons": 200},
+STANDARD = {
+    "resolution": (80, 60),
+    "budget": 90.0,
+    "max_passes": 2000,
+    "paper_methods": "abcdef",
+    "ref_paths": 1_500_000,
+    "ref_ppm_passes": 200,
     "shift_spacings": (4.0, 7.0, 14.0, 28.0),
     "shift_photons": (50_625, 202_500, 810_000),
-    "shift_passes": 8,
+    "shift_passes": 4,
 }
+BLOCK = 10
 
 
 class _Stop(Exception):
@@ -96,58 +107,100 @@ def schedule(max_passes: int, ratio: float = 1.25) -> set:
     return out
 
 
-# ----------------------------------------------------------------------------- one method
-def run_method(cfg: dict, method: str, ref, *, budget: float, max_passes: int, photons: int,
-               seed: int | None = None, spacing: float | None = None, dev=None, flip: bool = False,
-               log=print) -> dict:
-    """Render ``method`` until ``budget`` render seconds; error against ``ref`` at snapshots."""
+# ----------------------------------------------------------------------------- one run
+def _snapshot(p: int, t: float, wall: float, res, ref, extra: dict) -> dict:
+    m = accuracy(res.xyz, res.spectral, ref)
+    r = res.report
+    return {"pass": p, "seconds": t, "wall": wall,
+            "stage_seconds": {k: r["seconds"].get(k, 0.0) for k in STAGES}, **extra, **m}
+
+
+def run_method(cfg: dict, method: str, ref, *, budget: float, max_passes: int, mode: str = "default",
+               photons: int | None = None, seed: int | None = None, spacing: float | None = None,
+               dev=None, log=print) -> dict:
+    """Render ``method`` in ``mode`` until ``budget`` render seconds; accuracy at snapshots."""
     from .progressive import render
-    w, h = ref.xyz.shape[1], ref.xyz.shape[0]
+    c = cfg
+    for k, v in MODES[mode].items():
+        c = C.override(c, "render", k, v)
+    w, h = ref.spec.resolution
     sched = schedule(max_passes)
     snaps: list = []
     last = {}
 
     def on_pass(p, st):
-        last["pt_R"] = st["pt_R"]
+        last["pt_R"], last["scale"] = st["pt_R"], st.get("radius_scale", 1.0)
 
     def on_snapshot(p, wall, res):
         t = render_seconds(res.report)
-        due = p in sched or t >= budget or p >= max_passes
-        if due:
-            m = error_metrics(res.xyz, ref.xyz, ref.mask, ref.exposure, res.rgb, ref.rgb, flip=flip)
+        if p in sched or t >= budget or p >= max_passes:
             r = res.report
-            # the reference's own noise adds in quadrature to the RMSE; take it out
-            m["rmse_xyz_net"] = math.sqrt(max(m["rmse_xyz"] ** 2 - ref.error["rmse_xyz"] ** 2, 0.0))
-            snaps.append({"pass": p, "seconds": t, "wall": wall, "R_median_um": median_radius(last, r),
-                          "stage_seconds": {k: r["seconds"].get(k, 0.0) for k in STAGES},
-                          "photons_emitted": r["photons_emitted"], "photons_stored": r["photons_stored"],
-                          "gather_pairs": r["gather_pairs"], **m})
+            R = median_radius(last, r)
+            snaps.append(_snapshot(p, t, wall, res, ref, {
+                "R_median_um": None if R is None else R * last.get("scale", 1.0),
+                "photons_emitted": r["photons_emitted"], "photons_stored": r["photons_stored"],
+                "gather_pairs": r["gather_pairs"]}))
         last["res"] = res
         if t >= budget:
             raise _Stop
 
     t0 = time.perf_counter()
     try:
-        render(cfg, method=method, spacing=spacing, passes=max_passes, photons=photons, resolution=(w, h),
+        render(c, method=method, spacing=spacing, passes=max_passes, photons=photons, resolution=(w, h),
                seed=seed, dev=dev, snapshot_every=1, on_snapshot=on_snapshot, on_pass=on_pass)
     except _Stop:
         pass
     res = last["res"]
     r = res.report
     f = snaps[-1]
-    log(f"  {method}: {f['pass']} passes, {f['seconds']:.1f} s render ({time.perf_counter() - t0:.0f} s wall), "
-        f"RMSE {f['rmse_xyz']:.4f}, dE00 {f['de2000']:.2f}, du'v' mean colour ({f['du_mean']:+.4f}, "
-        f"{f['dv_mean']:+.4f}), db* {f['db']:+.2f}, median R {f['R_median_um'] or 0:.0f} um" + (f", FLIP {f['flip']:.3f}" if "flip" in f else ""))
+    log(f"  {mode} {method}: {f['pass']} passes, {f['seconds']:.1f} s ({time.perf_counter() - t0:.0f} s wall): "
+        f"Y per square {100 * f['block_Y_rms']:.2f} % RMS ({100 * f['block_Y_max']:.2f} % max), "
+        f"dE00 {f['de2000']:.2f}, mean colour dE00 {f['de_mean']:.2f}, band groups "
+        f"{100 * f['group_max']:.2f} % max, db* {f['db']:+.2f}, median R {f['R_median_um'] or 0:.0f} um")
     return {
-        "method": method, "scheme": r["scheme"], "snapshots": snaps,
+        "method": method, "mode": mode, "scheme": r["scheme"], "snapshots": snaps,
         "passes": f["pass"], "seconds": f["seconds"],
         "sample_points": r["sample_points"], "eye_rays_hit": r["eye_rays_hit"],
         "sample_points_per_ray_per_layer": r["sample_points_per_ray_per_layer"],
         "first_search_mean_photons": r.get("first_search_mean_photons"),
         "reuse": r["gather_pairs"] / max(r["photons_stored"], 1),
-        "final": {k: v for k, v in f.items() if k not in ("stage_seconds",)},
+        "final": dict(f),
         "_rgb": res.rgb, "_exposure": res.exposure,
     }
+
+
+def run_pt(cfg: dict, ref, *, budget: float, seed: int | None = None, dev=None, log=print,
+           samples_per_pass: int = 4) -> dict:
+    """The path tracer at the compared resolution until ``budget`` trace seconds."""
+    from .pathtracer import render_pt
+    w, h = ref.spec.resolution
+    c = C.override(cfg, "render", "pt_samples_per_pass", samples_per_pass)
+    snaps: list = []
+    last = {}
+    sched = schedule(10**6)
+
+    def on_snapshot(p, wall, res):
+        t = float(res.report["seconds"].get("trace", 0.0))
+        if p in sched or t >= budget:
+            snaps.append(_snapshot(p, t, wall, res, ref, {"paths": res.report.get("paths_traced")}))
+        last["res"] = res
+        if t >= budget:
+            raise _Stop
+
+    t0 = time.perf_counter()
+    try:
+        render_pt(c, passes=10**6, resolution=(w, h), seed=seed, dev=dev, snapshot_every=1,
+                  on_snapshot=on_snapshot)
+    except _Stop:
+        pass
+    res = last["res"]
+    f = snaps[-1]
+    log(f"  path tracer: {f['pass']} passes ({f['paths']:,} paths), {f['seconds']:.1f} s "
+        f"({time.perf_counter() - t0:.0f} s wall): Y per square {100 * f['block_Y_rms']:.2f} % RMS, "
+        f"dE00 {f['de2000']:.2f}, mean colour dE00 {f['de_mean']:.2f}")
+    return {"method": "pt", "mode": "pt", "scheme": "path tracer (unbiased)", "snapshots": snaps,
+            "passes": f["pass"], "seconds": f["seconds"], "final": dict(f),
+            "_rgb": res.rgb, "_exposure": res.exposure}
 
 
 # ----------------------------------------------------------------------------- colour shift
@@ -164,15 +217,15 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
     shift of the finest spacing minus the coarsest, and the fitted slopes of Δv' and Δb*
     against log(reuse).
     """
-    from . import config as C
     from .progressive import render
+    from .reference import block_mean
     log = log or (lambda *a, **k: None)
     cfg = C.paper_mode(cfg)               # reuse by overlapping spheres is the paper's estimator's
     if resolution is None:
-        resolution = tuple(cfg["camera"]["resolution"]) if ref is None else (ref.xyz.shape[1], ref.xyz.shape[0])
+        resolution = tuple(cfg["camera"]["resolution"]) if ref is None else tuple(ref.spec.resolution)
     rows, imgs = [], {}
     with cached_volumes():
-        mask = ref.mask if ref is not None else None
+        mask = None
         for n in photons:
             for s in spacings:
                 last = {}
@@ -196,15 +249,17 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
                 rows.append(row)
                 log(f"  spacing {s:g} um, {n} photons/pass: reuse {row['reuse']:.0f}, "
                     f"u'v' ({row['u']:.4f}, {row['v']:.4f}), b* {row['b']:.2f}")
+    b, bmask = 1, mask
     if ref is not None:
         base_xyz, base_exp, against = ref.xyz, ref.exposure, f"reference {ref.key}"
+        b, bmask = ref.block, ref.mask
     else:
         k = (float(min(spacings)), int(max(photons)))
         base_xyz, base_exp = imgs[k]
         against = f"spacing {k[0]:g} um at {k[1]} photons/pass"
     for row in rows:
         xyz, e = imgs[(row["spacing_um"], row["photons"])]
-        m = error_metrics(xyz * (e / base_exp), base_xyz, mask, base_exp)
+        m = error_metrics(block_mean(xyz, b) * (e / base_exp), base_xyz, bmask, base_exp)
         row.update({k: m[k] for k in ("du_mean", "dv_mean", "du", "dv", "db", "da", "dL", "dY",
                                       "de2000", "rmse_xyz")})
     summary = []
@@ -269,16 +324,18 @@ def _time_to(xs, ys, target):
     return None
 
 
-def summarise(runs: dict) -> dict:
+def summarise(runs: dict, key: str = "block_Y_rms") -> dict:
+    """Per run: the error ``key`` at the shortest run's time (log-log interpolated) and the
+    time to the largest final error of all runs."""
     t_eq = min(r["seconds"] for r in runs.values())
-    e_eq = max(r["final"]["de2000"] for r in runs.values())
-    out = {"equal_time_s": t_eq, "equal_de2000": e_eq, "methods": {}}
-    for m, r in runs.items():
+    e_eq = max(r["final"][key] for r in runs.values())
+    out = {"key": key, "equal_time_s": t_eq, "equal_error": e_eq, "runs": {}}
+    for name, r in runs.items():
         xs = [s["seconds"] for s in r["snapshots"]]
-        out["methods"][m] = {
-            "rmse_at_equal_time": _interp_loglog(xs, [s["rmse_xyz"] for s in r["snapshots"]], t_eq),
+        out["runs"][name] = {
+            "at_equal_time": _interp_loglog(xs, [s[key] for s in r["snapshots"]], t_eq),
             "de2000_at_equal_time": _interp_loglog(xs, [s["de2000"] for s in r["snapshots"]], t_eq),
-            "seconds_to_equal_de2000": _time_to(xs, [s["de2000"] for s in r["snapshots"]], e_eq),
+            "seconds_to_equal_error": _time_to(xs, [s[key] for s in r["snapshots"]], e_eq),
         }
     return out
 
@@ -301,29 +358,31 @@ def table1_markdown(runs: dict) -> str:
 
 def results_markdown(runs: dict, summ: dict, ref) -> str:
     from .skin import PAPER_RENDER_TIME_S
-    has_flip = any("flip" in r["final"] for r in runs.values())
-    head = ("| method | scheme | passes | seconds | points | R (um) | RMSE XYZ | net of ref noise | ΔE00 | Δu' | Δv' | Δb* |"
-            + (" FLIP |" if has_flip else "")
-            + f" RMSE @ {summ['equal_time_s']:.0f} s | ΔE00 @ {summ['equal_time_s']:.0f} s |"
-            + f" s to ΔE00 ≤ {summ['equal_de2000']:.2f} | paper s (200 passes) |")
+    t = summ["equal_time_s"]
+    head = ("| run | scheme | passes | seconds | R (um) | Y per square, RMS | max | ΔE00 | ΔE00 mean colour | "
+            f"band groups, max | Δb* | Y RMS @ {t:.0f} s | s to Y RMS ≤ {100 * summ['equal_error']:.1f} % | "
+            "paper s (200 passes) |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
-    for m, r in runs.items():
+    for name, r in runs.items():
         f = r["final"]
-        s = summ["methods"][m]
+        s = summ["runs"][name]
 
-        def g(x, fmt):
-            return "–" if x is None else format(x, fmt)
+        def g(x, fmt, scale=1.0):
+            return "–" if x is None else format(x * scale, fmt)
+        paper_s = PAPER_RENDER_TIME_S.get(r["method"]) if r["mode"] == "paper" else None
         lines.append(
-            f"| {m} | {r['scheme']} | {r['passes']} | {r['seconds']:.1f} | {r['sample_points']:,} | "
-            f"{f.get('R_median_um') or 0:.0f} | "
-            f"{f['rmse_xyz']:.4f} | {f['rmse_xyz_net']:.4f} | {f['de2000']:.2f} | {f['du_mean']:+.4f} | {f['dv_mean']:+.4f} | {f['db']:+.2f} |"
-            + (f" {f['flip']:.3f} |" if has_flip and "flip" in f else (" – |" if has_flip else ""))
-            + f" {g(s['rmse_at_equal_time'], '.4f')} | {g(s['de2000_at_equal_time'], '.2f')} |"
-            f" {g(s['seconds_to_equal_de2000'], '.1f')} | {PAPER_RENDER_TIME_S.get(m, float('nan')):.0f} |")
+            f"| {name} | {r['scheme']} | {r['passes']} | {r['seconds']:.1f} | {g(f.get('R_median_um'), '.0f')} | "
+            f"{100 * f['block_Y_rms']:.2f} % | {100 * f['block_Y_max']:.2f} % | {f['de2000']:.2f} | "
+            f"{f['de_mean']:.2f} | {100 * f['group_max']:.2f} % | {f['db']:+.2f} | "
+            f"{g(s['at_equal_time'], '.2f', 100)} % | {g(s['seconds_to_equal_error'], '.1f')} | "
+            f"{g(paper_s, '.0f')} |")
     e = ref.error
-    lines += ["", f"Reference noise (from its halves): RMSE XYZ {e['rmse_xyz']:.4f}, ΔE00 {e['de2000']:.3f}, "
-              f"Δu'v' of the mean colour ({e['du_mean']:+.1e}, {e['dv_mean']:+.1e}), Δb* {e['db']:+.3f}."
-              " Δu', Δv' are of the mean skin colour, Δb* the mean per pixel (negative: bluer)."]
+    lines += ["", f"Reference noise (from its halves), per {ref.block}x{ref.block}-pixel square: Y "
+              f"{100 * e['block_Y_rms']:.2f} % RMS, ΔE00 {e['de2000']:.3f}, mean colour ΔE00 {e['de_mean']:.3f}, "
+              f"band groups {100 * e['group_max']:.2f} %.  Smallest error reported: Y "
+              f"{100 * min(r['final']['block_Y_rms'] for r in runs.values()):.2f} % RMS "
+              f"(reference noise / smallest error = "
+              f"{e['block_Y_rms'] / max(min(r['final']['block_Y_rms'] for r in runs.values()), 1e-12):.2f})."]
     return "\n".join(lines)
 
 
@@ -333,22 +392,28 @@ def plot(runs: dict, ref, path: str, title: str = "") -> None:
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
     fmt = FuncFormatter(lambda x, _: f"{x:g}")
-    has_flip = any("flip" in s for r in runs.values() for s in r["snapshots"])
-    panels = [("rmse_xyz", "RMSE of linear XYZ (white = 1)", True),
-              ("de2000", "mean CIEDE2000", True),
-              ("flip" if has_flip else "rel_rmse", "mean FLIP (LDR)" if has_flip else "RMSE / mean skin Y", True),
-              ("du_mean", "Δu' of the mean skin colour (test − ref)", False),
-              ("dv_mean", "Δv' of the mean skin colour (test − ref)", False),
-              ("db", "mean Δb* (negative: bluer)", False)]
+    panels = [("block_Y_rms", "relative error of Y per 10x10 square (RMS)", True, 1.0),
+              ("de2000", "mean CIEDE2000 of the squares", True, 1.0),
+              ("de_mean", "CIEDE2000 of the mean skin colour", True, 1.0),
+              ("group_max", "largest 50-nm band-group error of the mean", True, 1.0),
+              ("db", "mean Δb* (negative: bluer)", False, 1.0),
+              ("dv_mean", "Δv' of the mean skin colour", False, 1.0)]
     fig, axs = plt.subplots(2, 3, figsize=(15, 8.5))
     colors = dict(zip(METHODS, ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown"]))
-    for ax, (k, lab, log) in zip(axs.ravel(), panels):
-        for m, r in runs.items():
-            pts = [(s["seconds"], s[k]) for s in r["snapshots"] if k in s]
+    for ax, (k, lab, log, sc) in zip(axs.ravel(), panels):
+        for name, r in runs.items():
+            pts = [(s["seconds"], s[k] * sc) for s in r["snapshots"] if k in s]
             if not pts:
                 continue
             xs, ys = zip(*pts)
-            ax.plot(xs, ys, "o-", ms=3, color=colors.get(m), label=f"{m}) {r['scheme'].split(') ', 1)[-1]}")
+            if log:
+                xs, ys = zip(*[(x, y) for x, y in zip(xs, ys) if y > 0] or [(xs[0], 1e-9)])
+            if r["mode"] == "pt":
+                ax.plot(xs, ys, "s-", ms=3, lw=2, color="black", label="path tracer")
+            else:
+                ax.plot(xs, ys, "o-" if r["mode"] == "default" else "o--", ms=3,
+                        color=colors.get(r["method"]), alpha=1.0 if r["mode"] == "default" else 0.6,
+                        label=f"{r['method']} {r['mode']}")
         ax.set_xscale("log")
         ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
         ax.xaxis.set_major_formatter(fmt)
@@ -365,7 +430,7 @@ def plot(runs: dict, ref, path: str, title: str = "") -> None:
         ax.set_xlabel("render seconds")
         ax.set_ylabel(lab)
         ax.grid(True, which="both", alpha=0.3)
-    axs[0, 0].legend(fontsize=8)
+    axs[0, 0].legend(fontsize=7, ncol=2)
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
@@ -391,109 +456,122 @@ def _res(s: str):
 
 
 def add_parser(subparsers, add_device) -> None:
-    p = subparsers.add_parser("compare", help="speed against accuracy of methods a-f vs a cached reference",
-                              description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser("compare", help="speed against accuracy of methods a-f, both modes and the "
+                              "path tracer, against a cached reference", description=__doc__.split("\n\n")[0])
     p.add_argument("config")
     p.add_argument("--methods", default=METHODS, help="comma list or letters, e.g. a,c,f (default: all)")
-    p.add_argument("--budget", type=float, help="render seconds per method (quick 20, full 600; the full run "
-                   "takes ~2 h on 2 CPU cores: reference ~30 min, methods 6 x 10 min, colour shift ~20 min)")
-    p.add_argument("--quick", action="store_true", help="80x60, 50,625 photons/pass, 20 s per method, small reference (~5 min, ~3 once cached)")
-    p.add_argument("--resolution", type=_res, help="default: quick 80x60, full 160x120")
-    p.add_argument("--photons", type=int, help="stored photons per pass (default: the paper's per pixel)")
-    p.add_argument("--max-passes", type=int, help="stop a method at this many passes (default 200)")
+    p.add_argument("--paper-methods", help="methods also run in the paper's mode (quick: e; standard: all)")
+    p.add_argument("--no-pt", action="store_true", help="leave out the path tracer's curve")
+    p.add_argument("--budget", type=float, help="render seconds per run (quick 20, standard 90: about "
+                   "20 minutes on 2 CPU cores once the reference is cached)")
+    p.add_argument("--quick", action="store_true", help="20 s per run, the paper's mode for e only, a smaller "
+                   "reference (~5 min once the reference is cached)")
+    p.add_argument("--resolution", type=_res, help="default 80x60 (multiples of 10: the comparison is per "
+                   "10x10-pixel square)")
+    p.add_argument("--photons", type=int, help="stored photons per pass (default: the config's)")
+    p.add_argument("--max-passes", type=int, help="stop a run at this many passes")
     p.add_argument("--seed", type=int)
-    p.add_argument("--ref-method", default="a", choices=list(METHODS))
-    p.add_argument("--ref-spacing", type=float, help="reference equal spacing in um (overrides --ref-method)")
-    p.add_argument("--ref-photons", type=int)
-    p.add_argument("--ref-passes", type=int)
-    p.add_argument("--ref-k", type=int, help="reference photons in the first search (default 200)")
+    p.add_argument("--ref-paths", type=int, help="path-tracer reference: paths per 10x10 square and half")
+    p.add_argument("--ref-passes", type=int, help="PPM reference (scenes the path tracer cannot render): passes")
     p.add_argument("--force-ref", action="store_true", help="recompute the reference even if cached")
     p.add_argument("--cache", default="out/cache", help="reference cache folder (default out/cache)")
     p.add_argument("--no-shift", action="store_true", help="skip the colour-shift experiment")
     p.add_argument("--shift-spacings", type=_floats)
     p.add_argument("--shift-photons", type=_ints)
     p.add_argument("--shift-passes", type=int)
-    p.add_argument("--no-flip", action="store_true", help="skip FLIP even if flip-evaluator is installed")
     p.add_argument("-o", "--out", help="output folder (default out/compare or out/compare-quick)")
     add_device(p)
     p.set_defaults(func=cmd_compare)
 
 
-def _ref_R(ref) -> str:
-    rs = [h.get("R_median_um") for h in ref.info.get("halves", [])]
-    rs = [r for r in rs if r is not None]
-    return f"{np.mean(rs):.0f}" if rs else "?"
+def reference_spec(cfg: dict, resolution, d: dict, paths_: int | None = None, passes: int | None = None) -> RefSpec:
+    """The path tracer where the scene allows it, else a long PPM run in the default mode."""
+    if pt_possible(cfg):
+        return RefSpec(integrator="pt", resolution=tuple(resolution), block=BLOCK,
+                       paths=int(paths_ or d["ref_paths"]))
+    return RefSpec(integrator="ppm", resolution=tuple(resolution), block=BLOCK, method="a",
+                   photons=int(cfg["render"]["photons"]), passes=int(passes or d["ref_ppm_passes"]),
+                   initial_photons=int(cfg["render"]["initial_photons"]))
+
+
+def _letters(s: str, flag: str) -> list[str]:
+    ms = [m for m in s.replace(",", "") if m.strip()]
+    if not ms or any(m not in METHODS for m in ms):
+        raise C.ConfigError("command line", flag, s, "letters from a-f")
+    return ms
 
 
 def cmd_compare(a) -> int:
-    from . import config, paths
+    from . import paths
     from .device import open_device
-    d = QUICK if a.quick else FULL
-    cfg = config.load(a.config)
-    methods = [m for m in a.methods.replace(",", "") if m.strip()]
-    bad = [m for m in methods if m not in METHODS]
-    if bad or not methods:
-        raise config.ConfigError("command line", "--methods", a.methods, "letters from a-f")
-    res_ = a.resolution or d["resolution"]
-    photons = a.photons or d["photons"]
+    d = QUICK if a.quick else STANDARD
+    # the subsurface image is compared: the GGX highlight is the same function in every run
+    cfg = C.override(C.load(a.config), "render", "specular", False)
+    methods = _letters(a.methods, "--methods")
+    paper_methods = _letters(a.paper_methods or d["paper_methods"], "--paper-methods")
+    res_ = tuple(a.resolution or d["resolution"])
+    if res_[0] % BLOCK or res_[1] % BLOCK:
+        raise C.ConfigError("command line", "--resolution", f"{res_[0]}x{res_[1]}", f"must be multiples of {BLOCK}")
     budget = a.budget if a.budget is not None else d["budget"]
     max_passes = a.max_passes or d["max_passes"]
     out = a.out or ("out/compare-quick" if a.quick else "out/compare")
     paths.check_folder(out, "-o/--out")
     paths.check_folder(a.cache, "--cache")
     os.makedirs(os.path.join(out, "images"), exist_ok=True)
-    flip = flip_available() and not a.no_flip
     dev = open_device(a.device)
-    spec = RefSpec(method=a.ref_method, spacing_um=a.ref_spacing, resolution=tuple(res_),
-                   photons=a.ref_photons or d["ref"]["photons"], passes=a.ref_passes or d["ref"]["passes"],
-                   initial_photons=a.ref_k or d["ref"]["initial_photons"])
-    print(f"clppm compare {os.path.basename(a.config)} on {dev.name}: methods {''.join(methods)}, "
-          f"{res_[0]}x{res_[1]}, {photons:,} stored photons/pass, budget {budget:g} render s per method"
-          f"{', FLIP on' if flip else ', FLIP off (pip install flip-evaluator)' if not a.no_flip else ''}")
+    spec = reference_spec(cfg, res_, d, a.ref_paths, a.ref_passes)
+    with_pt = spec.integrator == "pt" and not a.no_pt
+    print(f"clppm compare {os.path.basename(a.config)} on {dev.name}: default {''.join(methods)}, paper "
+          f"{''.join(paper_methods)}{', path tracer' if with_pt else ''}; {res_[0]}x{res_[1]}, budget "
+          f"{budget:g} render s per run")
     t_all = time.perf_counter()
     with cached_volumes():
-        ref = get_reference(cfg, spec, a.cache, dev=dev, force=a.force_ref, flip=flip)
+        ref = get_reference(cfg, spec, a.cache, dev=dev, force=a.force_ref, progress=True)
         image.write_png(os.path.join(out, "images", "reference.png"), ref.rgb, ref.exposure)
         runs = {}
-        print("methods:")
-        for m in methods:
-            r = run_method(cfg, m, ref, budget=budget, max_passes=max_passes, photons=photons, seed=a.seed,
-                           dev=dev, flip=flip)
-            image.write_png(os.path.join(out, "images", f"method-{m}.png"), r.pop("_rgb"), r.pop("_exposure"))
-            runs[m] = r
+        print("runs:")
+        for mode, ms in (("default", methods), ("paper", paper_methods)):
+            for m in ms:
+                r = run_method(cfg, m, ref, budget=budget, max_passes=max_passes, mode=mode, photons=a.photons,
+                               seed=a.seed, dev=dev)
+                image.write_png(os.path.join(out, "images", f"{mode}-{m}.png"), r.pop("_rgb"), r.pop("_exposure"))
+                runs[f"{m} {mode}"] = r
+        if with_pt:
+            r = run_pt(cfg, ref, budget=budget, seed=a.seed, dev=dev)
+            image.write_png(os.path.join(out, "images", "path-tracer.png"), r.pop("_rgb"), r.pop("_exposure"))
+            runs["path tracer"] = r
         shift = None
         if not a.no_shift:
-            print("colour-shift experiment (equal spacing x stored photons per pass):")
+            print("colour-shift experiment (paper mode, equal spacing x stored photons per pass):")
             shift = colour_shift_experiment(
                 cfg, spacings=a.shift_spacings or d["shift_spacings"], photons=a.shift_photons or d["shift_photons"],
-                passes=a.shift_passes or d["shift_passes"], resolution=tuple(res_), seed=a.seed, ref=ref, dev=dev,
+                passes=a.shift_passes or d["shift_passes"], resolution=res_, seed=a.seed, ref=ref, dev=dev,
                 log=print)
     summ = summarise(runs)
+    ppm_runs = {k: r for k, r in runs.items() if r["mode"] != "pt"}
+    ref_what = (f"the path tracer, {spec.paths:,} paths per {BLOCK}x{BLOCK}-pixel square in each of two halves"
+                if spec.integrator == "pt" else
+                f"PPM (default mode, method {spec.method}, {spec.passes} passes of {spec.photons:,} stored photons, "
+                "two halves; its density-estimation bias is not in its noise estimate)")
     md = [f"# clppm compare: {os.path.basename(a.config)}", "",
-          f"Device {dev.name}; {res_[0]}x{res_[1]} pixels, {photons:,} stored photons per pass, "
-          f"K = {cfg['render']['initial_photons']}, budget {budget:g} render seconds per method "
-          f"(eye + photon + grid + gather; volume build and snapshots excluded).", "",
-          f"Reference `{ref.key}`: method {spec.method}"
-          f"{'' if spec.spacing_um is None else f' spacing {spec.spacing_um:g} um'}, {spec.photons:,} stored "
-          f"photons/pass, {spec.passes} passes, K = {spec.initial_photons}, mean of two seeds; median radius "
-          f"{_ref_R(ref)} um.  Its error estimate (from the halves) is noise only: the density-estimation bias "
-          "of its finite radius is not in it (the compared runs' radii are in the R column).", "",
-          "All methods use the same seed (the same photons in every pass), so the differences between them "
-          "at equal passes are not photon noise.", "",
+          f"Device {dev.name}; {res_[0]}x{res_[1]} pixels, budget {budget:g} render seconds per run (eye + "
+          "calibration + photon + grid + gather, or the path tracer's trace time; volume build and snapshots "
+          "excluded).  Errors are over the skin's 10x10-pixel squares (bias, and the noise left at that scale).", "",
+          f"Reference `{ref.key}`: {ref_what}.", "",
           "## Speed and accuracy (last snapshot; equal-time columns interpolated log-log)", "",
           results_markdown(runs, summ, ref), "", "![error against time](compare.png)", "",
-          "## Table 1: mean sample points per eye ray per layer", "", table1_markdown(runs)]
+          "## Table 1: mean sample points per eye ray per layer", "",
+          table1_markdown({r["method"]: r for r in ppm_runs.values() if r["mode"] == "default"})]
     if shift is not None:
         md += ["", "## Colour shift against spacing and photons (the paper's explanation of method a)", "",
                shift_markdown(shift)]
     md_text = "\n".join(md) + "\n"
     plot(runs, ref, os.path.join(out, "compare.png"),
-         title=f"{os.path.basename(a.config)}: {res_[0]}x{res_[1]}, {photons:,} photons/pass, {dev.name}")
+         title=f"{os.path.basename(a.config)}: {res_[0]}x{res_[1]}, {dev.name}")
     doc = {"config": os.path.abspath(a.config), "device": dev.info(), "resolution": list(res_),
-           "photons_per_pass": photons, "budget_s": budget, "max_passes": max_passes,
-           "initial_photons": cfg["render"]["initial_photons"],
+           "budget_s": budget, "max_passes": max_passes,
            "reference": {"key": ref.key, "spec": ref.spec.as_dict(), "error": ref.error, "info": ref.info},
-           "methods": runs, "summary": summ, "colour_shift": shift,
+           "runs": runs, "summary": summ, "colour_shift": shift,
            "wall_seconds": time.perf_counter() - t_all}
     with open(os.path.join(out, "compare.json"), "w") as f:
         json.dump(doc, f, indent=1, default=str)
@@ -501,9 +579,6 @@ def cmd_compare(a) -> int:
         f.write(md_text)
     print()
     print(results_markdown(runs, summ, ref))
-    print()
-    print("Table 1, mean sample points per eye ray per layer: ours (paper)")
-    print(table1_markdown(runs))
     if shift is not None:
         print()
         print(shift_markdown(shift))

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import checkpoint as ckpt
-from . import image, progressive, transport, volume
+from . import image, paths, progressive, transport, volume
 from . import params as P_
 from .camera import from_config
 from .config import ConfigError
@@ -323,8 +323,10 @@ def _finish(cfg, tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_s
 def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str | None = None,
               dev: Device | None = None, out: str | None = None, progress: bool = False,
               resume: str | None = None, checkpoint_path: str | None = None,
-              source: str = "<config>", stop_after: int | None = None) -> progressive.RenderResult:
-    """Path-trace ``cfg`` (flat scene, point light); the image and report as ``render``."""
+              source: str = "<config>", stop_after: int | None = None, snapshot_every: int = 0,
+              on_snapshot=None) -> progressive.RenderResult:
+    """Path-trace ``cfg`` (flat scene, point light); the image and report as ``render``
+    (``on_snapshot(passes, wall seconds, result)`` every ``snapshot_every`` passes, as there)."""
     import pyopencl as cl
     t_start = time.perf_counter()
     cfg = progressive.apply_overrides(cfg, passes=passes, resolution=resolution, seed=seed)
@@ -335,6 +337,8 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
         raise ConfigError(source, "render.pt_samples_per_pass", rc["pt_samples_per_pass"],
                           f"{w}x{h} pixels x {rc['pt_samples_per_pass']} exceeds the 2^32 path ids "
                           "of a pass")
+    ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
+    paths.check_outputs(out=out, checkpoint=ckpath)
     dev = dev or open_device(device)
     timing = {"volume": 0.0, "trace": 0.0, "output": 0.0}
     t0 = time.perf_counter()
@@ -357,7 +361,6 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
         timing.update({k: v for k, v in st.get("timing", {}).items() if k == "trace"})
     n_passes = int(rc["passes"])
     cp_every = int(rc["checkpoint_every"])
-    ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
     bar = progressive._progress(n_passes, start, progress)
     p, interrupted, last_ckpt = start, False, (start if resume else None)
     with progressive._Interrupt() as intr:
@@ -374,6 +377,9 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
                     ckpt.save_pt(ckpath, meta, {"pass_index": p, "timing": timing},
                                  tracer.state_arrays())
                     last_ckpt = p
+                if snapshot_every and on_snapshot and (p % snapshot_every == 0 or p == n_passes or stop):
+                    on_snapshot(p, time.perf_counter() - t_start,
+                                _finish(cfg, tracer, tracer.state_arrays(), p, timing, dev, t_start, False))
                 if rc["preview_every"] and out and p % rc["preview_every"] == 0 and p < n_passes:
                     res = _finish(cfg, tracer, tracer.state_arrays(), p, timing, dev, t_start, False)
                     image.write_png(progressive._sibling(out, ".preview.png"), res.rgb, res.exposure)

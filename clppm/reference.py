@@ -1,9 +1,12 @@
 """Converged reference images, cached on disk, and the error of an image against one.
 
 A reference is the mean of two independent renders ("halves") of the same scene with
-different seeds, each with many more stored photons per pass and passes than the runs it
-is compared with (and, by default, a smaller first-search photon count K, hence a smaller
-radius and less density-estimation bias).  It is computed once and stored as
+different seeds.  Where the scene allows it (flat layers, a point light) it is the unbiased
+path tracer (:mod:`clppm.pathtracer`), rendered at 1/``block`` of the compared resolution with
+jittered rays, so that each reference pixel is the exact mean of a ``block`` x ``block`` square
+of image pixels; the compared image is averaged over the same squares.  Otherwise it is PPM
+with many more stored photons per pass and passes than the runs it is compared with.  It is
+computed once and stored as
 ``<cache>/ref-<key>.npz`` + ``.json``, where ``key`` is a SHA-256 over everything that
 changes the picture: the scene config (with the reference's own render settings applied),
 the reference parameters, the clppm version and the kernel sources.  Any change of these
@@ -14,8 +17,8 @@ independent, zero-mean) the reference (h1 + h2) / 2 deviates from t by (e1 + e2)
 has the distribution of (e1 - e2) / 2 = (h1 - h2) / 2.  So every error measure of the
 reference is estimated as that measure between the halves, halved (exact for the RMSE in
 expectation, first order for the CIEDE2000 and chromaticity means).  This covers the Monte
-Carlo noise only; the density-estimation bias of the finite radius (which the halves share)
-is not in it, and is why the reference uses a smaller radius than the compared runs.
+Carlo noise only: for a PPM reference, the density-estimation bias of the finite radius
+(which the halves share) is not in it; a path-tracing reference has none.
 
 Skin pixels (the error is taken over them) are the pixels all of whose eye rays hit the
 model, from the eye pass of the reference scene.
@@ -26,6 +29,7 @@ import contextlib
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -153,17 +157,86 @@ def flip_error(rgb, ref_rgb, mask, exposure: float):
     return float(emap[np.asarray(mask, bool)].mean())
 
 
+# ----------------------------------------------------------------------------- blocks
+def block_mean(a, b: int) -> np.ndarray:
+    """Mean over b x b squares of pixels (H, W must be multiples of b)."""
+    a = np.asarray(a)
+    if b == 1:
+        return a
+    H, W = a.shape[:2]
+    return a.reshape(H // b, b, W // b, b, *a.shape[2:]).mean(axis=(1, 3))
+
+
+def block_mask(mask, b: int) -> np.ndarray:
+    """Squares all of whose pixels are skin."""
+    m = np.asarray(mask, bool)
+    if b == 1:
+        return m
+    H, W = m.shape
+    return m.reshape(H // b, b, W // b, b).all(axis=(1, 3))
+
+
+BAND_GROUP_NM = 50.0
+
+
+def band_groups(wl) -> list[tuple[float, float, np.ndarray]]:
+    """50-nm groups of bands from the first band on: (from nm, to nm, band indices)."""
+    wl = np.asarray(wl, float)
+    g = np.floor((wl - wl[0]) / BAND_GROUP_NM + 1e-9).astype(int)
+    if len(wl) > 1 and g[-1] > g[-2]:           # a lone last band (780 nm) joins the group before
+        g[-1] = g[-2]
+    return [(float(wl[g == k][0]), float(wl[g == k][-1]), np.nonzero(g == k)[0]) for k in np.unique(g)]
+
+
+def accuracy(xyz, spectral, ref, flip: bool = False, rgb=None) -> dict:
+    """Errors of an image (full resolution) against ``ref`` at the reference's resolution.
+
+    :func:`error_metrics` on the block means, plus: the relative error of Y per skin block
+    (``block_Y_rms``, ``block_Y_max``: the largest |Y/Y_ref - 1|), the CIEDE2000 of the mean
+    skin colour (``de_mean``) and the relative error of the mean skin radiance in each 50-nm
+    band group (``groups``, ``group_max``)."""
+    b = ref.block
+    x = block_mean(xyz, b)
+    m = error_metrics(x, ref.xyz, ref.mask, ref.exposure, flip=False)
+    mask = ref.mask
+    Yt, Yr = x[..., 1][mask], ref.xyz[..., 1][mask]
+    rel = Yt / np.where(Yr > 0, Yr, np.nan) - 1
+    m["block_Y_rms"] = float(np.sqrt(np.nanmean(rel * rel)))
+    m["block_Y_max"] = float(np.nanmax(np.abs(rel)))
+    a = x[mask].mean(0) * ref.exposure
+    r = ref.xyz[mask].mean(0) * ref.exposure
+    m["de_mean"] = float(image.delta_e2000(a[None], r[None])[0])
+    if spectral is not None:
+        st = block_mean(spectral, b)[mask].mean(0)
+        sr = np.asarray(ref.spectral, float)[mask].mean(0)
+        groups = {}
+        for lo, hi, idx in band_groups(ref.wl):
+            den = sr[idx].sum()
+            groups[f"{lo:.0f}-{hi:.0f}"] = float(st[idx].sum() / den - 1) if den > 0 else float("nan")
+        m["groups"] = groups
+        m["group_max"] = float(np.nanmax(np.abs(list(groups.values()))))
+    return m
+
+
 # ----------------------------------------------------------------------------- reference
 @dataclass
 class RefSpec:
-    """What the reference is made of (besides the scene config)."""
+    """What the reference is made of (besides the scene config).
 
+    ``integrator = "pt"``: ``paths`` eye paths per reference pixel and half, the reference at
+    ``resolution / block``.  ``integrator = "ppm"``: method, photons, passes, K as given, with
+    the render ``overrides`` (e.g. config.PAPER_MODE), then averaged over ``block`` squares."""
+
+    integrator: str = "pt"
+    resolution: tuple = (80, 60)
+    block: int = 10
+    paths: int = 500_000
     method: str = "a"
     spacing_um: float | None = None
-    resolution: tuple = (80, 60)
     photons: int = 405_000              # stored photons per pass
     passes: int = 60
     initial_photons: int = 200          # K of the first search (sets the initial radius)
+    overrides: dict = field(default_factory=dict)
     seeds: tuple = (1_000_001, 2_000_003)
 
     def as_dict(self) -> dict:
@@ -172,41 +245,72 @@ class RefSpec:
         d["seeds"] = list(self.seeds)
         return d
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "RefSpec":
+        d = dict(d)
+        d["resolution"] = tuple(d["resolution"])
+        d["seeds"] = tuple(d["seeds"])
+        return cls(**{k: v for k, v in d.items() if k in {f.name for f in dataclasses.fields(cls)}})
+
 
 @dataclass
 class Reference:
     key: str
     spec: RefSpec
-    xyz: np.ndarray                # (H, W, 3) mean of the halves
-    rgb: np.ndarray                # (H, W, 3) linear sRGB
-    halves_xyz: np.ndarray         # (2, H, W, 3)
-    spectral: np.ndarray           # (H, W, NB) float32 mean
+    xyz: np.ndarray                # (h, w, 3) mean of the halves, at resolution / block
+    rgb: np.ndarray                # (h, w, 3) linear sRGB
+    halves_xyz: np.ndarray         # (2, h, w, 3)
+    spectral: np.ndarray           # (h, w, NB) float32 mean
     wl: np.ndarray
-    mask: np.ndarray               # (H, W) bool skin pixels
+    mask: np.ndarray               # (h, w) bool: squares of skin pixels only
     exposure: float
-    error: dict                    # own error estimate (error_metrics of the halves, halved)
+    error: dict                    # own error estimate (accuracy of one half against the other, halved)
     info: dict = field(default_factory=dict)
     cached: bool = False
     path: str = ""
 
+    @property
+    def block(self) -> int:
+        return self.spec.block
 
-def kernel_hash() -> str:
+
+def kernel_hash(names=None) -> str:
+    """SHA-256 of the kernel sources (``names``: only these files)."""
     from .device import kernel_dir
     h = hashlib.sha256()
     d = kernel_dir()
     for name in sorted(os.listdir(d)):
-        if name.endswith((".cl", ".h")):
+        if name.endswith((".cl", ".h")) and (names is None or name in names):
             with open(os.path.join(d, name), "rb") as f:
                 h.update(name.encode() + b"\0" + f.read())
     return h.hexdigest()[:16]
+
+
+def pt_possible(cfg: dict) -> bool:
+    """Whether the path tracer can render the scene (flat, point light above the surface)."""
+    from .pathtracer import check_scene
+    try:
+        check_scene(cfg, "<reference>")
+    except Exception:
+        return False
+    return True
 
 
 def scene_config(cfg: dict, spec: RefSpec) -> dict:
     """The scene config with the reference's render settings applied (seed: first half)."""
     from . import config as C
     from .progressive import apply_overrides
+    if spec.integrator == "pt":
+        W, H = spec.resolution
+        c = apply_overrides(cfg, resolution=(W // spec.block, H // spec.block), seed=spec.seeds[0])
+        spp = int(min(4096, spec.paths))
+        c = C.override(c, "render", "pt_samples_per_pass", spp)
+        c = C.override(c, "render", "passes", int(math.ceil(spec.paths / spp)))
+        return c
     c = apply_overrides(cfg, method=spec.method, spacing=spec.spacing_um, resolution=spec.resolution,
                         seed=spec.seeds[0], photons=int(spec.photons))
+    for k, v in spec.overrides.items():
+        c = C.override(c, "render", k, v)
     c = C.override(c, "render", "initial_photons", int(min(spec.initial_photons, spec.photons)))
     c = C.override(c, "render", "passes", int(spec.passes))
     return c
@@ -217,8 +321,12 @@ def reference_key(cfg: dict, spec: RefSpec) -> str:
     c = json.loads(json.dumps(scene_config(cfg, spec), default=str))
     for k in _NOT_PICTURE + ("seed",):
         c["render"].pop(k, None)
+    kernels = None
+    if spec.integrator == "pt":           # the path tracer reads none of PPM's settings or kernels
+        c["render"] = {k: c["render"][k] for k in ("specular", "roughness", "pt_samples_per_pass")}
+        kernels = ("pt.cl", "common.h")
     blob = json.dumps({"config": c, "spec": spec.as_dict(), "clppm": clppm.__version__,
-                       "kernels": kernel_hash()}, sort_keys=True)
+                       "kernels": kernel_hash(kernels)}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
@@ -236,14 +344,11 @@ def load_reference(cache_dir: str, key: str):
             meta = json.load(f)
         with np.load(npz, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError, KeyError, json.JSONDecodeError):
+        spec = RefSpec.from_dict(meta["spec"])
+    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError):
         return None
     if meta.get("key") != key:
         return None
-    sp = meta["spec"]
-    spec = RefSpec(method=sp["method"], spacing_um=sp["spacing_um"], resolution=tuple(sp["resolution"]),
-                   photons=sp["photons"], passes=sp["passes"], initial_photons=sp["initial_photons"],
-                   seeds=tuple(sp["seeds"]))
     return Reference(key=key, spec=spec, xyz=arrays["xyz"], rgb=arrays["rgb"],
                      halves_xyz=arrays["halves_xyz"], spectral=arrays["spectral"], wl=arrays["wl"],
                      mask=arrays["mask"].astype(bool), exposure=float(meta["exposure"]),
@@ -272,14 +377,23 @@ def skin_mask(cfg: dict, dev=None) -> np.ndarray:
     dev = dev or open_device(None)
     vol = volume.build(cfg)
     vb = transport.upload_volume(dev, vol)
-    eye = eyepass.run(dev, vol, vb, cfg, eyepass.scheme(cfg["render"]["method"], cfg["render"]["spacing_um"]))
+    eye = eyepass.run(dev, vol, vb, cfg, eyepass.scheme(cfg["render"]["method"], cfg["render"]["spacing_um"]),
+                      geometry=False)
     return skin_mask_from_eye(eye)
 
 
-def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=None, log=print,
-                  force: bool = False, flip: bool = False) -> Reference:
-    """The cached reference for (cfg, spec), computing (and caching) it if needed."""
+def _render_half(c: dict, spec: RefSpec, seed: int, dev, progress: bool):
+    if spec.integrator == "pt":
+        from .pathtracer import render_pt
+        return render_pt(c, seed=int(seed), dev=dev, progress=progress)
     from .progressive import render
+    return render(c, seed=int(seed), dev=dev, progress=progress)
+
+
+def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=None, log=print,
+                  force: bool = False, flip: bool = False, progress: bool = False) -> Reference:
+    """The cached reference for (cfg, spec), computing (and caching) it if needed."""
+    from .progressive import apply_overrides
     key = reference_key(cfg, spec)
     if not force:
         ref = load_reference(cache_dir, key)
@@ -288,43 +402,45 @@ def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=No
             log(reference_summary(ref))
             return ref
     c = scene_config(cfg, spec)
-    log(f"reference {key}: computing method {spec.method}"
-        f"{'' if spec.spacing_um is None else f' spacing {spec.spacing_um:g} um'}, "
-        f"{spec.resolution[0]}x{spec.resolution[1]}, {spec.photons} stored photons/pass, "
-        f"{spec.passes} passes, K = {spec.initial_photons}, two halves (seeds {spec.seeds[0]}, {spec.seeds[1]})")
+    what = (f"path tracer, {spec.paths:,} paths per {spec.block}x{spec.block}-pixel square"
+            if spec.integrator == "pt" else
+            f"PPM method {spec.method}, {spec.photons} stored photons/pass, {spec.passes} passes, "
+            f"K = {spec.initial_photons}{', ' + str(spec.overrides) if spec.overrides else ''}")
+    log(f"reference {key}: computing {what}, {spec.resolution[0]}x{spec.resolution[1]}, two halves "
+        f"(seeds {spec.seeds[0]}, {spec.seeds[1]})")
     halves, reports = [], []
     t0 = time.perf_counter()
     with cached_volumes():
-        mask = skin_mask(c, dev)
+        full = apply_overrides(cfg, resolution=spec.resolution)
+        mask = block_mask(skin_mask(full, dev), spec.block)
         for s in spec.seeds:
             th = time.perf_counter()
-            last = {}
-            res = render(c, seed=int(s), dev=dev, on_pass=lambda p, st, last=last: last.update(pt_R=st["pt_R"]))
-            n = int(res.report["sample_points"])
-            R_med = float(np.median(last["pt_R"].get()[:n])) if n and "pt_R" in last else None
+            res = _render_half(c, spec, s, dev, progress)
             halves.append(res)
             r = res.report
-            reports.append({"seed": int(s), "seconds": r["seconds"], "photons_emitted": r["photons_emitted"],
-                            "photons_stored": r["photons_stored"], "gather_pairs": r["gather_pairs"],
-                            "sample_points": r["sample_points"],
-                            "first_search_mean_photons": r.get("first_search_mean_photons"),
-                            "R_median_um": R_med})
-            log(f"  half seed {s}: {time.perf_counter() - th:.1f} s, {r['photons_stored']:,} stored photons, "
-                f"{r['gather_pairs']:,} gather pairs")
+            reports.append({"seed": int(s), "seconds": r["seconds"],
+                            **{k: r[k] for k in ("photons_emitted", "photons_stored", "gather_pairs",
+                                                 "sample_points", "paths_traced") if k in r}})
+            log(f"  half seed {s}: {time.perf_counter() - th:.1f} s")
+    b = spec.block if spec.integrator == "ppm" else 1
     exposure = float(halves[0].exposure)
-    h = np.stack([x.xyz for x in halves])
+    h = np.stack([block_mean(x.xyz, b) for x in halves])
+    sp = [block_mean(x.spectral, b) for x in halves]
     xyz = h.mean(0)
-    rgb = np.mean([x.rgb for x in halves], axis=0)
-    spectral = np.mean([x.spectral for x in halves], axis=0).astype(np.float32)
-    e = error_metrics(h[0], h[1], mask, exposure, halves[0].rgb, halves[1].rgb, flip=flip)
-    err = {k: (v / 2.0 if isinstance(v, float) else v) for k, v in e.items()}
-    err["note"] = ("noise of the mean of the two halves, estimated as (half1 vs half2) / 2; "
-                   "excludes the density-estimation bias the halves share")
+    rgb = np.mean([block_mean(x.rgb, b) for x in halves], axis=0)
+    spectral = np.mean(sp, axis=0).astype(np.float32)
     ref = Reference(key=key, spec=spec, xyz=xyz, rgb=rgb, halves_xyz=h, spectral=spectral,
-                    wl=np.asarray(halves[0].wl), mask=mask, exposure=exposure, error=err,
+                    wl=np.asarray(halves[0].wl), mask=mask, exposure=exposure, error={},
                     info={"halves": reports, "seconds": time.perf_counter() - t0,
-                          "device": halves[0].report["device"]["name"],
-                          "sample_points_per_ray_per_layer": halves[0].report["sample_points_per_ray_per_layer"]})
+                          "device": halves[0].report["device"]["name"]})
+    # own noise: one half against the other, halved (at the reference's own resolution)
+    half = dataclasses.replace(ref, xyz=h[1], spectral=sp[1], spec=dataclasses.replace(spec, block=1))
+    e = accuracy(h[0], sp[0], half)
+    err = {k: (v / 2.0 if isinstance(v, float) else v) for k, v in e.items() if k != "groups"}
+    err["groups"] = {k: v / 2.0 for k, v in e["groups"].items()}
+    err["note"] = ("noise of the mean of the two halves, estimated as (half1 vs half2) / 2"
+                   + ("" if spec.integrator == "pt" else "; excludes the density-estimation bias the halves share"))
+    ref.error = err
     _save(cache_dir, ref)
     log(f"reference {key}: saved {ref.path} ({ref.info['seconds']:.0f} s)")
     log(reference_summary(ref))
@@ -333,10 +449,7 @@ def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=No
 
 def reference_summary(ref: Reference) -> str:
     e = ref.error
-    s = (f"reference own error (from its two halves): RMSE XYZ {e['rmse_xyz']:.3g} "
-         f"({100 * e['rel_rmse']:.2f} % of mean skin Y), mean CIEDE2000 {e['de2000']:.3g}, "
-         f"mean |du'v'| {e['duv']:.2g}, mean-colour du'v' ({e['du_mean']:+.1e}, {e['dv_mean']:+.1e}), "
-         f"db* {e['db']:+.3f}")
-    if "flip" in e:
-        s += f", FLIP {e['flip']:.3g}"
-    return s + f"; {e['skin_pixels']} skin pixels"
+    return (f"reference own noise (from its two halves), per {ref.block}x{ref.block}-pixel square: "
+            f"Y {100 * e['block_Y_rms']:.2f} % RMS ({100 * e['block_Y_max']:.2f} % max), mean CIEDE2000 "
+            f"{e['de2000']:.3g}, mean skin colour dE00 {e['de_mean']:.3g}, 50-nm band groups "
+            f"{100 * e['group_max']:.2f} % max; {int(ref.mask.sum())} skin squares")

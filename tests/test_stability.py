@@ -423,21 +423,43 @@ def test_error_metrics_signs_and_zero():
 
 def test_reference_cached_and_keyed(dev, tmp_path):
     """Computed once, then loaded from the cache bit for bit; another parameter, another key;
-    its own error estimate from the two halves is finite."""
+    its own error estimate from the two halves is finite.  (A PPM reference, averaged over
+    3x3-pixel squares.)"""
     from clppm.reference import RefSpec, get_reference, reference_key
     cfg = scene()
-    spec = RefSpec(method="f", resolution=(12, 9), photons=8000, passes=3, initial_photons=50, seeds=(11, 12))
+    spec = RefSpec(integrator="ppm", method="f", resolution=(12, 9), block=3, photons=8000, passes=3,
+                   initial_photons=50, seeds=(11, 12))
     logs = []
     r1 = get_reference(cfg, spec, str(tmp_path), dev=dev, log=logs.append)
     r2 = get_reference(cfg, spec, str(tmp_path), dev=dev, log=logs.append)
     assert not r1.cached and r2.cached and r1.key == r2.key
     assert np.array_equal(r1.xyz, r2.xyz) and np.array_equal(r1.mask, r2.mask)
-    assert r1.mask.sum() == 90
-    assert all(math.isfinite(r1.error[k]) for k in ("rmse_xyz", "de2000", "du_mean", "db"))
-    assert r1.error["rmse_xyz"] > 0
-    spec2 = RefSpec(method="f", resolution=(12, 9), photons=8000, passes=4, initial_photons=50, seeds=(11, 12))
+    assert r1.xyz.shape == (3, 4, 3) and r1.mask.sum() == 6     # squares all of whose pixels are skin
+    assert all(math.isfinite(r1.error[k]) for k in ("block_Y_rms", "de2000", "de_mean", "group_max", "db"))
+    assert r1.error["block_Y_rms"] > 0
+    spec2 = RefSpec(integrator="ppm", method="f", resolution=(12, 9), block=3, photons=8000, passes=4,
+                    initial_photons=50, seeds=(11, 12))
     assert reference_key(cfg, spec2) != r1.key
-    assert any("own error" in s for s in logs)
+    assert any("own noise" in s for s in logs)
+
+
+def test_path_tracer_reference_squares(dev, tmp_path):
+    """A path-tracer reference is rendered at 1/block of the resolution (each reference pixel the
+    mean of a block x block square of image pixels); accuracy() averages an image over the same
+    squares: an image equal to the reference square by square has no error, one 10 % brighter
+    has +10 % in Y in every square and in every 50-nm band group."""
+    from clppm.reference import RefSpec, accuracy, get_reference
+    spec = RefSpec(integrator="pt", resolution=(12, 9), block=3, paths=256, seeds=(5, 6))
+    ref = get_reference(scene(), spec, str(tmp_path), dev=dev, log=lambda *a: None)
+    assert ref.xyz.shape == (3, 4, 3) and ref.spectral.shape == (3, 4, 7)
+    assert ref.info["halves"][0]["paths_traced"] >= 12 * 256
+    up = np.repeat(np.repeat(ref.xyz, 3, 0), 3, 1)
+    sp = np.repeat(np.repeat(ref.spectral, 3, 0), 3, 1)
+    z = accuracy(up, sp, ref)
+    assert z["block_Y_rms"] < 1e-6 and z["group_max"] < 1e-6 and z["de_mean"] < 1e-6
+    b = accuracy(up * 1.1, sp * 1.1, ref)
+    assert b["block_Y_rms"] == pytest.approx(0.1, rel=1e-4) and b["block_Y_max"] == pytest.approx(0.1, rel=1e-4)
+    assert all(v == pytest.approx(0.1, rel=1e-4) for v in b["groups"].values())
 
 
 def test_compare_run_stops_at_budget(dev, tmp_path):
@@ -445,9 +467,15 @@ def test_compare_run_stops_at_budget(dev, tmp_path):
     from clppm.compare import run_method
     from clppm.reference import RefSpec, get_reference
     cfg = scene()
-    ref = get_reference(cfg, RefSpec(method="f", resolution=(12, 9), photons=8000, passes=3, initial_photons=50,
-                                     seeds=(11, 12)), str(tmp_path), dev=dev, log=lambda *a: None)
-    r = run_method(cfg, "e", ref, budget=0.05, max_passes=50, photons=4000, dev=dev, log=lambda *a: None)
-    assert 1 <= r["passes"] < 50 and r["seconds"] >= 0.05
-    assert r["snapshots"][-1]["pass"] == r["passes"]
-    assert all(math.isfinite(s["de2000"]) for s in r["snapshots"])
+    ref = get_reference(cfg, RefSpec(integrator="ppm", method="f", resolution=(12, 9), block=3, photons=8000,
+                                     passes=3, initial_photons=50, seeds=(11, 12)),
+                        str(tmp_path), dev=dev, log=lambda *a: None)
+    for mode in ("default", "paper"):
+        r = run_method(cfg, "e", ref, budget=0.05, max_passes=50, mode=mode, photons=4000, dev=dev,
+                       log=lambda *a: None)
+        assert 1 <= r["passes"] < 50 and r["seconds"] >= 0.05
+        assert r["snapshots"][-1]["pass"] == r["passes"]
+        assert all(math.isfinite(s["de2000"]) and math.isfinite(s["block_Y_rms"]) for s in r["snapshots"])
+    from clppm.compare import run_pt
+    r = run_pt(cfg, ref, budget=0.05, dev=dev, log=lambda *a: None)
+    assert r["passes"] >= 1 and r["seconds"] >= 0.05 and math.isfinite(r["final"]["block_Y_rms"])

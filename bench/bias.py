@@ -1,0 +1,125 @@
+"""Bias of every scheme against the path tracer, on the flat forearm (configs/forearm_flat.toml).
+
+For each resolution, the reference is the unbiased path tracer (clppm.pathtracer) rendered at
+1/10 of the resolution with jittered rays: each reference pixel is the exact mean of a 10x10
+square of image pixels (clppm.reference).  Each scheme a-f renders in the paper's mode
+(config.PAPER_MODE) and in the default mode, and is compared over the skin's 10x10 squares at
+two budgets: the paper's 200 passes (paper mode) or the default budget (default mode), and a
+longer run ("converged": 1000 paper passes at 80x60, 4x the default budget).  Reported per run:
+
+* Y per square: RMS and largest |Y / Y_pt - 1| over the skin squares,
+* every 50-nm band group: the relative error of the mean skin radiance (and the largest),
+* CIEDE2000 of the mean skin colour.
+
+The reference's own noise (from its two halves) is printed beside.  Specular highlights are
+switched off (the GGX term is the same deterministic function in both integrators, and would
+only dilute the relative errors).  This is a long run (hours on 2 cores at 320x240): use
+--methods / --resolutions / --modes to do part of it; results go to out/bench/bias.{json,md}.
+
+    python bench/bias.py --resolutions 80x60
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from clppm import config as C                      # noqa: E402
+from clppm.compare import MODES, render_seconds    # noqa: E402
+from clppm.progressive import render               # noqa: E402
+from clppm.reference import RefSpec, accuracy, cached_volumes, get_reference  # noqa: E402
+
+#: paths per 10x10 square in each half of the reference (noise ~ 1.6 / sqrt(2 paths))
+REF_PATHS = {(80, 60): 1_500_000, (320, 240): 160_000}
+
+
+def budgets(cfg: dict, mode: str, res: tuple, method: str) -> list[int]:
+    """Pass counts at which a run is measured: the mode's budget, and a longer ("converged") one."""
+    if mode == "paper":
+        return [200, 1000] if res[0] <= 80 else [200]
+    p = int(cfg["render"]["passes"])
+    return [p, 4 * p] if (res[0] <= 80 or method == "e") else [p]
+
+
+def run(cfg: dict, mode: str, method: str, res: tuple, ref, dev, log=print) -> dict:
+    c = cfg
+    for k, v in MODES[mode].items():
+        c = C.override(c, "render", k, v)
+    marks = budgets(cfg, mode, res, method)
+    rows = {}
+
+    def on_snapshot(p, wall, r):
+        if p in marks:
+            m = accuracy(r.xyz, r.spectral, ref)
+            rows[p] = {"passes": p, "seconds": render_seconds(r.report), **m}
+            log(f"    {mode} {method} {p} passes ({rows[p]['seconds']:.0f} s): Y per square "
+                f"{100 * m['block_Y_rms']:.2f} % RMS, {100 * m['block_Y_max']:.2f} % max; band groups "
+                f"{100 * m['group_max']:.2f} % max; mean colour dE00 {m['de_mean']:.2f}")
+
+    render(c, method=method, passes=max(marks), resolution=res, dev=dev, snapshot_every=min(marks),
+           on_snapshot=on_snapshot)
+    return {"mode": mode, "method": method, "marks": [rows[p] for p in marks]}
+
+
+def markdown(res: tuple, ref, runs: list) -> str:
+    groups = list(runs[0]["marks"][0]["groups"]) if runs else []
+    head = ("| mode | method | passes | seconds | Y per square, RMS | max | "
+            + " | ".join(f"{g} nm" for g in groups) + " | mean colour ΔE00 |")
+    lines = [f"{res[0]}x{res[1]}, 10x10-pixel squares, against the path tracer "
+             f"(its own noise: Y {100 * ref.error['block_Y_rms']:.2f} % RMS per square, band groups "
+             f"{100 * ref.error['group_max']:.2f} % max, mean colour ΔE00 {ref.error['de_mean']:.3f}).", "",
+             head, "|" + "---|" * (head.count("|") - 1)]
+    for r in runs:
+        for m in r["marks"]:
+            lines.append(f"| {r['mode']} | {r['method']} | {m['passes']} | {m['seconds']:.0f} | "
+                         f"{100 * m['block_Y_rms']:.2f} % | {100 * m['block_Y_max']:.2f} % | "
+                         + " | ".join(f"{100 * m['groups'][g]:+.2f} %" for g in groups)
+                         + f" | {m['de_mean']:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("config", nargs="?", default=os.path.join(ROOT, "configs", "forearm_flat.toml"))
+    ap.add_argument("--resolutions", default="80x60,320x240")
+    ap.add_argument("--methods", default="abcdef")
+    ap.add_argument("--modes", default="default,paper")
+    ap.add_argument("--cache", default="out/cache")
+    ap.add_argument("-o", "--out", default="out/bench")
+    a = ap.parse_args(argv)
+    from clppm.device import open_device
+    dev = open_device(None)
+    cfg = C.load(a.config)
+    cfg = C.override(cfg, "render", "specular", False)
+    cfg = C.override(cfg, "render", "checkpoint_every", 0)
+    t0 = time.perf_counter()
+    doc, md = {"device": dev.info(), "config": a.config, "results": {}}, []
+    os.makedirs(a.out, exist_ok=True)
+    with cached_volumes():
+        for rs in a.resolutions.split(","):
+            res = tuple(int(v) for v in rs.split("x"))
+            spec = RefSpec(integrator="pt", resolution=res, block=10, paths=REF_PATHS.get(res, 500_000))
+            ref = get_reference(cfg, spec, a.cache, dev=dev, progress=True)
+            runs = []
+            for mode in a.modes.split(","):
+                for m in a.methods:
+                    runs.append(run(cfg, mode, m, res, ref, dev))
+                    doc["results"][rs] = {"reference": {"key": ref.key, "error": ref.error, "info": ref.info},
+                                          "runs": runs}
+                    with open(os.path.join(a.out, "bias.json"), "w") as f:
+                        json.dump(doc, f, indent=1, default=str)
+            md.append(markdown(res, ref, runs))
+            with open(os.path.join(a.out, "bias.md"), "w") as f:
+                f.write("\n\n".join(md) + "\n")
+    print("\n\n".join(md))
+    print(f"wrote {a.out}/bias.md, bias.json ({time.perf_counter() - t0:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
