@@ -111,10 +111,16 @@ def cmd_render(a) -> int:
     cfg = _load(a.config)
     if a.preview_every is not None:
         cfg = config.override(cfg, "render", "preview_every", a.preview_every)
+    for item in a.set or []:
+        cfg = config.set_item(cfg, item)
     if a.integrator == "pt":
         return _render_pt(a, cfg)
-    if a.radius is not None:
-        cfg = config.override(cfg, "render", "radius", a.radius)
+    if a.paper:
+        cfg = config.paper_mode(cfg)
+    for key, flag in (("radius", a.radius), ("estimator", a.estimator), ("storage", a.storage),
+                      ("bands_per_path", a.bands_per_path)):
+        if flag is not None:
+            cfg = config.override(cfg, "render", key, flag)
     scheduler, flag = _scheduler(a)
     kw = dict(method=a.method, passes=a.passes, photons=a.photons, resolution=a.resolution, seed=a.seed,
               spacing=a.spacing, out=a.output, progress=not a.quiet, resume=a.resume,
@@ -144,7 +150,9 @@ def cmd_render(a) -> int:
 def _render_pt(a, cfg) -> int:
     from .checkpoint import default_path
     from .pathtracer import render_pt
-    for flag, v in (("--method", a.method), ("--spacing", a.spacing), ("--photons", a.photons)):
+    for flag, v in (("--method", a.method), ("--spacing", a.spacing), ("--photons", a.photons),
+                    ("--paper", a.paper or None), ("--estimator", a.estimator), ("--storage", a.storage),
+                    ("--bands-per-path", a.bands_per_path), ("--radius", a.radius)):
         if v is not None:
             raise ConfigError("command line", flag, v, "applies to --integrator ppm only")
     res = render_pt(cfg, passes=a.passes, resolution=a.resolution, seed=a.seed, device=a.device,
@@ -216,6 +224,16 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int)
     p.add_argument("--resume", help="continue from a checkpoint (.ckpt.npz)")
     p.add_argument("--preview-every", type=int, help="write a preview PNG every K passes")
+    p.add_argument("--paper", action="store_true",
+                   help="the paper's design: every scattering event stored, one band per path, the "
+                        "sphere estimator, the per-point radius (configs/forearm_paper.toml: with its budget)")
+    p.add_argument("--estimator", choices=("beam", "layer", "clip", "sphere"),
+                   help="render.estimator (default beam; sphere is the paper's)")
+    p.add_argument("--storage", choices=("importance", "all"),
+                   help="render.storage: importance-driven (default) or every event (the paper)")
+    p.add_argument("--bands-per-path", type=int, help="render.bands_per_path (0: auto, 1: the paper's)")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
+                   help="any config value, e.g. --set render.store_scale=30 (TOML syntax for the value)")
     p.add_argument("--radius", choices=("ppm", "global"),
                    help="render.radius: per-point (ppm) or global (Knaus & Zwicker; needed to distribute)")
     p.add_argument("-o", "--output", default="out/render.exr")

@@ -117,7 +117,9 @@ SCHEMA: dict[str, dict[str, F]] = {
         "initial_photons": F("int", 810, lo=1, hi=10**6, doc="photons in the first search"),
         "passes": F("int", 200, lo=1, hi=10**7),
         "alpha": F("float", 0.7, lo=0, hi=1, lo_open=True, hi_open=True),
-        "radius": F("choice", "ppm", choices=("ppm", "global")),
+        "radius": F("choice", "global", choices=("global", "ppm"),
+                    doc="global: Knaus & Zwicker's radius schedule (passes independent: distributable); "
+                        "ppm: the per-point radius of Hachisuka et al. (the paper)"),
         "seed": F("int", 1, lo=0, hi=2**63 - 1),
         "specular": F("bool", True),
         "roughness": F("float", 0.35, lo=0.01, hi=1.0),
@@ -402,6 +404,19 @@ def load(path: str) -> dict:
     except (OSError, UnicodeDecodeError) as e:
         raise ConfigError(src, "<file>", path, f"cannot be read ({e})") from None
     return validate(raw, src, os.path.dirname(os.path.abspath(path)))
+
+
+def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
+    """Apply ``SECTION.KEY=VALUE`` (VALUE in TOML syntax; a bare word is a string)."""
+    if "=" not in item or "." not in item.split("=", 1)[0]:
+        raise ConfigError(source, item, item, "expected SECTION.KEY=VALUE, e.g. render.passes=20")
+    path, text = (x.strip() for x in item.split("=", 1))
+    section, key = path.split(".", 1)
+    try:
+        value = tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = text
+    return override(cfg, section, key, value, source)
 
 
 def override(cfg: dict, section: str, key: str, value: Any, source: str = "command line") -> dict:

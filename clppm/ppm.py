@@ -246,8 +246,11 @@ def calibrate(sc: Scene) -> Calibration:
             break
         R *= np.float32(min(max((K / mean_m) ** (1 / 3), 0.5), 2.0))
     R0 = R.get()
-    # the beam's disc has no depth extent: nothing below the deepest piece is ever gathered
-    reach = float(R0.max()) * 1.001 if (not sc.beam or sc.eye.grazing) else 0.0
+    # the beam's disc has no depth extent: nothing below the deepest piece is ever gathered,
+    # but for the waves of the interfaces it measures depth along (layer-conforming depth)
+    iface = sc.vol.iface
+    waves = float(np.max(iface[:, 2] - iface[:, 1])) if len(iface) else 0.0
+    reach = float(R0.max()) * 1.001 if (not sc.beam or sc.eye.grazing) else waves
     return Calibration(R0=R0, store_zmin=zdeep - reach - 1.0,
                        first_search_mean=mean_m / frac if mean_m > 0 else None)
 

@@ -2,9 +2,9 @@
 
 A reference is the mean of two independent renders ("halves") of the same scene with
 different seeds.  Where the scene allows it (flat layers, a point light) it is the unbiased
-path tracer (:mod:`clppm.pathtracer`), rendered at 1/``block`` of the compared resolution with
-jittered rays, so that each reference pixel is the exact mean of a ``block`` x ``block`` square
-of image pixels; the compared image is averaged over the same squares.  Otherwise it is PPM
+path tracer (:mod:`clppm.pathtracer`) with jittered rays, averaged over ``block`` x ``block``
+squares of pixels, so that each reference pixel is the exact mean of its square; the compared
+image is averaged over the same squares.  Otherwise it is PPM
 with many more stored photons per pass and passes than the runs it is compared with.  It is
 computed once and stored as
 ``<cache>/ref-<key>.npz`` + ``.json``, where ``key`` is a SHA-256 over everything that
@@ -223,8 +223,7 @@ def accuracy(xyz, spectral, ref, flip: bool = False, rgb=None) -> dict:
 class RefSpec:
     """What the reference is made of (besides the scene config).
 
-    ``integrator = "pt"``: ``paths`` eye paths per reference pixel and half, the reference at
-    ``resolution / block``.  ``integrator = "ppm"``: method, photons, passes, K as given, with
+    ``integrator = "pt"``: ``paths`` eye paths per ``block`` x ``block`` square and half.  ``integrator = "ppm"``: method, photons, passes, K as given, with
     the render ``overrides`` (e.g. config.PAPER_MODE), then averaged over ``block`` squares."""
 
     integrator: str = "pt"
@@ -301,11 +300,13 @@ def scene_config(cfg: dict, spec: RefSpec) -> dict:
     from . import config as C
     from .progressive import apply_overrides
     if spec.integrator == "pt":
-        W, H = spec.resolution
-        c = apply_overrides(cfg, resolution=(W // spec.block, H // spec.block), seed=spec.seeds[0])
-        spp = int(min(4096, spec.paths))
+        # at the full resolution (a work item per pixel: the device needs many), averaged over
+        # the squares afterwards: the same as rendering each square as one jittered pixel
+        per_pixel = int(math.ceil(spec.paths / spec.block ** 2))
+        c = apply_overrides(cfg, resolution=spec.resolution, seed=spec.seeds[0])
+        spp = int(min(256, per_pixel))
         c = C.override(c, "render", "pt_samples_per_pass", spp)
-        c = C.override(c, "render", "passes", int(math.ceil(spec.paths / spp)))
+        c = C.override(c, "render", "passes", int(math.ceil(per_pixel / spp)))
         return c
     c = apply_overrides(cfg, method=spec.method, spacing=spec.spacing_um, resolution=spec.resolution,
                         seed=spec.seeds[0], photons=int(spec.photons))
@@ -422,7 +423,7 @@ def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=No
                             **{k: r[k] for k in ("photons_emitted", "photons_stored", "gather_pairs",
                                                  "sample_points", "paths_traced") if k in r}})
             log(f"  half seed {s}: {time.perf_counter() - th:.1f} s")
-    b = spec.block if spec.integrator == "ppm" else 1
+    b = spec.block
     exposure = float(halves[0].exposure)
     h = np.stack([block_mean(x.xyz, b) for x in halves])
     sp = [block_mean(x.spectral, b) for x in halves]

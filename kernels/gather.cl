@@ -305,6 +305,19 @@ inline float prim_circ(float x, float R) {         /* integral of sqrt(R^2 - x^2
     return 0.5f * (x * sqrt(fmax(R * R - x * x, 0.0f)) + R * R * asin(x / R));
 }
 
+/* The disc's radius at c for a point whose radius is R: near the model's sides the disc shrinks
+ * to the distance d from the nearest side, so that it stays whole and symmetric (a disc cut by
+ * a side averages S over the inside only, where S is higher: photons leave through the open
+ * sides, and the cut disc reads first-order high, +1 to +4 % in the outer 10x10-pixel squares
+ * of the forearm at 80x60 against the path tracer).  It does not go below R/4: within R/4 of a
+ * side the disc is cut (disc_area), a first-order bias four times smaller than the whole
+ * disc's, for at most 16 times the variance. */
+inline float disc_radius(__constant const Params* P, float2 c, float R) {
+    if (P->lateral == 0) return R;
+    const float d = fmin(fmin(c.x - P->x0, P->x0 + P->xw - c.x), fmin(c.y - P->y0, P->y0 + P->yw - c.y));
+    return clamp(d, 0.25f * R, R);
+}
+
 inline float disc_area(__constant const Params* P, float2 c, float R) {
     const float full = PI_F * R * R;
     if (P->lateral == 0) return full;
@@ -353,7 +366,8 @@ __kernel void gather_beam(const GridParams gp,
         for (int b = 0; b < NB; ++b) od[b] = 0.0f;
         for (uint i = i0; i < i1; ++i) {
             const float4 pp = pt_pos[i];
-            const float R = global_radius ? pt_R[i] * radius_scale : pt_R[i];
+            const float Rp_ = global_radius ? pt_R[i] * radius_scale : pt_R[i];
+            const float R = disc_radius(P, pp.xy, Rp_);
             const float R2 = R * R;
             long acc[NB];
             for (int b = 0; b < NB; ++b) acc[b] = 0;
@@ -447,7 +461,7 @@ __kernel void gather_beam(const GridParams gp,
                 const float N = pt_N[i];
                 const float Nn = N + alpha * (float)M;
                 pt_N[i] = Nn;
-                pt_R[i] = R * sqrt(Nn / (N + (float)M));
+                pt_R[i] = Rp_ * sqrt(Nn / (N + (float)M));
             }
             pt_M[i] = M;
             pairs += M;

@@ -266,6 +266,22 @@ def test_bad_batches(tmp_path, batches):
                                 cwd=tmp_path), "--batches", batches)
 
 
+@pytest.mark.parametrize("args,needles", [
+    (["--set", "render.store_scale=-1"], ["render.store_scale", "-1"]),
+    (["--set", "render.storage=sometimes"], ["render.storage", "sometimes"]),
+    (["--set", "render.nope=1"], ["render.nope", "unknown key"]),
+    (["--set", "passes"], ["passes", "SECTION.KEY=VALUE"]),
+    (["--bands-per-path", "4"], ["render.bands_per_path", "4", "must divide"]),
+    (["--integrator", "pt", "--paper"], ["--paper", "ppm only"]),
+])
+def test_bad_render_options(tmp_path, args, needles):
+    """Render options are checked like config keys, before any work: exit 2, one line."""
+    (tmp_path / "c.toml").write_text(BASE)
+    assert_one_line_error(clppm_inproc("render", tmp_path / "c.toml", "-o", tmp_path / "x.exr", "-q", *args,
+                                       cwd=tmp_path), *needles)
+    assert not (tmp_path / "x.exr").exists()
+
+
 # ----------------------------------------------------------------------------- good runs
 def test_devices_lists_one():
     """`clppm devices` lists at least one OpenCL device as 'P:D  name  [...]'."""

@@ -240,3 +240,40 @@ def test_ppm_matches_photon_pass_layered(dev, layers):
     the layers gave 0.72 and 1.37 here."""
     ratio = _consistency(dev, "e", 12, layers)
     assert abs(ratio - 1) < 0.15, ratio
+
+
+def _wavy_cfg(amplitude, **kw):
+    """Two layers with identical optics (the interface between them is invisible to light), the
+    lower one's top wavy like the dermal-epidermal junction; periodic 1 mm model, wide beam."""
+    layers = [dict(layer("upper", 60.0, 1.0, 100.0, g=0.8), bottom="papillae"),
+              layer("lower", math.inf, 1.0, 100.0, g=0.8)]
+    raw = {
+        "model": {"name": "wavy", "size_mm": [1.0, 1.0], "lateral": "periodic", "quantize": False,
+                  "lateral_voxel_um": 5.0},
+        "papillae": {"amplitude_um": amplitude, "period_um": 100.0},
+        "spectrum": {"start_nm": 500.0, "stop_nm": 500.0, "step_nm": 5.0},
+        "light": {"kind": "wide", "direction": [0.0, 0.0, -1.0], "center_mm": [0.5, 0.5],
+                  "width_mm": [1.0, 1.0], "spectrum": "flat"},
+        "camera": {"position_mm": [0.5, 0.5, 40.0], "look_at_mm": [0.5, 0.5, 0.0], "fov_deg": 0.6,
+                   "resolution": [10, 10]},
+        "render": {"method": "e", "threshold": 1e-3, "photons": 100_000, "initial_photons": 100,
+                   "passes": 8, "specular": False, "checkpoint_every": 0, "estimator": "beam", **kw},
+        "layer": layers,
+    }
+    return config.validate(raw, "test")
+
+
+@pytest.mark.slow
+def test_beam_conforming_depth_invisible_interface(dev):
+    """The beam estimator measures depth within each layer where a layer's boundary is wavy (a
+    photon at fraction f of its layer's thickness counts where the eye ray is at fraction f,
+    weighted by the thickness ratio).  Between two layers of identical optics the wave changes
+    nothing physical: the image must match the same scene with a flat interface (both against
+    their own seeds' spread)."""
+    flat, wavy = [], []
+    for seed in (1, 2, 3):
+        flat.append(pr.render(_wavy_cfg(0.0, seed=seed), dev=dev).spectral.mean())
+        wavy.append(pr.render(_wavy_cfg(15.0, seed=seed), dev=dev).spectral.mean())
+    f, w = np.mean(flat), np.mean(wavy)
+    se = math.sqrt(np.var(flat, ddof=1) / 3 + np.var(wavy, ddof=1) / 3)
+    assert abs(w / f - 1) < max(4 * se / f, 0.02), (flat, wavy)
