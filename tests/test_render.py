@@ -19,7 +19,7 @@ FOREARM = os.path.join(ROOT, "configs", "forearm.toml")
 
 
 def slab_cfg(layers, *, method="e", spacing=None, threshold=1.1e-3, merge="none", passes=4,
-             photons=100_000, K=20, res=(8, 8), fov=0.5, estimator="layer", light="wide"):
+             photons=100_000, K=20, res=(8, 8), fov=0.5, estimator="layer", light="wide", radius="ppm"):
     raw = {
         "model": {"name": "slab", "size_mm": [4.0, 4.0], "lateral": "infinite", "quantize": False},
         "spectrum": {"start_nm": 500.0, "stop_nm": 500.0, "step_nm": 5.0},
@@ -29,7 +29,7 @@ def slab_cfg(layers, *, method="e", spacing=None, threshold=1.1e-3, merge="none"
                    "fov_deg": fov, "resolution": list(res)},
         "render": {"method": method, "spacing_um": spacing, "threshold": threshold, "merge": merge,
                    "photons": photons, "initial_photons": K, "passes": passes, "specular": False,
-                   "checkpoint_every": 0, "estimator": estimator},
+                   "checkpoint_every": 0, "estimator": estimator, "radius": radius},
         "layer": layers,
     }
     return config.validate(raw, "test")

@@ -299,7 +299,7 @@ def test_radius_device_hundreds_of_passes(dev, tmp_path):
     point's R is positive, finite and never grows; N finite; the pixel flux accumulators (raw,
     from the checkpoint, before any NaN clean-up) finite and non-negative; the mean R^d decay
     (d = 2 for the beam's disc, 3 for spheres) follows the mean-field recursion (pass 2 on) within a factor 2."""
-    cfg = scene(lambda r: r["render"].update(photons=1000, initial_photons=20))
+    cfg = scene(lambda r: r["render"].update(photons=1000, initial_photons=20, radius="ppm"))
     dim = 2 if cfg["render"]["estimator"] == "beam" else 3
     track = {"prev": None, "R3": []}
 
