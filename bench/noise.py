@@ -18,7 +18,8 @@ and the path-tracing reference for that.
     python bench/noise.py --set storage=all --set estimator=layer --label variant
 
 Prints a table, writes out/bench/noise.json, noise.md and noise.png (noise against seconds,
-log-log, one curve per mode and resolution).
+log-log, one curve per mode and resolution), and each mode's last image of the first seed
+(noise-MODE-WxH.png: the two modes at equal time).
 """
 from __future__ import annotations
 
@@ -85,7 +86,7 @@ def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, m
         def on_snapshot(p, wall, res, shots=shots, limit=limit):
             t = render_seconds(res.report)
             if p in sched or t >= budget or (limit["passes"] is not None and p >= limit["passes"]):
-                shots[p] = (t, res.xyz.copy(), res.report)
+                shots[p] = (t, res.xyz.copy(), res.report, res.rgb, res.exposure)
             if limit["passes"] is None and t >= budget:
                 raise Stop
             if limit["passes"] is not None and p >= limit["passes"]:
@@ -110,8 +111,8 @@ def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, m
     mask = skin_mask_from_eye(eye)
     rows = []
     for p in common:
-        t1, x1, r1 = snaps[0][p]
-        t2, x2, r2 = snaps[1][p]
+        t1, x1, r1 = snaps[0][p][:3]
+        t2, x2, r2 = snaps[1][p][:3]
         n = two_seed_noise(x1, x2, mask, exposure)
         secs = 0.5 * (t1 + t2)
         n.update(passes=p, seconds=secs, emitted=r1["photons_emitted"], stored=r1["photons_stored"],
@@ -123,7 +124,7 @@ def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, m
         f"dE00 {last['noise_dE']:.2f}; {last['emitted'] / last['passes']:.0f} paths/pass; "
         f"efficiency Y {last['eff_Y']:.3g}/s, dE {last['eff_dE']:.3g}/s")
     return {"overrides": overrides, "rows": rows, "skin_pixels": int(mask.sum()),
-            "stage_seconds": last["stage_seconds"]}
+            "stage_seconds": last["stage_seconds"], "_image": snaps[0][common[-1]][3:5]}
 
 
 def plot(results: dict, path: str) -> None:
@@ -164,7 +165,7 @@ def main(argv=None) -> int:
     ap.add_argument("config", nargs="?", default=os.path.join(ROOT, "configs", "forearm.toml"))
     ap.add_argument("--quick", action="store_true", help="80x60 only, 20 s per image")
     ap.add_argument("--resolutions", default=None, help="e.g. 80x60,320x240")
-    ap.add_argument("--budget", type=float, help="render seconds per image (default 60 at 80x60, 240 at 320x240)")
+    ap.add_argument("--budget", type=float, help="render seconds per image (default 60 at 80x60, 300 at 320x240)")
     ap.add_argument("--modes", default="paper,default")
     ap.add_argument("--set", action="append", type=_kv, default=[], help="render key=value for an extra mode")
     ap.add_argument("--label", default="variant")
@@ -191,10 +192,13 @@ def main(argv=None) -> int:
     with cached_volumes():
         for res in res_list:
             c = C.override(cfg, "camera", "resolution", list(res))
-            budget = a.budget or (20.0 if a.quick else (60.0 if res[0] <= 80 else 240.0))
+            budget = a.budget or (20.0 if a.quick else (60.0 if res[0] <= 80 else 300.0))
             for name, ov in modes.items():
                 print(f"  {name} {res[0]}x{res[1]} ({budget:g} s per image): {ov}")
-                results[f"{name} {res[0]}x{res[1]}"] = run_mode(c, ov, budget=budget, dev=dev)
+                r = run_mode(c, ov, budget=budget, dev=dev)
+                os.makedirs(a.out, exist_ok=True)
+                image.write_png(os.path.join(a.out, f"noise-{name}-{res[0]}x{res[1]}.png"), *r.pop("_image"))
+                results[f"{name} {res[0]}x{res[1]}"] = r
     os.makedirs(a.out, exist_ok=True)
     lines = ["| mode | resolution | passes | seconds | paths/pass | noise Y | noise ΔE00 | efficiency Y (1/s) | efficiency ΔE (1/s) |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|"]

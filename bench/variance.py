@@ -107,7 +107,9 @@ def main(argv=None) -> int:
             if edits != "default":
                 for k, v in edits.items():
                     c = C.override(c, "render", k, v)
-            passes = a.default_passes if c["render"]["storage"] == "importance" else a.passes
+            # importance-driven storage makes a pass ~70x more paths; thinning only 10x: equal passes
+            long_pass = c["render"]["storage"] == "importance" and c["render"]["store_scale"] > 1e-6
+            passes = a.default_passes if long_pass else a.passes
             imgs = []
             for s in (101, 202):
                 eye_seed = 7 if opts.get("same_eye") else s

@@ -94,7 +94,7 @@ def _read(path: str, names: tuple[str, ...]) -> tuple[dict, dict, callable]:
     """Header and arrays of a checkpoint file, or a one-line CheckpointError."""
     name = os.path.basename(path)
     if not os.path.isfile(path):
-        raise CheckpointError(f"checkpoint {name}: file not found ({path})")
+        raise CheckpointError(f"checkpoint {name}: file not found ({path!r})")
 
     def corrupt(why):
         return CheckpointError(f"checkpoint {name} is corrupt or not a clppm checkpoint ({why})")

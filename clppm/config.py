@@ -214,7 +214,7 @@ def _check(src: str, key: str, v: Any, f: F, base_dir: str) -> Any:
             bad("must be a file path")
         p = v if os.path.isabs(v) else os.path.join(base_dir, v)
         if not os.path.isfile(p):
-            bad(f"file not found ({p})")
+            bad(f"file not found ({p!r})")
         return p
     if k in ("vec2", "vec3", "ivec2"):
         n = 3 if k == "vec3" else 2
