@@ -35,22 +35,22 @@ from clppm.progressive import render               # noqa: E402
 from clppm.reference import RefSpec, accuracy, cached_volumes, get_reference  # noqa: E402
 
 #: paths per 10x10 square in each half of the reference (noise ~ 1.6 / sqrt(2 paths))
-REF_PATHS = {(80, 60): 1_500_000, (320, 240): 100_000}
+REF_PATHS = {(80, 60): 1_500_000, (320, 240): 20_000}
 
 
-def budgets(cfg: dict, mode: str, res: tuple, method: str) -> list[int]:
+def budgets(cfg: dict, mode: str, res: tuple, method: str, long: bool = True) -> list[int]:
     """Pass counts at which a run is measured: the mode's budget, and a longer ("converged") one."""
     if mode == "paper":
-        return [200, 1000] if res[0] <= 80 and method == "e" else [200]
+        return [200, 1000] if long and res[0] <= 80 and method == "e" else [200]
     p = int(cfg["render"]["passes"])
-    return [p, 4 * p] if method == "e" else [p]
+    return [p, 4 * p] if long and method == "e" else [p]
 
 
-def run(cfg: dict, mode: str, method: str, res: tuple, ref, dev, log=print) -> dict:
+def run(cfg: dict, mode: str, method: str, res: tuple, ref, dev, log=print, long: bool = True) -> dict:
     c = cfg
     for k, v in MODES[mode].items():
         c = C.override(c, "render", k, v)
-    marks = budgets(cfg, mode, res, method)
+    marks = budgets(cfg, mode, res, method, long)
     rows = {}
 
     def on_snapshot(p, wall, r):
@@ -89,6 +89,8 @@ def main(argv=None) -> int:
     ap.add_argument("--resolutions", default="80x60,320x240")
     ap.add_argument("--methods", default="abcdef")
     ap.add_argument("--modes", default="default,paper")
+    ap.add_argument("--no-long", action="store_true", help="only the modes' budgets, not the longer runs")
+    ap.add_argument("--ref-paths", type=int, help="reference paths per 10x10 square and half")
     ap.add_argument("--cache", default="out/cache")
     ap.add_argument("-o", "--out", default="out/bench")
     a = ap.parse_args(argv)
@@ -103,17 +105,19 @@ def main(argv=None) -> int:
     with cached_volumes():
         for rs in a.resolutions.split(","):
             res = tuple(int(v) for v in rs.split("x"))
-            spec = RefSpec(integrator="pt", resolution=res, block=10, paths=REF_PATHS.get(res, 500_000))
+            spec = RefSpec(integrator="pt", resolution=res, block=10, paths=a.ref_paths or REF_PATHS.get(res, 500_000))
             ref = get_reference(cfg, spec, a.cache, dev=dev, progress=True)
             runs = []
             for mode in a.modes.split(","):
                 for m in a.methods:
-                    runs.append(run(cfg, mode, m, res, ref, dev))
+                    runs.append(run(cfg, mode, m, res, ref, dev, long=not a.no_long))
                     doc["results"][rs] = {"reference": {"key": ref.key, "error": ref.error, "info": ref.info},
                                           "runs": runs}
                     with open(os.path.join(a.out, "bias.json"), "w") as f:
                         json.dump(doc, f, indent=1, default=str)
             md.append(markdown(res, ref, runs))
+            with open(os.path.join(a.out, f"bias-{rs}.md"), "w") as f:
+                f.write(md[-1] + "\n")
             with open(os.path.join(a.out, "bias.md"), "w") as f:
                 f.write("\n\n".join(md) + "\n")
     print("\n\n".join(md))

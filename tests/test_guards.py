@@ -434,3 +434,22 @@ def _toml(raw: dict) -> str:
         out.append("[[layer]]")
         out += [f"{k} = {val(v)}" for k, v in L.items()]
     return "\n".join(out) + "\n"
+
+
+def test_memory_check_counts_the_multi_band_photon_record():
+    """A path carrying C bands stores C-1 extra float weights per photon: the memory check counts
+    32 + 4 (C - 1) bytes per stored photon (and 4 more sorted), so 9 bands need twice the bytes."""
+    from clppm import ppm
+    raw = copy.deepcopy(BASE)
+    cfgs = {}
+    for C_ in (1, 9):
+        r = copy.deepcopy(raw)
+        r["render"]["bands_per_path"] = C_
+        r["spectrum"] = {"start_nm": 380.0, "stop_nm": 780.0, "step_nm": 5.0}
+        cfgs[C_] = C.validate(r, "test")
+    vol = volume.build(cfgs[1])
+    n1 = ppm.device_needs(cfgs[1], vol, 0, 1)
+    n9 = ppm.device_needs(cfgs[9], vol, 0, 1)
+    cap = int(cfgs[1]["render"]["photons"] * 1.2) + 4096
+    assert n1["stored photons"] == 32 * cap and n9["stored photons"] == 64 * cap
+    assert n9["sorted photons"] == 68 * cap
