@@ -179,9 +179,13 @@ def run_pt(cfg: dict, ref, *, budget: float, seed: int | None = None, dev=None, 
     last = {}
     sched = schedule(10**6)
 
+    nb = int(round((cfg["spectrum"]["stop_nm"] - cfg["spectrum"]["start_nm"]) / cfg["spectrum"]["step_nm"])) + 1
+
     def on_snapshot(p, wall, res):
         t = float(res.report["seconds"].get("trace", 0.0))
-        if p in sched or t >= budget:
+        # a band is stratified over a pixel's samples: until every band has one, the image
+        # lacks the missing bands (dark), which is coverage, not the estimator's error
+        if (p in sched and p * samples_per_pass >= nb) or t >= budget:
             snaps.append(_snapshot(p, t, wall, res, ref, {"paths": res.report.get("paths_traced")}))
         last["res"] = res
         if t >= budget:
