@@ -179,7 +179,7 @@ def run_pt(cfg: dict, ref, *, budget: float, seed: int | None = None, dev=None, 
     last = {}
     sched = schedule(10**6)
 
-    nb = int(round((cfg["spectrum"]["stop_nm"] - cfg["spectrum"]["start_nm"]) / cfg["spectrum"]["step_nm"])) + 1
+    nb = len(C.wavelengths(cfg))
 
     def on_snapshot(p, wall, res):
         t = float(res.report["seconds"].get("trace", 0.0))
