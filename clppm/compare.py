@@ -178,7 +178,6 @@ def run_pt(cfg: dict, ref, *, budget: float, seed: int | None = None, dev=None, 
     snaps: list = []
     last = {}
     sched = schedule(10**6)
-
     nb = len(C.wavelengths(cfg))
 
     def on_snapshot(p, wall, res):
@@ -469,7 +468,7 @@ def add_parser(subparsers, add_device) -> None:
     p.add_argument("--budget", type=float, help="render seconds per run (quick 20, standard 90: about "
                    "20 minutes on 2 CPU cores once the reference is cached)")
     p.add_argument("--quick", action="store_true", help="20 s per run, the paper's mode for e only, a smaller "
-                   "reference (~5 min once the reference is cached)")
+                   "reference of its own (computed once and cached): a first look")
     p.add_argument("--resolution", type=_res, help="default 80x60 (multiples of 10: the comparison is per "
                    "10x10-pixel square)")
     p.add_argument("--photons", type=int, help="stored photons per pass (default: the config's)")
