@@ -36,6 +36,7 @@
 #include "common.h"
 #include "grid.h"
 #include "spectral.h"
+#include "disc.h"
 
 #define FIX 4294967296.0f               /* 2^32 per unit of weight x phase */
 #define INV_FIX (1.0f / 4294967296.0f)
@@ -270,7 +271,8 @@ __kernel void count_within(const GridParams gp,
  * K here is a disc of radius R in the horizontal plane times a delta in depth:
  *   K(u) = delta(u.z) [|u.xy| < R] / A   ->   integral = T(t*) [rho < R] / (A |d.z|),
  * t* where the ray reaches the photon's depth, rho the horizontal distance there, A the disc's
- * area (pi R^2, less what lies beyond the model's sides: no skin, no photons there).  The kernel
+ * area pi R^2 (near the model's open sides: a smaller disc, and a boundary kernel where it is
+ * still cut, kernels/disc.h).  The kernel
  * never reaches across depth, so the jumps of S at the layer interfaces (mu_s changes 4x between
  * epidermis and dermis) and the steep depth profile of S cost no bias: what is smoothed is only
  * the lateral variation, and a symmetric disc's bias is second order in R there (R^2/8 lap_xy S).
@@ -290,46 +292,6 @@ __kernel void count_within(const GridParams gp,
  * radiance estimate of Jarosz, Zwicker & Jensen 2008), whose depth smoothing is unavoidable.
  * T(t*) is per band, from the optical depth at the piece's start plus mu_t of the piece's layer.
  * Phase: the photon's layer's g (the scattering happens at the photon). */
-
-/* Area of the disc (centre c, radius R) inside the model's footprint [x0, x0 + xw] x [y0, y0 + yw]:
- * pi R^2 less the circular segments beyond the nearest x and y sides, plus their overlap beyond
- * the corner (R is far below the model's size, so no two parallel sides are within R). */
-inline float seg_area(float d, float R) {          /* beyond a line at distance d from the centre */
-    if (d >= R) return 0.0f;
-    d = fmax(d, -R);
-    return R * R * acos(d / R) - d * sqrt(fmax(R * R - d * d, 0.0f));
-}
-
-inline float prim_circ(float x, float R) {         /* integral of sqrt(R^2 - x^2) dx */
-    x = clamp(x, -R, R);
-    return 0.5f * (x * sqrt(fmax(R * R - x * x, 0.0f)) + R * R * asin(x / R));
-}
-
-/* The disc's radius at c for a point whose radius is R: near the model's sides the disc shrinks
- * to the distance d from the nearest side, so that it stays whole and symmetric (a disc cut by
- * a side averages S over the inside only, where S is higher: photons leave through the open
- * sides, and the cut disc reads first-order high, +1 to +4 % in the outer 10x10-pixel squares
- * of the forearm at 80x60 against the path tracer).  It does not go below R/4: within R/4 of a
- * side the disc is cut (disc_area), a first-order bias four times smaller than the whole
- * disc's, for at most 16 times the variance. */
-inline float disc_radius(__constant const Params* P, float2 c, float R) {
-    if (P->lateral == 0) return R;
-    const float d = fmin(fmin(c.x - P->x0, P->x0 + P->xw - c.x), fmin(c.y - P->y0, P->y0 + P->yw - c.y));
-    return clamp(d, 0.25f * R, R);
-}
-
-inline float disc_area(__constant const Params* P, float2 c, float R) {
-    const float full = PI_F * R * R;
-    if (P->lateral == 0) return full;
-    const float dx = fmin(c.x - P->x0, P->x0 + P->xw - c.x);
-    const float dy = fmin(c.y - P->y0, P->y0 + P->yw - c.y);
-    float a = full - seg_area(dx, R) - seg_area(dy, R);
-    if (dx < R && dy < R && dx * dx + dy * dy < R * R) {        /* the corner's part, removed twice */
-        const float xe = sqrt(fmax(R * R - dy * dy, 0.0f));
-        a += prim_circ(xe, R) - prim_circ(dx, R) - dy * (xe - dx);
-    }
-    return fmax(a, 1e-3f * full);
-}
 
 __kernel void gather_beam(const GridParams gp,
                           __constant const Params* P,       /* the volume: columns, sides */
@@ -369,6 +331,9 @@ __kernel void gather_beam(const GridParams gp,
             const float Rp_ = global_radius ? pt_R[i] * radius_scale : pt_R[i];
             const float R = disc_radius(P, pp.xy, Rp_);
             const float R2 = R * R;
+            const DiscKernel dk = disc_kernel(P, pp.xy, R);
+            const int cut = dk.m0 < PI_F;       /* linear weight m0 k(u), 1 for a whole disc */
+            const float ka = dk.m0 * dk.a, kbx = dk.m0 * dk.bx / R, kby = dk.m0 * dk.by / R;
             long acc[NB];
             for (int b = 0; b < NB; ++b) acc[b] = 0;
             uint M = 0;
@@ -421,11 +386,12 @@ __kernel void gather_beam(const GridParams gp,
                                 }
                             }
 #endif
-                            float ts, rho2;
+                            float ts, rho2, gk = 1.0f;
                             if (vert) {
                                 ts = (pz - s0.z) * inv_dz;
                                 const float qx = s0.x + ts * d.x - p.x, qy = s0.y + ts * d.y - p.y;
                                 rho2 = qx * qx + qy * qy;
+                                if (cut) gk = ka - kbx * qx - kby * qy;     /* u = photon - ray */
                             } else {
                                 const float3 v = p.xyz - s0;
                                 ts = dot(v, d);
@@ -434,11 +400,11 @@ __kernel void gather_beam(const GridParams gp,
                             }
                             if (!(ts >= 0.0f && ts < len && rho2 < R2)) continue;
                             const float cw = dot(dd.xyz, d);                   /* w_eye = -d */
-                            const float wk = p.w * wax * wl;
+                            const float wk = p.w * wax * wl * gk;
                             __global const float4* hg = hgtab + (bl >> 8) * NB;
                             for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
                                 const int b = sw_band(bl & 255, c);
-                                const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl;
+                                const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * gk;
                                 const float4 h = hg[b];
                                 const float q = h.x + h.y * cw;
                                 const float rq = native_rsqrt(q);
@@ -452,7 +418,7 @@ __kernel void gather_beam(const GridParams gp,
                 for (int b = 0; b < NB; ++b) od[b] += optics[Lk * NB + b].w * len;
             }
             if (R > 0.0f) {
-                const float f = pp.w / disc_area(P, pp.xy, R) * INV_FIX;
+                const float f = pp.w / (dk.m0 * R2) * INV_FIX;
                 for (int b = 0; b < NB; ++b)
                     if (acc[b] != 0) accp[b] += f * (float)acc[b];
             }

@@ -3,6 +3,7 @@
  * Build with NB = NL = 1 (common.h requires them; nothing here uses them).
  * Directions travel as float4 (xyz, w unused) to avoid float3 buffer layout questions. */
 #include "common.h"
+#include "disc.h"
 
 /* n cosines of the HG scattering angle, uniforms from the device RNG (Philox, domain 7). */
 __kernel void t_hg_sample(float g, uint seed, uint n, __global float* out) {
@@ -83,4 +84,13 @@ __kernel void t_exp_neg(uint n, __global const float* x, __global float* out) {
     const uint i = (uint)get_global_id(0);
     if (i >= n) return;
     out[i] = exp_neg(x[i]);
+}
+
+/* The beam estimator's boundary kernel of disc.h for the unit disc less x < -ex, y < -ey:
+ * (a, bx, by, m0) per case. */
+__kernel void t_disc_kernel(uint n, __global const float2* e, __global float4* out) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    const DiscKernel k = disc_kernel_local(e[i].x, e[i].y);
+    out[i] = (float4)(k.a, k.bx, k.by, k.m0);
 }
