@@ -23,7 +23,7 @@ _FIELDS = [
     ("sx", "f4"), ("sy", "f4"), ("sz", "f4"),
     ("sdx", "f4"), ("sdy", "f4"), ("sdz", "f4"),
     ("swx", "f4"), ("swy", "f4"),
-    ("cone_cos", "f4"),
+    ("cone_omc", "f4"),
     ("cax", "f4"), ("cay", "f4"), ("caz", "f4"),
     ("fixed_band", "i4"),
     ("seed_lo", "u4"), ("seed_hi", "u4"), ("pass_", "u4"), ("photon_offset", "u4"),

@@ -75,7 +75,7 @@ def source_params(p: np.ndarray, cfg: dict, vol: Volume) -> float:
         pos = np.asarray(L["position_mm"], float) * 1000.0
         p["sx"], p["sy"], p["sz"] = pos
         if pos[2] <= vol.z_top:                    # in or below the surface plane: all directions
-            p["cone_cos"] = -1.0
+            p["cone_omc"] = 2.0
             p["cax"], p["cay"], p["caz"] = 0.0, 0.0, -1.0
             return 1.0
         # cone around the model's top face, seen from the light
@@ -88,7 +88,10 @@ def source_params(p: np.ndarray, cfg: dict, vol: Volume) -> float:
         axis /= np.linalg.norm(axis)
         cosmin = float(np.min(vecs @ axis))
         cosmin = max(-1.0, min(cosmin, 1.0)) - 1e-6
-        p["cone_cos"] = cosmin
+        # 1 - cos, not cos: a far light's cone is narrower than float32 resolves near cos = 1
+        # (1 m away, 1 mm model: 1 - cos = 1e-6 against a float spacing of 6e-8), which
+        # quantised the photons' directions into rings on the skin
+        p["cone_omc"] = 1.0 - cosmin
         p["cax"], p["cay"], p["caz"] = axis
         return (1.0 - cosmin) / 2.0                              # solid angle / 4 pi
     c = np.asarray(L["center_mm"], float) * 1000.0

@@ -57,7 +57,7 @@ typedef struct {
     float sx, sy, sz;           /* point position, or beam centre (z unused) */
     float sdx, sdy, sdz;        /* collimated direction */
     float swx, swy;             /* wide beam full widths */
-    float cone_cos;             /* point light: cos of the sampling cone half angle */
+    float cone_omc;             /* point light: 1 - cos of the sampling cone half angle */
     float cax, cay, caz;        /* cone axis */
     int fixed_band;             /* -1: draw from band_cdf */
     /* pass */
@@ -249,9 +249,15 @@ inline float2 azimuth_cs(float u) {
  * formula needs sqrt(dx^2 + dy^2) and a special case at the poles.  d is assumed unit; the
  * result's length is restored by one Newton step of 1/sqrt around 1 (the error of a unit
  * vector computed in float is ~1e-7, so the step leaves ~1e-14). */
+inline float3 rotate_dir_cst(float3 d, float ct, float st, float cp, float sp);
+
 inline float3 rotate_dir_cs(float3 d, float ct, float cp, float sp) {
     const float st2 = 1.0f - ct * ct;
-    const float st = st2 > 0.0f ? sqrt(st2) : 0.0f;
+    return rotate_dir_cst(d, ct, st2 > 0.0f ? sqrt(st2) : 0.0f, cp, sp);
+}
+
+/* The same with sin(theta) given (exact where ct rounds to 1). */
+inline float3 rotate_dir_cst(float3 d, float ct, float st, float cp, float sp) {
     const float sg = d.z >= 0.0f ? 1.0f : -1.0f;
     const float a = -1.0f / (sg + d.z);
     const float bb = d.x * d.y * a;

@@ -138,8 +138,9 @@ __kernel void photon_pass(VOLUME_ARGS,
     Track t;
     /* ---- launch */
     if (P->src_kind == 2) {                       /* isotropic point light, cone-sampled */
-        float ct = 1.0f - ue1 * (1.0f - P->cone_cos);
-        t.dir = scatter_dir((float3)(P->cax, P->cay, P->caz), ct, ue2);
+        const float s = ue1 * P->cone_omc;      /* 1 - cos(theta): exact for a narrow cone */
+        const float2 cs = azimuth_cs(ue2);
+        t.dir = rotate_dir_cst((float3)(P->cax, P->cay, P->caz), 1.0f - s, sqrt(fmax(s * (2.0f - s), 0.0f)), cs.x, cs.y);
         t.pos = (float3)(P->sx, P->sy, P->sz);
     } else {
         float3 d = (float3)(P->sdx, P->sdy, P->sdz);
