@@ -271,8 +271,8 @@ __kernel void count_within(const GridParams gp,
  * K here is a disc of radius R in the horizontal plane times a delta in depth:
  *   K(u) = delta(u.z) [|u.xy| < R] / A   ->   integral = T(t*) [rho < R] / (A |d.z|),
  * t* where the ray reaches the photon's depth, rho the horizontal distance there, A the disc's
- * area pi R^2 (near the model's open sides: a smaller disc, and a boundary kernel where it is
- * still cut, kernels/disc.h).  The kernel
+ * area pi R^2 (near the model's open sides: a smaller disc, and where it still reaches past
+ * a side only its part symmetric about the centre, kernels/disc.h).  The kernel
  * never reaches across depth, so the jumps of S at the layer interfaces (mu_s changes 4x between
  * epidermis and dermis) and the steep depth profile of S cost no bias: what is smoothed is only
  * the lateral variation, and a symmetric disc's bias is second order in R there (R^2/8 lap_xy S).
@@ -331,9 +331,7 @@ __kernel void gather_beam(const GridParams gp,
             const float Rp_ = global_radius ? pt_R[i] * radius_scale : pt_R[i];
             const float R = disc_radius(P, pp.xy, Rp_);
             const float R2 = R * R;
-            const DiscKernel dk = disc_kernel(P, pp.xy, R);
-            const int cut = dk.m0 < PI_F;       /* linear weight m0 k(u), 1 for a whole disc */
-            const float ka = dk.m0 * dk.a, kbx = dk.m0 * dk.bx / R, kby = dk.m0 * dk.by / R;
+            const DiscWindow dw = disc_window(P, pp.xy, R);
             long acc[NB];
             for (int b = 0; b < NB; ++b) acc[b] = 0;
             uint M = 0;
@@ -386,25 +384,26 @@ __kernel void gather_beam(const GridParams gp,
                                 }
                             }
 #endif
-                            float ts, rho2, gk = 1.0f;
+                            float ts, rho2, qx, qy;
                             if (vert) {
                                 ts = (pz - s0.z) * inv_dz;
-                                const float qx = s0.x + ts * d.x - p.x, qy = s0.y + ts * d.y - p.y;
+                                qx = s0.x + ts * d.x - p.x; qy = s0.y + ts * d.y - p.y;
                                 rho2 = qx * qx + qy * qy;
-                                if (cut) gk = ka - kbx * qx - kby * qy;     /* u = photon - ray */
                             } else {
                                 const float3 v = p.xyz - s0;
                                 ts = dot(v, d);
                                 const float3 q = v - ts * d;
                                 rho2 = dot(q, q);
+                                qx = q.x; qy = q.y;
                             }
                             if (!(ts >= 0.0f && ts < len && rho2 < R2)) continue;
+                            if (dw.cut && (fabs(qx) >= dw.hx || fabs(qy) >= dw.hy)) continue;
                             const float cw = dot(dd.xyz, d);                   /* w_eye = -d */
-                            const float wk = p.w * wax * wl * gk;
+                            const float wk = p.w * wax * wl;
                             __global const float4* hg = hgtab + (bl >> 8) * NB;
                             for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
                                 const int b = sw_band(bl & 255, c);
-                                const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * gk;
+                                const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl;
                                 const float4 h = hg[b];
                                 const float q = h.x + h.y * cw;
                                 const float rq = native_rsqrt(q);
@@ -418,7 +417,7 @@ __kernel void gather_beam(const GridParams gp,
                 for (int b = 0; b < NB; ++b) od[b] += optics[Lk * NB + b].w * len;
             }
             if (R > 0.0f) {
-                const float f = pp.w / (dk.m0 * R2) * INV_FIX;
+                const float f = pp.w / dw.area * INV_FIX;
                 for (int b = 0; b < NB; ++b)
                     if (acc[b] != 0) accp[b] += f * (float)acc[b];
             }

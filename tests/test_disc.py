@@ -1,69 +1,69 @@
-"""The beam estimator's boundary kernel near the model's open sides (kernels/disc.h).
+"""The beam estimator's disc near the model's open sides (kernels/disc.h).
 
-Checked against a brute-force integration on a fine grid of the unit disc less the cut-off
-half-planes: the kernel integrates to 1, has zero first moments (so a density linear across
-the disc, cut or not, is estimated exactly), its area is the region's, and a whole disc gives
-the plain 1/pi."""
+Where a disc reaches past a side, only its part symmetric about the centre counts (the disc
+within |x| < ex, |y| < ey, in units of R).  Checked here: the window's area (quarter_area, on the
+device) against a fine-grid integration and closed forms, and that the window lies inside the
+model and estimates a density linear across it exactly, while the plain cut disc does not."""
+import math
+
 import numpy as np
 import pytest
 
 cl = pytest.importorskip("pyopencl")
 
 CASES = [(1.0, 1.0), (2.0, 5.0), (0.0, 1.0), (1.0, 0.0), (0.5, 1.0), (0.9, 3.0), (0.0, 0.0),
-         (0.3, 0.4), (0.7, 0.2), (0.05, 0.95), (0.999, 0.999), (0.6, 0.8)]
+         (0.3, 0.4), (0.7, 0.2), (0.05, 0.95), (0.999, 0.999), (0.6, 0.8), (0.001, 0.5)]
 
 
 @pytest.fixture(scope="module")
-def kernel_values(dev):
+def quarter(dev):
     prg = dev.build("testing.cl", {"NB": 1, "NL": 1})
     e = np.asarray(CASES, np.float32)
-    out = np.zeros((len(CASES), 4), np.float32)
+    out = np.zeros(len(CASES), np.float32)
     mf = cl.mem_flags
     eb = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=e)
     ob = cl.Buffer(dev.ctx, mf.WRITE_ONLY, out.nbytes)
-    cl.Kernel(prg, "t_disc_kernel")(dev.queue, (len(CASES),), None, np.uint32(len(CASES)), eb, ob)
+    cl.Kernel(prg, "t_quarter_area")(dev.queue, (len(CASES),), None, np.uint32(len(CASES)), eb, ob)
     cl.enqueue_copy(dev.queue, out, ob)
     dev.queue.finish()
     return out
 
 
-def _grid(ex, ey, n=2000):
-    """Cell centres of a fine grid over the region (unit disc, x > -ex, y > -ey), cell area."""
+def _grid(ex, ey, n=4000):
+    """Cell centres of a fine grid over the window within the unit disc, cell area."""
     h = 2.0 / n
     c = -1.0 + h * (np.arange(n) + 0.5)
     x, y = np.meshgrid(c, c, indexing="ij")
-    m = (x * x + y * y < 1.0) & (x > -ex) & (y > -ey)
+    m = (x * x + y * y < 1.0) & (np.abs(x) < ex) & (np.abs(y) < ey)
     return x[m], y[m], h * h
 
 
 @pytest.mark.parametrize("i", range(len(CASES)))
-def test_boundary_kernel_moments(kernel_values, i):
+def test_window_area(quarter, i):
     ex, ey = CASES[i]
-    a, bx, by, m0 = (float(v) for v in kernel_values[i])
-    x, y, dA = _grid(ex, ey)
-    area = x.size * dA
-    assert m0 == pytest.approx(area, rel=2e-3)
-    k = a + bx * x + by * y
-    assert (k * dA).sum() == pytest.approx(1.0, abs=2e-3)          # normalised
-    assert abs((k * x * dA).sum()) < 2e-3                          # first moments vanish
-    assert abs((k * y * dA).sum()) < 2e-3
-    # a linear density is estimated exactly at the centre: 3 + 2x - 5y -> 3
-    assert ((3 + 2 * x - 5 * y) * k * dA).sum() == pytest.approx(3.0, abs=2e-2)
-    if ex >= 1 and ey >= 1:
-        assert (a, bx, by) == pytest.approx((1 / np.pi, 0.0, 0.0), abs=1e-6)
-        assert m0 == pytest.approx(np.pi, rel=1e-6)
-    else:
-        # the weight grows towards the cut sides (the inside part's centroid is inward)
-        assert bx <= 1e-6 and by <= 1e-6
-        assert bx < -1e-3 or by < -1e-3 or min(ex, ey) > 0.9
+    x, _, dA = _grid(ex, ey)
+    assert 4 * float(quarter[i]) == pytest.approx(x.size * dA, abs=2e-3)
 
 
-def test_half_disc_closed_form(kernel_values):
-    """Cut through the centre by one side: m0 = pi/2, m1 = 2/3, m2 = pi/8 (closed form)."""
-    a, bx, by, m0 = (float(v) for v in kernel_values[CASES.index((0.0, 1.0))])
-    m0_, m1, m2 = np.pi / 2, 2 / 3, np.pi / 8
-    det = m0_ * m2 - m1 * m1
-    assert m0 == pytest.approx(m0_, rel=1e-5)
-    assert a == pytest.approx(m2 / det, rel=1e-4)
-    assert bx == pytest.approx(-m1 / det, rel=1e-4)
-    assert by == pytest.approx(0.0, abs=1e-5)
+def test_window_area_closed_forms(quarter):
+    q = dict(zip(CASES, (float(v) for v in quarter)))
+    assert 4 * q[(1.0, 1.0)] == pytest.approx(math.pi, rel=1e-6)           # whole disc
+    assert 4 * q[(2.0, 5.0)] == pytest.approx(math.pi, rel=1e-6)
+    assert q[(0.0, 1.0)] == 0 and q[(0.0, 0.0)] == 0
+    band = 2 * (0.5 * math.sqrt(0.75) + math.asin(0.5))                      # |x| < 1/2
+    assert 4 * q[(0.5, 1.0)] == pytest.approx(band, rel=1e-5)
+
+
+@pytest.mark.parametrize("ex,ey", [(0.3, 5.0), (0.3, 0.6), (0.05, 0.2)])
+def test_window_estimates_a_linear_density_at_its_centre(ex, ey):
+    """Photons of a density 1 + 3x + 2y (the side at x = -ex, y = -ey: none beyond), the centre
+    at 0: the window's estimate is the centre's density, the cut disc's is first-order high."""
+    x, y, dA = _grid(5.0, 5.0)                      # the whole unit disc
+    inside = (x > -ex) & (y > -ey)
+    s = 1 + 3 * x + 2 * y
+    win = (np.abs(x) < ex) & (np.abs(y) < ey)
+    assert np.all(inside[win])                      # the window lies inside the model
+    est = (s[win] * dA).sum() / (win.sum() * dA)
+    assert est == pytest.approx(1.0, abs=2e-3)
+    cut = (s[inside] * dA).sum() / (inside.sum() * dA)
+    assert cut > 1.1
