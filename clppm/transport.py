@@ -91,9 +91,10 @@ def source_params(p: np.ndarray, cfg: dict, vol: Volume) -> float:
         # 1 - cos, not cos: a far light's cone is narrower than float32 resolves near cos = 1
         # (1 m away, 1 mm model: 1 - cos = 1e-6 against a float spacing of 6e-8), which
         # quantised the photons' directions into rings on the skin
-        p["cone_omc"] = 1.0 - cosmin
+        omc = 1.0 - cosmin
+        p["cone_omc"] = omc
         p["cax"], p["cay"], p["caz"] = axis
-        return (1.0 - cosmin) / 2.0                              # solid angle / 4 pi
+        return omc / 2.0                                         # solid angle / 4 pi
     c = np.asarray(L["center_mm"], float) * 1000.0
     p["sx"], p["sy"] = c
     if L["kind"] == "wide":

@@ -44,10 +44,16 @@ inline float quarter_area(float ex, float ey) {
     return a;
 }
 
+/* Distances from c to the nearest x side and the nearest y side. */
+inline float2 side_distances(__constant const Params* P, float2 c) {
+    return (float2)(fmin(c.x - P->x0, P->x0 + P->xw - c.x), fmin(c.y - P->y0, P->y0 + P->yw - c.y));
+}
+
 /* Distance from c to the nearest side, or a large number without sides. */
 inline float side_distance(__constant const Params* P, float2 c) {
     if (P->lateral == 0) return 3.0e38f;
-    return fmin(fmin(c.x - P->x0, P->x0 + P->xw - c.x), fmin(c.y - P->y0, P->y0 + P->yw - c.y));
+    const float2 s = side_distances(P, c);
+    return fmin(s.x, s.y);
 }
 
 /* The disc's radius at c for a point whose radius is R (see above). */
@@ -62,8 +68,9 @@ inline DiscWindow disc_window(__constant const Params* P, float2 c, float R) {
     if (P->lateral == 0 || side_distance(P, c) >= R) return w;
     /* not below R/1000: a centre on the side would leave no window (the zone is 1000x
      * narrower than the floor disc; its first-order bias is negligible) */
-    w.hx = clamp(fmin(c.x - P->x0, P->x0 + P->xw - c.x), 1e-3f * R, R);
-    w.hy = clamp(fmin(c.y - P->y0, P->y0 + P->yw - c.y), 1e-3f * R, R);
+    const float2 s = side_distances(P, c);
+    w.hx = clamp(s.x, 1e-3f * R, R);
+    w.hy = clamp(s.y, 1e-3f * R, R);
     w.area = 4.0f * R * R * quarter_area(w.hx / R, w.hy / R);
     w.cut = 1;
     return w;
