@@ -11,7 +11,10 @@ the paper's 200 passes (paper mode) or the config's default budget (default mode
 * every 50-nm band group: the relative error of the mean skin radiance (and the largest),
 * CIEDE2000 of the mean skin colour.
 
-The reference's own noise (from its two halves) is printed beside.  Specular highlights are
+The reference's own noise (from its two halves) is printed beside.  ``--seeds N`` renders each
+scheme N times: a row is then the mean image (the same bias, noise / sqrt(N)), with one image's
+error and noise (seeds 1 and 2) and the bias per square with both noises removed beside it: at
+320x240 one image's noise per square is larger than the 2 % the bias is held to.  Specular highlights are
 switched off (the GGX term is the same deterministic function in both integrators, and would
 only dilute the relative errors).  This is a long run (hours on 2 cores at 320x240): use
 --methods / --resolutions / --modes to do part of it; results go to out/bench/bias.{json,md}.
@@ -26,16 +29,19 @@ import os
 import sys
 import time
 
+import numpy as np
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from clppm import config as C                      # noqa: E402
 from clppm.compare import MODES, render_seconds    # noqa: E402
 from clppm.progressive import render               # noqa: E402
-from clppm.reference import RefSpec, accuracy, cached_volumes, get_reference  # noqa: E402
+from clppm.reference import (RefSpec, accuracy, accuracy_of_seeds, block_mean, cached_volumes,  # noqa: E402
+                             get_reference)
 
 #: paths per 10x10 square in each half of the reference (noise ~ 1.6 / sqrt(2 paths))
-REF_PATHS = {(80, 60): 1_500_000, (320, 240): 20_000}
+REF_PATHS = {(80, 60): 1_500_000, (320, 240): 140_000}
 
 
 def budgets(cfg: dict, mode: str, res: tuple, method: str, long: bool = True) -> list[int]:
@@ -46,40 +52,94 @@ def budgets(cfg: dict, mode: str, res: tuple, method: str, long: bool = True) ->
     return [p, 4 * p] if long and method == "e" else [p]
 
 
-def run(cfg: dict, mode: str, method: str, res: tuple, ref, dev, log=print, long: bool = True) -> dict:
+def run(cfg: dict, mode: str, method: str, res: tuple, ref, dev, log=print, long: bool = True,
+        seeds: int = 1) -> dict:
+    """Measure one scheme at its marks.  With ``seeds`` > 1 the scheme renders that many times
+    (seeds 1, 2, ...): the row is the seed-mean image (the same bias, noise / sqrt(seeds)), and
+    beside it the error of one image and its noise from the first two seeds."""
     c = cfg
     for k, v in MODES[mode].items():
         c = C.override(c, "render", k, v)
     marks = budgets(cfg, mode, res, method, long)
-    rows = {}
+    imgs = {p: [] for p in marks}
+    secs = {p: [] for p in marks}
 
     def on_snapshot(p, wall, r):
         if p in marks:
+            imgs[p].append((block_mean(r.xyz, ref.block), block_mean(r.spectral, ref.block)))
+            secs[p].append(render_seconds(r.report))
             m = accuracy(r.xyz, r.spectral, ref)
-            rows[p] = {"passes": p, "seconds": render_seconds(r.report), **m}
-            log(f"    {mode} {method} {p} passes ({rows[p]['seconds']:.0f} s): Y per square "
+            log(f"    {mode} {method} {p} passes ({secs[p][-1]:.0f} s): Y per square "
                 f"{100 * m['block_Y_rms']:.2f} % RMS, {100 * m['block_Y_max']:.2f} % max; band groups "
                 f"{100 * m['group_max']:.2f} % max; mean colour dE00 {m['de_mean']:.2f}")
 
-    render(c, method=method, passes=max(marks), resolution=res, dev=dev, snapshot_every=min(marks),
-           on_snapshot=on_snapshot)
-    return {"mode": mode, "method": method, "marks": [rows[p] for p in marks]}
+    for s in range(1, seeds + 1):
+        render(c, method=method, passes=max(marks), resolution=res, dev=dev, snapshot_every=min(marks),
+               on_snapshot=on_snapshot, **({"seed": s} if seeds > 1 else {}))
+    rows = [mark_row(p, imgs[p], secs[p], ref, log) for p in marks]
+    return {"mode": mode, "method": method, "seeds": seeds, "marks": rows}
+
+
+def mark_row(p: int, imgs: list, secs: list, ref, log=print) -> dict:
+    """A mark's row: :func:`clppm.reference.accuracy_of_seeds` of its images, its seconds."""
+    row = {"passes": p, "seconds": float(np.median(secs)), **accuracy_of_seeds(imgs, ref)}
+    # where the error lies: Y / Y_pt - 1 of the (mean) image per square, NaN off the skin
+    Y = np.mean([x[..., 1] for x, _ in imgs], 0)
+    Yr = ref.xyz[..., 1]
+    rel = np.where(ref.mask, Y / np.where(Yr > 0, Yr, np.nan) - 1, np.nan)
+    row["Y_rel_per_square"] = np.round(rel, 5).tolist()
+    if "bias_Y_rms" in row:
+        log(f"    mean of {row['seeds']} seeds at {p} passes: Y per square {100 * row['block_Y_rms']:.2f} % RMS, "
+            f"{100 * row['block_Y_max']:.2f} % max; one image {100 * row['noise_Y_rms']:.2f} % noise; bias "
+            f"{100 * row['bias_Y_rms']:.2f} % RMS with the noises removed")
+    return row
+
+
+def rings(rel: np.ndarray) -> dict:
+    """Mean and RMS of a per-square error map (NaN off the skin) by ring: the outer ring of skin
+    squares (at the open sides), the second, and the inside."""
+    rel = np.asarray(rel, float)
+    skin = np.isfinite(rel)
+    rows, cols = np.nonzero(skin.any(1))[0], np.nonzero(skin.any(0))[0]
+    i, j = np.indices(rel.shape)
+    k = np.minimum(np.minimum(i - rows[0], rows[-1] - i), np.minimum(j - cols[0], cols[-1] - j))
+    out = {}
+    for name, m in (("outer", k == 0), ("second", k == 1), ("inside", k >= 2)):
+        e = rel[m & skin]
+        if e.size:
+            out[name] = {"squares": int(e.size), "mean": float(e.mean()), "rms": float(np.sqrt((e * e).mean()))}
+    return out
 
 
 def markdown(res: tuple, ref, runs: list) -> str:
     groups = list(runs[0]["marks"][0]["groups"]) if runs else []
+    many = any(m.get("seeds", 1) > 1 for r in runs for m in r["marks"])
     head = ("| mode | method | passes | seconds | Y per square, RMS | max | "
-            + " | ".join(f"{g} nm" for g in groups) + " | mean colour ΔE00 |")
+            + " | ".join(f"{g} nm" for g in groups) + " | mean colour ΔE00 |"
+            + (" seeds | one image: RMS, max | one image's noise | bias RMS, noise removed |" if many else ""))
     lines = [f"{res[0]}x{res[1]}, 10x10-pixel squares, against the path tracer "
              f"(its own noise: Y {100 * ref.error['block_Y_rms']:.2f} % RMS per square, band groups "
-             f"{100 * ref.error['group_max']:.2f} % max, mean colour ΔE00 {ref.error['de_mean']:.3f}).", "",
+             f"{100 * ref.error['group_max']:.2f} % max, mean colour ΔE00 {ref.error['de_mean']:.3f})."
+             + (" With several seeds a row is the mean image of its seeds." if many else ""), "",
              head, "|" + "---|" * (head.count("|") - 1)]
     for r in runs:
         for m in r["marks"]:
-            lines.append(f"| {r['mode']} | {r['method']} | {m['passes']} | {m['seconds']:.0f} | "
-                         f"{100 * m['block_Y_rms']:.2f} % | {100 * m['block_Y_max']:.2f} % | "
-                         + " | ".join(f"{100 * m['groups'][g]:+.2f} %" for g in groups)
-                         + f" | {m['de_mean']:.2f} |")
+            line = (f"| {r['mode']} | {r['method']} | {m['passes']} | {m['seconds']:.0f} | "
+                    f"{100 * m['block_Y_rms']:.2f} % | {100 * m['block_Y_max']:.2f} % | "
+                    + " | ".join(f"{100 * m['groups'][g]:+.2f} %" for g in groups)
+                    + f" | {m['de_mean']:.2f} |")
+            if many:
+                line += (f" {m.get('seeds', 1)} | " + (
+                    f"{100 * m['one_Y_rms']:.2f} %, {100 * m['one_Y_max']:.2f} % | {100 * m['noise_Y_rms']:.2f} % | "
+                    f"{100 * m['bias_Y_rms']:.2f} % |" if "noise_Y_rms" in m else " | | |"))
+            lines.append(line)
+    lines.append("")
+    for r in runs:
+        for m in r["marks"]:
+            g = rings(m["Y_rel_per_square"])
+            lines.append(f"- {r['mode']} {r['method']}, {m['passes']} passes, Y per square by ring: "
+                         + "; ".join(f"{k} ({v['squares']}) {100 * v['mean']:+.2f} % mean, {100 * v['rms']:.2f} % RMS"
+                                     for k, v in g.items()))
     return "\n".join(lines)
 
 
@@ -91,6 +151,8 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", default="default,paper")
     ap.add_argument("--no-long", action="store_true", help="only the modes' budgets, not the longer runs")
     ap.add_argument("--ref-paths", type=int, help="reference paths per 10x10 square and half")
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="renders per scheme (seeds 1..N): rows of the mean image, one image's noise, the bias")
     ap.add_argument("--cache", default="out/cache")
     ap.add_argument("-o", "--out", default="out/bench")
     a = ap.parse_args(argv)
@@ -110,7 +172,7 @@ def main(argv=None) -> int:
             runs = []
             for mode in a.modes.split(","):
                 for m in a.methods:
-                    runs.append(run(cfg, mode, m, res, ref, dev, long=not a.no_long))
+                    runs.append(run(cfg, mode, m, res, ref, dev, long=not a.no_long, seeds=a.seeds))
                     doc["results"][rs] = {"reference": {"key": ref.key, "error": ref.error, "info": ref.info},
                                           "runs": runs}
                     with open(os.path.join(a.out, "bias.json"), "w") as f:

@@ -218,6 +218,29 @@ def accuracy(xyz, spectral, ref, flip: bool = False, rgb=None) -> dict:
     return m
 
 
+def accuracy_of_seeds(images: list, ref) -> dict:
+    """:func:`accuracy` of the mean of several renders of one scheme (``images``: (xyz, spectral)
+    pairs already averaged over the reference's squares), which has their bias and 1/sqrt(n) of
+    one image's noise; with two or more: the first image's Y per square (``one_Y_rms``,
+    ``one_Y_max``), one image's noise per square from the first two ((Y1 - Y2)/sqrt 2:
+    ``noise_Y_rms``), and the bias per square with both noises removed in quadrature
+    (``bias_Y_rms`` = sqrt(RMS^2 - noise^2/n - the reference's own noise^2), 0 if negative)."""
+    sq = dataclasses.replace(ref, spec=dataclasses.replace(ref.spec, block=1))     # already squares
+    n = len(images)
+    xyz = np.mean([x for x, _ in images], 0)
+    spectral = None if images[0][1] is None else np.mean([s for _, s in images], 0)
+    m = {"seeds": n, **accuracy(xyz, spectral, sq)}
+    if n > 1:
+        one = accuracy(images[0][0], images[0][1], sq)
+        Yr = ref.xyz[..., 1][ref.mask]
+        d = (images[0][0][..., 1] - images[1][0][..., 1])[ref.mask] / Yr
+        noise = float(np.sqrt(np.mean(d * d) / 2))
+        resid = m["block_Y_rms"] ** 2 - noise ** 2 / n - ref.error["block_Y_rms"] ** 2
+        m.update(one_Y_rms=one["block_Y_rms"], one_Y_max=one["block_Y_max"], noise_Y_rms=noise,
+                 bias_Y_rms=float(np.sqrt(max(resid, 0.0))))
+    return m
+
+
 # ----------------------------------------------------------------------------- reference
 @dataclass
 class RefSpec:

@@ -329,9 +329,12 @@ __kernel void gather_beam(const GridParams gp,
         for (uint i = i0; i < i1; ++i) {
             const float4 pp = pt_pos[i];
             const float Rp_ = global_radius ? pt_R[i] * radius_scale : pt_R[i];
-            const float R = disc_radius(P, pp.xy, Rp_);
+            const float R = Rp_;
             const float R2 = R * R;
-            const DiscWindow dw = disc_window(P, pp.xy, R);
+            /* the window near an open side (disc.h) is that of the ray's point at the photon's
+             * depth: the ray drifts sideways with depth (outwards at the sides, ~0.1 per unit
+             * depth), so a window placed at the sample point would reach past the side */
+            const float Rwin = R / DISC_KAPPA;
             long acc[NB];
             for (int b = 0; b < NB; ++b) acc[b] = 0;
             uint M = 0;
@@ -397,13 +400,21 @@ __kernel void gather_beam(const GridParams gp,
                                 qx = q.x; qy = q.y;
                             }
                             if (!(ts >= 0.0f && ts < len && rho2 < R2)) continue;
-                            if (dw.cut && (fabs(qx) >= dw.hx || fabs(qy) >= dw.hy)) continue;
+                            float wwin = 1.0f;                  /* pi R^2 / the window's area */
+                            if (P->lateral != 0) {
+                                const float2 sd = side_distances(P, s0.xy + ts * d.xy);
+                                if (fmin(sd.x, sd.y) < Rwin) {
+                                    const DiscWindow dw = window_at(sd, R);
+                                    if (fabs(qx) >= dw.hx || fabs(qy) >= dw.hy) continue;
+                                    wwin = PI_F * R2 / dw.area;
+                                }
+                            }
                             const float cw = dot(dd.xyz, d);                   /* w_eye = -d */
-                            const float wk = p.w * wax * wl;
+                            const float wk = p.w * wax * wl * wwin;
                             __global const float4* hg = hgtab + (bl >> 8) * NB;
                             for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
                                 const int b = sw_band(bl & 255, c);
-                                const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl;
+                                const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin;
                                 const float4 h = hg[b];
                                 const float q = h.x + h.y * cw;
                                 const float rq = native_rsqrt(q);
@@ -417,7 +428,7 @@ __kernel void gather_beam(const GridParams gp,
                 for (int b = 0; b < NB; ++b) od[b] += optics[Lk * NB + b].w * len;
             }
             if (R > 0.0f) {
-                const float f = pp.w / dw.area * INV_FIX;
+                const float f = pp.w / (PI_F * R2) * INV_FIX;
                 for (int b = 0; b < NB; ++b)
                     if (acc[b] != 0) accp[b] += f * (float)acc[b];
             }

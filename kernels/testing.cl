@@ -92,3 +92,11 @@ __kernel void t_quarter_area(uint n, __global const float2* e, __global float* o
     if (i >= n) return;
     out[i] = quarter_area(e[i].x, e[i].y);
 }
+
+/* window_at of disc.h: the beam disc's window (hx, hy, area, cut) at side distances s, radius R. */
+__kernel void t_window_at(uint n, __global const float2* s, const float R, __global float4* out) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    const DiscWindow w = window_at(s[i], R);
+    out[i] = (float4)(w.hx, w.hy, w.area, (float)w.cut);
+}

@@ -67,3 +67,57 @@ def test_window_estimates_a_linear_density_at_its_centre(ex, ey):
     assert est == pytest.approx(1.0, abs=2e-3)
     cut = (s[inside] * dA).sum() / (inside.sum() * dA)
     assert cut > 1.1
+
+
+def _header_constant(name):
+    import os
+    import re
+    from clppm.device import kernel_dir
+    with open(os.path.join(kernel_dir(), "disc.h")) as f:
+        return float(re.search(rf"#define {name} ([0-9.]+)f", f.read()).group(1))
+
+
+@pytest.fixture(scope="module")
+def windows(dev):
+    """window_at on the device over side distances d in [0, 3R] (x) and a far or equal y side."""
+    R = 300.0
+    d = np.linspace(0.0, 3 * R, 601, dtype=np.float32)
+    s = np.stack([np.concatenate([d, d]), np.concatenate([np.full_like(d, 1e4), d])], 1).astype(np.float32)
+    prg = dev.build("testing.cl", {"NB": 1, "NL": 1})
+    out = np.zeros((len(s), 4), np.float32)
+    mf = cl.mem_flags
+    sb = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=s)
+    ob = cl.Buffer(dev.ctx, mf.WRITE_ONLY, out.nbytes)
+    cl.Kernel(prg, "t_window_at")(dev.queue, (len(s),), None, np.uint32(len(s)), sb, np.float32(R), ob)
+    cl.enqueue_copy(dev.queue, out, ob)
+    dev.queue.finish()
+    n = len(d)
+    return R, d, out[:n], out[n:]
+
+
+def test_window_across_one_side(windows):
+    """Along one side: narrowed across it to kappa d (floor, never past the side), full R along it."""
+    R, d, w, _ = windows
+    kappa, floor = _header_constant("DISC_KAPPA"), _header_constant("DISC_FLOOR")
+    want = np.clip(np.minimum(np.maximum(kappa * d, floor * R), d), 1e-3 * R, R)
+    assert np.allclose(w[:, 0], want, rtol=1e-6, atol=1e-6)
+    assert np.all(w[:, 0] <= np.maximum(d, 1e-3 * R) * (1 + 1e-6))      # never past the side
+    assert np.all(w[:, 1] == R)                                          # the side's direction: whole
+    assert np.all(np.diff(w[:, 0]) >= 0)                                 # grows with the distance
+    far = d >= R / kappa
+    assert np.all(w[far, 3] == 0) and np.allclose(w[far, 2], math.pi * R * R, rtol=1e-6)
+    assert np.all(w[~far, 3] == 1)
+
+
+def test_window_area_is_the_disc_within_it(windows):
+    """The area of the window as returned equals a grid integration of the disc within it, and
+    along one side it exceeds the isotropic disc of radius hx (less noise for the same bias
+    across the side: the density changes across a side, not along it)."""
+    R, d, w, wc = windows
+    for k in (0, 30, 100, 250, 400):
+        for ww in (w[k], wc[k]):
+            x, _, dA = _grid(ww[0] / R, ww[1] / R, n=2000)
+            assert ww[2] == pytest.approx(x.size * dA * R * R, rel=5e-3, abs=2e-3 * R * R)
+    assert np.all(w[:, 2] >= math.pi * w[:, 0] ** 2 * (1 - 1e-6))
+    narrow = w[:, 0] <= R / 2
+    assert np.all(w[narrow, 2] > 2.4 * math.pi * w[narrow, 0] ** 2)
