@@ -328,8 +328,7 @@ __kernel void gather_beam(const GridParams gp,
         for (int b = 0; b < NB; ++b) od[b] = 0.0f;
         for (uint i = i0; i < i1; ++i) {
             const float4 pp = pt_pos[i];
-            const float Rp_ = global_radius ? pt_R[i] * radius_scale : pt_R[i];
-            const float R = Rp_;
+            const float R = global_radius ? pt_R[i] * radius_scale : pt_R[i];
             const float R2 = R * R;
             /* the window near an open side (disc.h) is that of the ray's point at the photon's
              * depth: the ray drifts sideways with depth (outwards at the sides, ~0.1 per unit
@@ -437,7 +436,7 @@ __kernel void gather_beam(const GridParams gp,
                 const float N = pt_N[i];
                 const float Nn = N + alpha * (float)M;
                 pt_N[i] = Nn;
-                pt_R[i] = Rp_ * sqrt(Nn / (N + (float)M));
+                pt_R[i] = R * sqrt(Nn / (N + (float)M));
             }
             pt_M[i] = M;
             pairs += M;
