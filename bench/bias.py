@@ -91,7 +91,9 @@ def mark_row(p: int, imgs: list, secs: list, ref, log=print) -> dict:
     if "bias_Y_rms" in row:
         log(f"    mean of {row['seeds']} seeds at {p} passes: Y per square {100 * row['block_Y_rms']:.2f} % RMS, "
             f"{100 * row['block_Y_max']:.2f} % max; one image {100 * row['noise_Y_rms']:.2f} % noise; bias "
-            f"{100 * row['bias_Y_rms']:.2f} % RMS with the noises removed")
+            f"{100 * row['bias_Y_rms']:.2f} % RMS with the noises removed; {row['beyond']} of {row['squares']} squares "
+            f"beyond {100 * row['bound']:.0f} % (noise alone: {row['beyond_noise']:.0f}), {row['beyond_sig']} by more "
+            f"than {row['z']:.0f} standard errors")
     return row
 
 
@@ -116,11 +118,14 @@ def markdown(res: tuple, ref, runs: list) -> str:
     many = any(m.get("seeds", 1) > 1 for r in runs for m in r["marks"])
     head = ("| mode | method | passes | seconds | Y per square, RMS | max | "
             + " | ".join(f"{g} nm" for g in groups) + " | mean colour ΔE00 |"
-            + (" seeds | one image: RMS, max | one image's noise | bias RMS, noise removed |" if many else ""))
+            + (" seeds | one image: RMS, max | one image's noise | bias RMS, noise removed | squares beyond 2 %: all (noise alone), shown |"
+               if many else ""))
     lines = [f"{res[0]}x{res[1]}, 10x10-pixel squares, against the path tracer "
              f"(its own noise: Y {100 * ref.error['block_Y_rms']:.2f} % RMS per square, band groups "
              f"{100 * ref.error['group_max']:.2f} % max, mean colour ΔE00 {ref.error['de_mean']:.3f})."
-             + (" With several seeds a row is the mean image of its seeds." if many else ""), "",
+             + (" With several seeds a row is the mean image of its seeds; a square's bias is shown beyond 2 % "
+                "when its error exceeds 2 % by more than 3 standard errors (the seeds' and the reference's noise)."
+                if many else ""), "",
              head, "|" + "---|" * (head.count("|") - 1)]
     for r in runs:
         for m in r["marks"]:
@@ -131,7 +136,8 @@ def markdown(res: tuple, ref, runs: list) -> str:
             if many:
                 line += (f" {m.get('seeds', 1)} | " + (
                     f"{100 * m['one_Y_rms']:.2f} %, {100 * m['one_Y_max']:.2f} % | {100 * m['noise_Y_rms']:.2f} % | "
-                    f"{100 * m['bias_Y_rms']:.2f} % |" if "noise_Y_rms" in m else " | | |"))
+                    f"{100 * m['bias_Y_rms']:.2f} % | {m['beyond']} ({m['beyond_noise']:.0f}), {m['beyond_sig']} of {m['squares']} |"
+                    if "noise_Y_rms" in m else " | | | |"))
             lines.append(line)
     lines.append("")
     for r in runs:

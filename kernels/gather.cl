@@ -333,7 +333,7 @@ __kernel void gather_beam(const GridParams gp,
             /* the window near an open side (disc.h) is that of the ray's point at the photon's
              * depth: the ray drifts sideways with depth (outwards at the sides, ~0.1 per unit
              * depth), so a window placed at the sample point would reach past the side */
-            const float Rwin = R / DISC_KAPPA;
+            const float Rwin = window_reach(R);
             long acc[NB];
             for (int b = 0; b < NB; ++b) acc[b] = 0;
             uint M = 0;

@@ -79,9 +79,9 @@ def _header_constant(name):
 
 @pytest.fixture(scope="module")
 def windows(dev):
-    """window_at on the device over side distances d in [0, 3R] (x) and a far or equal y side."""
+    """window_at on the device over side distances d in [0, 5R] (x) and a far or equal y side."""
     R = 300.0
-    d = np.linspace(0.0, 3 * R, 601, dtype=np.float32)
+    d = np.linspace(0.0, 5 * R, 1001, dtype=np.float32)
     s = np.stack([np.concatenate([d, d]), np.concatenate([np.full_like(d, 1e4), d])], 1).astype(np.float32)
     prg = dev.build("testing.cl", {"NB": 1, "NL": 1})
     out = np.zeros((len(s), 4), np.float32)
@@ -96,17 +96,24 @@ def windows(dev):
 
 
 def test_window_across_one_side(windows):
-    """Along one side: narrowed across it to kappa d (floor, never past the side), full R along it."""
+    """Along one side: narrowed across it to u + 2u^2/R with u = kappa d (floor, never past the
+    side), full R along it; the whole disc from d = R / (2 kappa) on, and nowhere nearer."""
     R, d, w, _ = windows
     kappa, floor = _header_constant("DISC_KAPPA"), _header_constant("DISC_FLOOR")
-    want = np.clip(np.minimum(np.maximum(kappa * d, floor * R), d), 1e-3 * R, R)
-    assert np.allclose(w[:, 0], want, rtol=1e-6, atol=1e-6)
+    u = kappa * d
+    want = np.clip(np.minimum(np.maximum(u + 2 * u * u / R, floor * R), d), 1e-3 * R, R)
+    assert np.allclose(w[:, 0], want, rtol=1e-5, atol=1e-3)
     assert np.all(w[:, 0] <= np.maximum(d, 1e-3 * R) * (1 + 1e-6))      # never past the side
     assert np.all(w[:, 1] == R)                                          # the side's direction: whole
     assert np.all(np.diff(w[:, 0]) >= 0)                                 # grows with the distance
-    far = d >= R / kappa
+    near = (d > floor * R / kappa * 1.01) & (d < R)                   # above the floor, within R
+    assert near.sum() > 50
+    ratio = w[near, 0] / d[near]                                         # about kappa d near the side
+    assert np.all(ratio >= kappa * (1 - 1e-5)) and np.all(ratio <= 1.25 * kappa * (1 + 1e-5))
+    far = d >= R / (2 * kappa) * (1 + 1e-6)
+    assert far.sum() > 100 and (~far).sum() > 100
     assert np.all(w[far, 3] == 0) and np.allclose(w[far, 2], math.pi * R * R, rtol=1e-6)
-    assert np.all(w[~far, 3] == 1)
+    assert np.all(w[~far & (d < R / (2 * kappa) * (1 - 1e-3)), 3] == 1)
 
 
 def test_window_area_is_the_disc_within_it(windows):

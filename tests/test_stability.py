@@ -452,6 +452,49 @@ def test_accuracy_of_seeds_separates_bias_from_noise():
     assert one["seeds"] == 1 and "bias_Y_rms" not in one
 
 
+def test_squares_beyond_the_bound_only_when_shown():
+    """A bias field of 0 with 40 squares at +10 % and 40 at +2.5 %, images with 2 % noise, a
+    reference whose halves differ by its 1 % noise: the standard error per square is the mean's
+    and the reference's noise together; every 10 % square is beyond 2 % beyond doubt, none of the
+    unbiased ones is, and the 2.5 % ones are beyond 2 % often but shown so seldom."""
+    from clppm import image
+    from clppm.reference import Reference, RefSpec, accuracy_of_seeds
+    rng = np.random.default_rng(5)
+    h, w, n = 40, 50, 8
+    truth = rng.uniform(0.2, 0.4, (h, w, 1)) * image.D65_XYZ
+    bias = np.zeros((h, w, 1))
+    idx = rng.permutation(h * w)
+    bias.reshape(-1)[idx[:40]] = 0.10
+    bias.reshape(-1)[idx[40:80]] = 0.025
+    halves = truth * (1 + 0.01 * np.sqrt(2) * rng.standard_normal((2, h, w, 1)))
+    ref_xyz = halves.mean(0)
+    ref = Reference(key="t", spec=RefSpec(integrator="pt", resolution=(w, h), block=1), xyz=ref_xyz,
+                    rgb=ref_xyz, halves_xyz=halves, spectral=ref_xyz.copy(),
+                    wl=np.array([450.0, 550.0, 650.0]), mask=np.ones((h, w), bool), exposure=1.0,
+                    error={"block_Y_rms": 0.01})
+    imgs = []
+    for _ in range(n):
+        x = truth * (1 + bias) * (1 + 0.02 * rng.standard_normal((h, w, 1)))
+        imgs.append((x, x))
+    from clppm.reference import square_standard_errors
+    se = square_standard_errors(imgs, ref)
+    assert np.median(se) == pytest.approx(math.sqrt(0.02 ** 2 / n + 0.01 ** 2), rel=0.1)
+    m = accuracy_of_seeds(imgs, ref)
+    flagged = m["beyond_sig"]
+    rel = np.mean([x[..., 1] for x, _ in imgs], 0) / ref_xyz[..., 1] - 1
+    shown = (np.abs(rel) - 0.02 > 3 * se)
+    assert flagged == int(shown.sum())
+    assert shown.reshape(-1)[idx[:40]].all()                  # every 10 % square
+    assert not shown.reshape(-1)[idx[80:]].any()              # no unbiased one
+    assert shown.reshape(-1)[idx[40:80]].sum() <= 4           # 2.5 %: seldom shown
+    assert m["beyond"] > flagged + 40                         # beyond 2 % by noise alone: many
+    # noise alone, no bias: 2 erfc-tail of 2 % / 1.22 % in each of 2000 squares, about 200; here
+    # the 80 biased squares add about 70
+    assert m["beyond_noise"] == pytest.approx(2000 * math.erfc(0.02 / (math.sqrt(2) * math.sqrt(0.02 ** 2 / n + 0.01 ** 2))), rel=0.15)
+    assert m["beyond"] == pytest.approx(m["beyond_noise"] + 70, rel=0.2)
+    assert m["bias_lower_max"] > 0.02
+
+
 def test_reference_cached_and_keyed(dev, tmp_path):
     """Computed once, then loaded from the cache bit for bit; another parameter, another key;
     its own error estimate from the two halves is finite.  (A PPM reference, averaged over
