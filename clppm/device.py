@@ -13,7 +13,6 @@ import re
 from dataclasses import dataclass
 from importlib import resources
 
-import numpy as np
 
 
 class DeviceError(RuntimeError):
@@ -258,8 +257,3 @@ def check_alloc(dev: Device, needs: dict[str, int]) -> None:
             f"{info['max_alloc_bytes'] / 2**20:.0f} MiB largest single allocation:\n{lines}\n"
             "options: fewer stored photons per pass (--photons), a lower resolution "
             "(--resolution), or a sparser sampling method (--method c/f)")
-
-
-def as_struct_buffer(dev: Device, arr: np.ndarray):
-    cl = _cl()
-    return cl.Buffer(dev.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=arr)

@@ -253,10 +253,6 @@ class RunState:
                   pix_pairs=pairs + cpairs)
 
 
-def _round(n: int, wg: int = 64) -> int:
-    return max(wg, (n + wg - 1) // wg * wg)
-
-
 def _sibling(out: str, suffix: str) -> str:
     base, _ = os.path.splitext(out)
     return base + suffix

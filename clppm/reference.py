@@ -129,14 +129,6 @@ def error_metrics(xyz, ref_xyz, mask, exposure: float, rgb=None, ref_rgb=None,
     return out
 
 
-def flip_available() -> bool:
-    try:
-        import flip_evaluator  # noqa: F401
-        return True
-    except Exception:
-        return False
-
-
 def flip_error(rgb, ref_rgb, mask, exposure: float):
     """Mean LDR-FLIP over ``mask`` of the displayed (exposed, clipped, sRGB) images, or None.
 

@@ -50,15 +50,6 @@ def is_flat(cfg: dict) -> bool:
     return cfg["relief"]["kind"] == "flat" and cfg["papillae"]["amplitude_um"] <= 0
 
 
-def flat_version(cfg: dict, source: str = "<config>") -> dict:
-    """The same layers with relief and papillae off and the sides infinite."""
-    raw = copy.deepcopy(cfg)
-    raw["relief"]["kind"] = "flat"
-    raw["papillae"]["amplitude_um"] = 0.0
-    raw["model"]["lateral"] = "infinite"
-    return C.validate(raw, source)
-
-
 def beam_direction(angle_deg: float) -> list[float]:
     t = math.radians(angle_deg)
     return [math.sin(t), 0.0, -math.cos(t)]
