@@ -22,43 +22,12 @@ import pytest
 
 from clppm import checkpoint as ckpt
 from clppm import cli
+from scenes import tiny_toml
 
 PASSES = 8
 
-CONFIG = f"""
-[model]
-size_mm = [1.0, 1.0]
-voxel_um = 5.0
-lateral_voxel_um = 10.0
-[spectrum]
-start_nm = 450.0
-stop_nm = 650.0
-step_nm = 50.0
-[light]
-kind = "point"
-position_mm = [0.0, 1.0, 2.0]
-[camera]
-position_mm = [0.5, 0.5, 5.0]
-look_at_mm = [0.5, 0.5, 0.0]
-fov_deg = 12.0
-resolution = [24, 16]
-[render]
-photons = 500000           # about 0.3 s a pass on a 2-core CPU: time to kill one
-initial_photons = 50
-passes = {PASSES}
-seed = 11
-checkpoint_every = 1
-[[layer]]
-name = "epidermis"
-thickness_um = 60.0
-n = 1.4
-melanin = 0.05
-[[layer]]
-name = "dermis"
-thickness_um = inf
-n = 1.4
-blood = 0.02
-"""
+CONFIG = tiny_toml(photons=500000, initial_photons=50, passes=PASSES, seed=11,  # ~0.3 s a pass:
+                  checkpoint_every=1)                                        # time to kill one
 
 
 @pytest.fixture(scope="module")

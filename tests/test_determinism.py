@@ -7,7 +7,6 @@ bytes; a different seed writes different ones.
 from __future__ import annotations
 
 import copy
-import math
 import subprocess
 import sys
 
@@ -16,54 +15,10 @@ import pytest
 
 from clppm import config as C
 from clppm import image, progressive
+from scenes import tiny_dict, tiny_toml
 
-BASE = {
-    "model": {"size_mm": [1.0, 1.0], "voxel_um": 5.0, "lateral_voxel_um": 10.0},
-    "spectrum": {"start_nm": 450.0, "stop_nm": 650.0, "step_nm": 50.0},
-    "light": {"kind": "point", "position_mm": [0.0, 1.0, 2.0]},
-    "camera": {"position_mm": [0.5, 0.5, 5.0], "look_at_mm": [0.5, 0.5, 0.0], "fov_deg": 12.0,
-               "resolution": [24, 16]},
-    "render": {"photons": 20000, "initial_photons": 50, "passes": 3, "checkpoint_every": 0, "seed": 5},
-    "layer": [
-        {"name": "epidermis", "thickness_um": 60.0, "n": 1.4, "melanin": 0.05},
-        {"name": "dermis", "thickness_um": math.inf, "n": 1.4, "blood": 0.02},
-    ],
-}
-
-TOML = """
-[model]
-size_mm = [1.0, 1.0]
-voxel_um = 5.0
-lateral_voxel_um = 10.0
-[spectrum]
-start_nm = 450.0
-stop_nm = 650.0
-step_nm = 50.0
-[light]
-kind = "point"
-position_mm = [0.0, 1.0, 2.0]
-[camera]
-position_mm = [0.5, 0.5, 5.0]
-look_at_mm = [0.5, 0.5, 0.0]
-fov_deg = 12.0
-resolution = [24, 16]
-[render]
-photons = 20000
-initial_photons = 50
-passes = 3
-checkpoint_every = 0
-seed = 5
-[[layer]]
-name = "epidermis"
-thickness_um = 60.0
-n = 1.4
-melanin = 0.05
-[[layer]]
-name = "dermis"
-thickness_um = inf
-n = 1.4
-blood = 0.02
-"""
+BASE = tiny_dict(photons=20000, initial_photons=50, passes=3, checkpoint_every=0, seed=5)
+TOML = tiny_toml(photons=20000, initial_photons=50, passes=3, checkpoint_every=0, seed=5)
 
 
 def _render(dev, tmp_path, name, **changes):

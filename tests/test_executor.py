@@ -28,45 +28,12 @@ pytest.importorskip("distributed")
 from clppm import checkpoint as ckpt  # noqa: E402
 from clppm import cli, executor, ppm, progressive  # noqa: E402
 from clppm import config as C  # noqa: E402
+from scenes import tiny_toml  # noqa: E402
 
 PASSES, K = 8, 2
 
-CONFIG = f"""
-[model]
-size_mm = [1.0, 1.0]
-voxel_um = 5.0
-lateral_voxel_um = 10.0
-[spectrum]
-start_nm = 450.0
-stop_nm = 650.0
-step_nm = 50.0
-[light]
-kind = "point"
-position_mm = [0.0, 1.0, 2.0]
-[camera]
-position_mm = [0.5, 0.5, 5.0]
-look_at_mm = [0.5, 0.5, 0.0]
-fov_deg = 12.0
-resolution = [24, 16]
-[render]
-photons = 50000            # about 0.25 s a pass on one core: a chunk is long enough to kill
-initial_photons = 50
-passes = {PASSES}
-chunk_passes = {K}
-radius = "global"
-seed = 7
-checkpoint_every = 2
-[[layer]]
-name = "epidermis"
-thickness_um = 60.0
-n = 1.4
-melanin = 0.05
-[[layer]]
-name = "dermis"
-thickness_um = inf
-n = 1.4
-blood = 0.02
-"""
+CONFIG = tiny_toml(photons=50000, initial_photons=50, passes=PASSES,  # ~0.25 s a pass on one core:
+                  chunk_passes=K, radius="global", seed=7, checkpoint_every=2)  # a chunk to kill
 
 
 def _spec(dev) -> str:
