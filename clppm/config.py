@@ -178,6 +178,13 @@ LAYER_SCHEMA: dict[str, F] = {
     "mus": F("float", None, none_ok=True, lo=0, hi=1e6, doc="homogeneous override, cm^-1"),
 }
 
+#: [render] keys that never change the accumulated picture: how long to run and how often to
+#: save.  A checkpoint resumes, a worker's scene is reused, and a cached reference is found
+#: whatever they are.
+NOT_PICTURE = ("passes", "preview_every", "checkpoint_every")
+#: [render] keys that change only the finishing (the PNG), not the spectral sums.
+FINISHING = ("exposure",)
+
 MAX_LAYERS = 16
 D65_RANGE_NM = (300.0, 780.0)     # colour.SDS_ILLUMINANTS["D65"] (spectra.d65)
 

@@ -45,6 +45,7 @@ from distributed import WorkerPlugin
 
 from . import checkpoint as ckpt
 from . import image, paths, ppm, progressive, transport
+from . import config as C
 from .config import ConfigError
 from .device import DeviceError
 
@@ -334,8 +335,7 @@ def check_workers(client, where: str) -> dict:
 def scene_hash(cfg: dict) -> str:
     """What a worker's scene depends on: the config but the pass count and the host's cadences
     (a longer or resumed render reuses the scenes its workers hold)."""
-    keep = dict(cfg, render={k: v for k, v in cfg["render"].items()
-                             if k not in ("passes", "preview_every", "checkpoint_every")})
+    keep = dict(cfg, render={k: v for k, v in cfg["render"].items() if k not in C.NOT_PICTURE})
     return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -32,6 +32,7 @@ from . import checkpoint as ckpt
 from . import image, paths, progressive, transport, volume
 from . import params as P_
 from .camera import from_config
+from . import config as C
 from .config import ConfigError
 from .device import Device, DeviceError, check_alloc, open_device
 
@@ -217,8 +218,7 @@ class PathTracer:
 def run_identity(cfg: dict, dev: Device, tracer: PathTracer) -> dict:
     """What a path-tracer checkpoint must match to be resumed."""
     keep = json.loads(json.dumps(cfg, default=str))
-    keep["render"] = {k: v for k, v in keep["render"].items()
-                      if k not in ("passes", "preview_every", "checkpoint_every")}
+    keep["render"] = {k: v for k, v in keep["render"].items() if k not in C.NOT_PICTURE}
     return {"integrator": "pt", "config": keep, "device": dev.name, "npix": tracer.npix,
             "nb": tracer.vol.nb, "nbin": NBIN}
 

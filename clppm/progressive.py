@@ -262,8 +262,7 @@ def run_identity(cfg: dict, dev: Device, eye) -> dict:
     """What a checkpoint must match to be resumed."""
     keep = {k: v for k, v in cfg.items()}
     keep = json.loads(json.dumps(keep, default=str))
-    keep["render"] = {k: v for k, v in keep["render"].items()
-                      if k not in ("passes", "preview_every", "checkpoint_every")}
+    keep["render"] = {k: v for k, v in keep["render"].items() if k not in C.NOT_PICTURE}
     return {"config": keep, "device": dev.name, "npoints": int(eye.npoints),
             "npieces": int(eye.npieces), "nrays": int(eye.nrays)}
 

@@ -36,11 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import config as C
 from . import image
-
-#: settings of the render section that do not change the picture
-_NOT_PICTURE = ("passes", "preview_every", "checkpoint_every", "exposure")
-
 
 # ----------------------------------------------------------------------------- volumes
 _VOLUME_KEYS = ("model", "spectrum", "relief", "papillae", "layer")
@@ -356,7 +353,6 @@ def pt_possible(cfg: dict) -> bool:
 
 def scene_config(cfg: dict, spec: RefSpec) -> dict:
     """The scene config with the reference's render settings applied (seed: first half)."""
-    from . import config as C
     from .progressive import apply_overrides
     if spec.integrator == "pt":
         # at the full resolution (a work item per pixel: the device needs many), averaged over
@@ -379,7 +375,7 @@ def scene_config(cfg: dict, spec: RefSpec) -> dict:
 def reference_key(cfg: dict, spec: RefSpec) -> str:
     import clppm
     c = json.loads(json.dumps(scene_config(cfg, spec), default=str))
-    for k in _NOT_PICTURE + ("seed",):
+    for k in C.NOT_PICTURE + C.FINISHING + ("seed",):
         c["render"].pop(k, None)
     kernels = None
     if spec.integrator == "pt":           # the path tracer reads none of PPM's settings or kernels
