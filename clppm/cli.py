@@ -308,9 +308,7 @@ def cmd_config(a) -> int:
         name = a.example[:-5] if a.example.endswith(".toml") else a.example
         if not name:
             for n, path in ship.items():
-                with open(path) as f:
-                    first = f.readline().lstrip("# ").strip()
-                print(f"{n:20s} {first}")
+                print(f"{n:20s} {_summary(path)}")
             return 0
         if name not in ship:
             raise ConfigError("command line", "--example", a.example,
@@ -332,6 +330,18 @@ def cmd_config(a) -> int:
     print(C.to_toml(cfg, f"{path} as clppm reads it: every key, defaults filled in"
                          + (f", with --set {' '.join(a.set)}" if a.set else "")), end="")
     return 0
+
+
+def _summary(path: str) -> str:
+    """A shipped config's first comment sentence (its header says what it is)."""
+    text = []
+    with open(path) as f:
+        for line in f:
+            if not line.startswith("#"):
+                break
+            text.append(line.lstrip("# ").strip())
+    first = " ".join(text).split(". ")[0].split(":")[0]
+    return first if len(first) <= 100 else first[:97] + "..."
 
 
 class _Version(argparse.Action):

@@ -193,6 +193,11 @@ class OutputLock:
         self.held = False
 
     def __enter__(self) -> "OutputLock":
+        d = os.path.dirname(os.path.abspath(self.path))
+        self.made = []                       # folders made for the lock: removed with it if empty
+        while not os.path.isdir(d):
+            self.made.append(d)
+            d = os.path.dirname(d)
         os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
         me = f"{os.getpid()} {socket.gethostname()}\n"
         for _ in range(3):
@@ -221,6 +226,11 @@ class OutputLock:
                 os.unlink(self.path)
             except OSError:
                 pass
+            for d in self.made:              # a render that wrote nothing leaves nothing
+                try:
+                    os.rmdir(d)
+                except OSError:
+                    break
         self.held = False
 
 
