@@ -365,7 +365,7 @@ TOP_EPILOG = """\
 examples:
   clppm render forearm -o out/forearm.exr          the shipped forearm scene (a few minutes)
   clppm render forearm --resolution 64x48 --passes 2 --photons 20000 -o out/smoke.png
-                                                   a 20-second smoke test
+                                                   a smoke test (under a minute)
   clppm config --example forearm > my.toml         a complete config to edit
   clppm config --schema                            every config key: type, default, range, meaning
   clppm trace --slab mua=10,mus=90,g=0.75,n=1.0,d=0.02

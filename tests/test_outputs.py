@@ -33,44 +33,20 @@ from test_cli import assert_one_line_error, clppm, clppm_inproc
 
 ROOT = Path(__file__).resolve().parents[1]
 
-TINY = """
-[model]
-size_mm = [1.0, 1.0]
-lateral_voxel_um = 10.0
-[spectrum]
-start_nm = 450.0
-stop_nm = 650.0
-step_nm = 50.0
-[light]
-kind = "point"
-position_mm = [0.0, 1.0, 2.0]
-[camera]
-position_mm = [0.5, 0.5, 5.0]
-look_at_mm = [0.5, 0.5, 0.0]
-fov_deg = 12.0
-resolution = [8, 6]
-[render]
-photons = {photons}
-initial_photons = 50
-passes = {passes}
-seed = 3
-checkpoint_every = 1
-[[layer]]
-name = "epidermis"
-thickness_um = 60.0
-n = 1.4
-melanin = 0.05
-[[layer]]
-name = "dermis"
-thickness_um = inf
-n = 1.4
-blood = 0.02
-"""
+
+
+def _tiny_text(photons: int, passes: int) -> str:
+    """tests/test_checkpoint.py's scene at 8x6 pixels with this budget."""
+    import re
+    from test_checkpoint import CONFIG
+    text = CONFIG.replace("resolution = [24, 16]", "resolution = [8, 6]")
+    text = re.sub(r"\nphotons = \d+[^\n]*", f"\nphotons = {photons}", text)
+    return re.sub(r"\npasses = \d+", f"\npasses = {passes}", text)
 
 
 def tiny(tmp_path, photons=3000, passes=2) -> Path:
     p = tmp_path / "tiny.toml"
-    p.write_text(TINY.format(photons=photons, passes=passes))
+    p.write_text(_tiny_text(photons, passes))
     return p
 
 
