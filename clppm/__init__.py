@@ -3,7 +3,8 @@ __version__ = "0.1.0"
 
 
 def render(config, integrator="ppm", **kwargs):
-    """Render a config (a path or a validated dict); returns a RenderResult (image + report).
+    """Render a config (a path, a shipped config's name, or a validated dict); returns a
+    RenderResult (image + report).
 
     Keyword arguments as ``clppm render``: method, passes, photons, resolution, seed,
     spacing, device, out, progress, resume; ``devices`` ("all" or "P:D,P:D") or ``scheduler``
@@ -13,7 +14,7 @@ def render(config, integrator="ppm", **kwargs):
     """
     from . import config as _config
     from . import progressive as _render
-    cfg = _config.load(config) if isinstance(config, str) else config
+    cfg = _config.load(_config.find(config)) if isinstance(config, str) else config
     if integrator == "pt":
         from .pathtracer import render_pt
         return render_pt(cfg, **kwargs)

@@ -36,6 +36,16 @@ def default_path(out: str) -> str:
     return base + ".ckpt.npz"
 
 
+def pass_index(path: str) -> int | None:
+    """The passes a checkpoint holds (its header alone), or None if it cannot be read."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            v = json.loads(str(z["header"]))["state"]["pass_index"]
+        return v if isinstance(v, int) else None
+    except Exception:                    # any unreadable file: the caller says what it needs
+        return None
+
+
 def save(path: str, meta: dict, state: dict, **arrays) -> None:
     """A PPM checkpoint: ``state`` (JSON-able) and the named arrays (:data:`ARRAYS`)."""
     header = {"version": VERSION, "meta": meta,

@@ -473,15 +473,17 @@ def add_parser(subparsers, add_device) -> None:
                    "10x10-pixel square)")
     p.add_argument("--photons", type=int, help="stored photons per pass (default: the config's)")
     p.add_argument("--max-passes", type=int, help="stop a run at this many passes")
-    p.add_argument("--seed", type=int)
+    p.add_argument("--seed", type=int, help="random seed of the runs (default: the config's render.seed)")
     p.add_argument("--ref-paths", type=int, help="path-tracer reference: paths per 10x10 square and half")
     p.add_argument("--ref-passes", type=int, help="PPM reference (scenes the path tracer cannot render): passes")
     p.add_argument("--force-ref", action="store_true", help="recompute the reference even if cached")
     p.add_argument("--cache", default="out/cache", help="reference cache folder (default out/cache)")
     p.add_argument("--no-shift", action="store_true", help="skip the colour-shift experiment")
-    p.add_argument("--shift-spacings", type=_floats)
-    p.add_argument("--shift-photons", type=_ints)
-    p.add_argument("--shift-passes", type=int)
+    p.add_argument("--shift-spacings", type=_floats, help="colour-shift experiment: equal spacings in um, "
+                   "comma list (default: the mode's)")
+    p.add_argument("--shift-photons", type=_ints, help="colour-shift experiment: stored photons per pass, "
+                   "comma list (default: the mode's)")
+    p.add_argument("--shift-passes", type=int, help="colour-shift experiment: passes per run (default: the mode's)")
     p.add_argument("-o", "--out", help="output folder (default out/compare or out/compare-quick)")
     add_device(p)
     p.set_defaults(func=cmd_compare)
@@ -509,7 +511,7 @@ def cmd_compare(a) -> int:
     from .device import open_device
     d = QUICK if a.quick else STANDARD
     # the subsurface image is compared: the GGX highlight is the same function in every run
-    cfg = C.override(C.load(a.config), "render", "specular", False)
+    cfg = C.override(C.load(C.find(a.config)), "render", "specular", False)
     methods = _letters(a.methods, "--methods")
     paper_methods = _letters(a.paper_methods or d["paper_methods"], "--paper-methods")
     res_ = tuple(a.resolution or d["resolution"])

@@ -60,71 +60,74 @@ _RANGE_HELP = {(0, None, True): "> 0", (0, None, False): ">= 0"}
 
 SCHEMA: dict[str, dict[str, F]] = {
     "model": {
-        "name": F("str", "skin"),
+        "name": F("str", "skin", doc="a label for reports"),
         "size_mm": F("vec2", [10.0, 10.0], lo=0, lo_open=True, hi=1000, doc="lateral extent"),
         "voxel_um": F("float", 5.0, lo=0, lo_open=True, hi=1000, doc="voxel thickness (z)"),
         "lateral_voxel_um": F("float", 5.0, lo=0.05, hi=10000, doc="lateral voxel (column) size"),
-        "lateral": F("choice", "open", choices=("open", "periodic", "infinite")),
+        "lateral": F("choice", "open", choices=("open", "periodic", "infinite"),
+                     doc="the model's sides: open (light leaves), periodic (wraps), infinite (flat layers only)"),
         "quantize": F("bool", True, doc="snap interfaces to the voxel grid in z"),
-        "n_outside": F("float", 1.0, lo=1.0, hi=3.0),
+        "n_outside": F("float", 1.0, lo=1.0, hi=3.0, doc="refractive index above the skin"),
         "n_below": F("float", 1.0, lo=1.0, hi=3.0, doc="index below a finite bottom layer"),
     },
     "spectrum": {
-        "start_nm": F("float", 380.0, lo=250, hi=1000),
-        "stop_nm": F("float", 780.0, lo=250, hi=1000),
-        "step_nm": F("float", 5.0, lo=0, lo_open=True, hi=200),
+        "start_nm": F("float", 380.0, lo=250, hi=1000, doc="first band centre"),
+        "stop_nm": F("float", 780.0, lo=250, hi=1000, doc="last band centre"),
+        "step_nm": F("float", 5.0, lo=0, lo_open=True, hi=200, doc="band width (at most 512 bands)"),
     },
     "relief": {
-        "kind": F("choice", "flat", choices=("flat", "generated", "file")),
+        "kind": F("choice", "flat", choices=("flat", "generated", "file"),
+                  doc="surface relief: none, generated furrows, or a height map file"),
         "depth_um": F("float", 20.0, lo=0, hi=500, doc="furrow depth"),
         "spacing_um": F("float", 250.0, lo=1, hi=1e5, doc="mean furrow spacing"),
         "width_um": F("float", 20.0, lo=0.1, hi=1e4, doc="furrow width"),
-        "seed": F("int", 7, lo=0, hi=2**31 - 1),
+        "seed": F("int", 7, lo=0, hi=2**31 - 1, doc="generated relief's random seed"),
         "file": F("path", None, none_ok=True, doc=".npy, 16-bit PNG or EXR height map"),
-        "pixel_um": F("float", 5.0, lo=0, lo_open=True, hi=1e5),
+        "pixel_um": F("float", 5.0, lo=0, lo_open=True, hi=1e5, doc="height map pixel size"),
         "height_scale_um": F("float", 1.0, lo=0, lo_open=True, hi=1e6, doc="µm per stored unit"),
     },
     "papillae": {
-        "amplitude_um": F("float", 0.0, lo=0, hi=500),
-        "period_um": F("float", 100.0, lo=1, hi=1e5),
+        "amplitude_um": F("float", 0.0, lo=0, hi=500, doc="dermal papillae height (0: a flat junction)"),
+        "period_um": F("float", 100.0, lo=1, hi=1e5, doc="dermal papillae period"),
     },
     "light": {
-        "kind": F("choice", "point", choices=("point", "pencil", "wide")),
+        "kind": F("choice", "point", choices=("point", "pencil", "wide"),
+                  doc="point light, collimated pencil beam, or wide collimated beam"),
         "position_mm": F("vec3", [0.0, 10.0, 10.0], lo=-1e4, hi=1e4, doc="point light position"),
         "direction": F("vec3", [0.0, 0.0, -1.0], lo=-1, hi=1, doc="collimated beam direction"),
         "center_mm": F("vec2", [5.0, 5.0], lo=-1e4, hi=1e4, doc="beam centre on the surface"),
         "width_mm": F("vec2", [10.0, 10.0], lo=0, lo_open=True, hi=1e4, doc="wide beam full width"),
-        "power_w": F("float", 1.0, lo=0, hi=1e9),
-        "spectrum": F("choice", "D65", choices=("D65", "flat")),
+        "power_w": F("float", 1.0, lo=0, hi=1e9, doc="emitted power, W (over all bands)"),
+        "spectrum": F("choice", "D65", choices=("D65", "flat"), doc="emission spectrum"),
         "band_nm": F("float", None, none_ok=True, lo=250, hi=1000, doc="emit in this band only"),
     },
     "camera": {
-        "position_mm": F("vec3", [5.0, 5.0, 30.0], lo=-1e4, hi=1e4),
-        "look_at_mm": F("vec3", [5.0, 5.0, 0.0], lo=-1e4, hi=1e4),
-        "up": F("vec3", [0.0, 1.0, 0.0], lo=-1, hi=1),
-        "fov_deg": F("float", 19.0, lo=0, lo_open=True, hi=170),
-        "resolution": F("ivec2", [320, 240], lo=1, hi=16384),
+        "position_mm": F("vec3", [5.0, 5.0, 30.0], lo=-1e4, hi=1e4, doc="camera position"),
+        "look_at_mm": F("vec3", [5.0, 5.0, 0.0], lo=-1e4, hi=1e4, doc="point the camera looks at"),
+        "up": F("vec3", [0.0, 1.0, 0.0], lo=-1, hi=1, doc="camera up direction"),
+        "fov_deg": F("float", 19.0, lo=0, lo_open=True, hi=170, doc="vertical field of view"),
+        "resolution": F("ivec2", [320, 240], lo=1, hi=16384, doc="image width, height in pixels"),
         "spp": F("int", 1, lo=1, hi=1024, doc="jittered eye rays per pixel"),
     },
     "render": {
-        "method": F("choice", "e", choices=tuple("abcdef")),
+        "method": F("choice", "e", choices=tuple("abcdef"), doc="sample-point scheme on eye rays (clppm render --help)"),
         "spacing_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e4,
                         doc="equal spacing; overrides a/b/c"),
         "threshold": F("float", 1.25e-3, lo=0, hi=1, hi_open=True,
                        doc="transmittance cut for sample points"),
-        "merge": F("choice", "voxel", choices=("voxel", "none")),
+        "merge": F("choice", "voxel", choices=("voxel", "none"), doc="voxel: one sample point per voxel along a ray"),
         "photons": F("int", 810_000, lo=1, hi=2**30, doc="stored photons per pass"),
         "initial_photons": F("int", 810, lo=1, hi=10**6, doc="photons in the first search"),
-        "passes": F("int", 200, lo=1, hi=10**7),
-        "alpha": F("float", 0.7, lo=0, hi=1, lo_open=True, hi_open=True),
+        "passes": F("int", 200, lo=1, hi=10**7, doc="progressive passes"),
+        "alpha": F("float", 0.7, lo=0, hi=1, lo_open=True, hi_open=True, doc="progressive radius reduction"),
         "radius": F("choice", "global", choices=("global", "ppm"),
                     doc="global: Knaus & Zwicker's radius schedule (passes independent: distributable); "
                         "ppm: the per-point radius of Hachisuka et al. (the paper)"),
-        "seed": F("int", 1, lo=0, hi=2**63 - 1),
-        "specular": F("bool", True),
-        "roughness": F("float", 0.35, lo=0.01, hi=1.0),
-        "preview_every": F("int", 0, lo=0, hi=10**7),
-        "checkpoint_every": F("int", 10, lo=0, hi=10**7),
+        "seed": F("int", 1, lo=0, hi=2**63 - 1, doc="random seed (same seed, same device: same bytes)"),
+        "specular": F("bool", True, doc="add the surface's specular highlight (GGX)"),
+        "roughness": F("float", 0.35, lo=0.01, hi=1.0, doc="GGX roughness of the highlight"),
+        "preview_every": F("int", 0, lo=0, hi=10**7, doc="write a preview PNG every K passes (0: never)"),
+        "checkpoint_every": F("int", 10, lo=0, hi=10**7, doc="checkpoint every K passes (0: only at the end or a signal)"),
         "chunk_passes": F("int", 4, lo=1, hi=10**6,
                           doc="passes summed per chunk before the chunk joins the total, here and "
                               "on distributed workers alike (part of the result's bits)"),
@@ -161,19 +164,24 @@ SCHEMA: dict[str, dict[str, F]] = {
 }
 
 LAYER_SCHEMA: dict[str, F] = {
-    "name": F("str", None),
-    "thickness_um": F("float", None, lo=0, lo_open=True, hi=1e6, inf_ok=True),
-    "n": F("float", 1.4, lo=1.0, hi=3.0),
-    "melanin": F("float", 0.0, lo=0, hi=1),
-    "blood": F("float", 0.0, lo=0, hi=1),
-    "saturation": F("float", 0.8, lo=0, hi=1),
-    "baseline": F("float", 0.0, lo=0, hi=1),
-    "scattering": F("choice", "jacques", choices=("jacques", "powerlaw", "none")),
-    "k": F("float", 1.0, lo=0, hi=1e4),
-    "a": F("float", 0.0, lo=0, hi=1e5),
-    "b": F("float", 0.0, lo=-10, hi=10),
-    "g": F("float", None, none_ok=True, lo=-1, hi=1, lo_open=True, hi_open=True),
-    "bottom": F("choice", "flat", choices=("flat", "surface", "papillae")),
+    "name": F("str", None, doc="layer name (required)"),
+    "thickness_um": F("float", None, lo=0, lo_open=True, hi=1e6, inf_ok=True,
+                      doc="thickness (required; inf: semi-infinite, last layer only)"),
+    "n": F("float", 1.4, lo=1.0, hi=3.0, doc="refractive index"),
+    "melanin": F("float", 0.0, lo=0, hi=1, doc="melanosome volume fraction"),
+    "blood": F("float", 0.0, lo=0, hi=1, doc="whole-blood volume fraction"),
+    "saturation": F("float", 0.8, lo=0, hi=1, doc="blood oxygen saturation"),
+    "baseline": F("float", 0.0, lo=0, hi=1, doc="volume fraction absorbing like bloodless tissue"),
+    "scattering": F("choice", "jacques", choices=("jacques", "powerlaw", "none"),
+                        doc="jacques: k x Jacques' skin mus; powerlaw: mus' = a (wl/500 nm)^-b; "
+                            "none: with mua and mus"),
+    "k": F("float", 1.0, lo=0, hi=1e4, doc="jacques: scattering scale"),
+    "a": F("float", 0.0, lo=0, hi=1e5, doc="powerlaw: reduced scattering at 500 nm, cm^-1"),
+    "b": F("float", 0.0, lo=-10, hi=10, doc="powerlaw: exponent"),
+    "g": F("float", None, none_ok=True, lo=-1, hi=1, lo_open=True, hi_open=True,
+           doc="anisotropy (unset: Jacques' g(wl))"),
+    "bottom": F("choice", "flat", choices=("flat", "surface", "papillae"),
+                    doc="bottom interface: flat, following the relief, or relief + papillae"),
     "mua": F("float", None, none_ok=True, lo=0, hi=1e6, doc="homogeneous override, cm^-1"),
     "mus": F("float", None, none_ok=True, lo=0, hi=1e6, doc="homogeneous override, cm^-1"),
 }
@@ -414,22 +422,49 @@ def load(path: str) -> dict:
 
 
 def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
-    """Apply ``SECTION.KEY=VALUE`` (VALUE in TOML syntax; a bare word is a string)."""
+    """Apply ``SECTION.KEY=VALUE`` or ``layer.N.KEY=VALUE`` (N: index into the ``[[layer]]``
+    tables; VALUE in TOML syntax, a bare word is a string)."""
     if "=" not in item or "." not in item.split("=", 1)[0]:
-        raise ConfigError(source, item, item, "expected SECTION.KEY=VALUE, e.g. render.passes=20")
+        raise ConfigError(source, item, item, "expected SECTION.KEY=VALUE or layer.N.KEY=VALUE, "
+                                              "e.g. render.passes=20 or layer.0.n=1.45")
     path, text = (x.strip() for x in item.split("=", 1))
     section, key = path.split(".", 1)
     try:
         value = tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         value = text
+    if section == "layer":
+        index, _, key = key.partition(".")
+        return override_layer(cfg, index, key, value, source)
     return override(cfg, section, key, value, source)
+
+
+def override_layer(cfg: dict, index, key: str, value: Any, source: str = "--set") -> dict:
+    """Set ``layer[index].key`` (validated like the file's value)."""
+    n = len(cfg["layer"])
+    names = ", ".join(f"{i} {L['name']}" for i, L in enumerate(cfg["layer"]))
+    try:
+        i = int(index)
+    except ValueError:
+        i = -1
+    if not 0 <= i < n:
+        raise ConfigError(source, f"layer.{index}", value, f"no such layer: give an index 0..{n - 1} "
+                                                           f"({names})")
+    if key not in LAYER_SCHEMA:
+        near = difflib.get_close_matches(key, list(LAYER_SCHEMA), 1, 0.5)
+        raise ConfigError(source, f"layer.{i}.{_show_key(key) if key else '<key>'}", value,
+                          "unknown key" + (f" (did you mean '{near[0]}'?)" if near else "")
+                          + f"; valid keys: {', '.join(LAYER_SCHEMA)}")
+    out = copy.deepcopy(cfg)
+    out["layer"][i][key] = _check(source, f"layer[{i}].{key}", value, LAYER_SCHEMA[key], ".")
+    _cross_checks(source, out)
+    return out
 
 
 def override(cfg: dict, section: str, key: str, value: Any, source: str = "command line") -> dict:
     """Set one validated value (used by command-line flags)."""
     if section not in SCHEMA:
-        raise _unknown(source, "", section, SCHEMA, value)
+        raise _unknown(source, "", section, list(SCHEMA) + ["layer"], value)
     schema = SCHEMA[section]
     if key not in schema:
         raise _unknown(source, section, key, schema, value)
@@ -502,3 +537,133 @@ def slab_config(spec: str, source: str = "--slab") -> dict:
                    "scattering": "none"}],
     }
     return validate(raw, source)
+
+
+# ----------------------------------------------------------------------------- shipped configs
+def shipped_configs() -> dict[str, str]:
+    """The configs that ship in the package (``clppm.configs``): name -> file path."""
+    from importlib import resources
+    root = resources.files("clppm.configs")
+    return {f.name[:-5]: str(f) for f in sorted(root.iterdir(), key=lambda f: f.name)
+            if f.name.endswith(".toml")}
+
+
+def find(name: str) -> str:
+    """A config file: ``name`` itself when it exists, else a shipped config of that name
+    (``forearm`` or ``forearm.toml``); else a one-line ConfigError listing the shipped ones."""
+    if os.path.exists(name):
+        return name
+    stem = name[:-5] if name.endswith(".toml") else name
+    ship = shipped_configs()
+    if os.sep not in name and stem in ship:
+        return ship[stem]
+    raise ConfigError(os.path.basename(name) or repr(name), "<file>", name,
+                      f"file not found (shipped configs: {', '.join(ship)})")
+
+
+# ----------------------------------------------------------------------------- TOML out
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return ("inf" if v > 0 else "-inf") if math.isinf(v) else repr(v)
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(type(v))
+
+
+def _toml_table(head: str, table: dict, schema: dict[str, F]) -> list[str]:
+    out = [head]
+    for k, f in schema.items():
+        v = table.get(k)
+        if v is None:
+            out.append(f"# {k} = (unset{'' if f.none_ok else ': required'})")
+        else:
+            out.append(f"{k} = {_toml_value(v)}")
+    return out + [""]
+
+
+def to_toml(cfg: dict, header: str = "") -> str:
+    """A complete config (every key, defaults filled) as TOML that :func:`validate` reads back
+    to the same dict; an unset optional value is a comment."""
+    lines = [f"# {h}" for h in header.splitlines()] + ([""] if header else [])
+    for name, schema in SCHEMA.items():
+        lines += _toml_table(f"[{name}]", cfg.get(name, {}), schema)
+    for L in cfg.get("layer", [{}]):
+        lines += _toml_table("[[layer]]", L, LAYER_SCHEMA)
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def defaults() -> dict:
+    """Every section's defaults and one layer with its defaults (name, thickness unset)."""
+    out = {name: {k: copy.deepcopy(f.default) for k, f in schema.items()} for name, schema in SCHEMA.items()}
+    out["layer"] = [{k: copy.deepcopy(f.default) for k, f in LAYER_SCHEMA.items()}]
+    return out
+
+
+# ----------------------------------------------------------------------------- the schema as text
+def _type_name(f: F) -> str:
+    return {"float": "float", "int": "int", "bool": "bool", "str": "string", "path": "path",
+            "vec2": "[float, float]", "vec3": "[float, float, float]", "ivec2": "[int, int]",
+            "choice": "choice"}[f.kind]
+
+
+def _range_text(f: F) -> str:
+    if f.kind == "choice":
+        return " / ".join(map(str, f.choices))
+    if f.lo is None and f.hi is None:
+        return ""
+    lo = f"{_fmt(f.lo)} {'<' if f.lo_open else '<='} " if f.lo is not None else ""
+    hi = f" {'<' if f.hi_open else '<='} {_fmt(f.hi)}" if f.hi is not None else ""
+    extra = " or inf" if f.inf_ok else ""
+    return f"{lo}x{hi}{extra}" + (" (each)" if f.kind.startswith(("vec", "ivec")) else "")
+
+
+def _default_text(f: F) -> str:
+    if f.default is None:
+        return "unset" if f.none_ok else "required"
+    return _toml_value(f.default)
+
+
+def schema_rows() -> list[tuple[str, str, str, str, str]]:
+    """(key, type, default, range, meaning) of every config key, from :data:`SCHEMA`."""
+    rows = []
+    for name, schema in list(SCHEMA.items()) + [("layer", LAYER_SCHEMA)]:
+        for k, f in schema.items():
+            key = f"[[layer]].{k}" if name == "layer" else f"{name}.{k}"
+            rows.append((key, _type_name(f), _default_text(f), _range_text(f), f.doc))
+    return rows
+
+
+def schema_text() -> str:
+    """The schema as aligned plain text (``clppm config --schema``)."""
+    rows = [("key", "type", "default", "range", "meaning")] + schema_rows()
+    w = [max(len(r[i]) for r in rows) for i in range(4)]
+    return "\n".join("  ".join(c.ljust(w[i]) for i, c in enumerate(r[:4])) + "  " + r[4]
+                     for r in rows).rstrip() + "\n"
+
+
+def schema_markdown() -> str:
+    """The config reference page (docs/config.md), generated: ``clppm config --schema --markdown``."""
+    def cell(x):
+        return x.replace("|", "\\|") if x else ""
+    out = ["# Config reference", "",
+           "<!-- generated by `clppm config --schema --markdown > docs/config.md`; "
+           "tests/test_outputs.py fails when this page and clppm/config.py's SCHEMA differ -->", "",
+           "A config is a TOML file with the sections below and one `[[layer]]` table per layer, top "
+           "first (at most 16). Every key is optional unless its default says *required*. Units: mm for "
+           "scene-scale lengths, µm for skin-scale lengths, cm^-1 for optical coefficients, nm for "
+           "wavelengths. `clppm config FILE` prints a file with every default filled in; "
+           "`--set SECTION.KEY=VALUE` / `--set layer.N.KEY=VALUE` changes one value on the command line.", ""]
+    for name, schema in list(SCHEMA.items()) + [("layer", LAYER_SCHEMA)]:
+        out += [f"## `[[layer]]`" if name == "layer" else f"## `[{name}]`", "",
+                "| key | type | default | range | meaning |", "|---|---|---|---|---|"]
+        for k, f in schema.items():
+            out.append(f"| `{k}` | {_type_name(f)} | `{_default_text(f)}` | {cell(_range_text(f))} "
+                       f"| {cell(f.doc)} |")
+        out.append("")
+    return "\n".join(out).rstrip() + "\n"

@@ -49,13 +49,8 @@ NOT_DERMIS = ("subcut", "hypoderm", "fat", "adipose")
 
 # ----------------------------------------------------------------------------- model
 def default_config_path() -> str:
-    """configs/forearm.toml in the working directory, else beside the source tree."""
-    for p in (Path.cwd() / "configs" / "forearm.toml",
-              Path(__file__).resolve().parents[1] / "configs" / "forearm.toml"):
-        if p.is_file():
-            return str(p)
-    raise ConfigError("clppm fit", "--config", None,
-                      "configs/forearm.toml not found here; give the model with --config FILE")
+    """The forearm model that ships in the package (clppm.configs), wherever clppm is installed."""
+    return C.shipped_configs()["forearm"]
 
 
 @dataclass
@@ -679,7 +674,7 @@ def add_parser(subparsers, add_device) -> None:
                    help="CSV wavelength_nm,reflectance (or a multi-column file with --subject); "
                         "leave out to fit a subject of the packaged NIST set")
     p.add_argument("--subject", type=int, help="subject N (NIST: 1..100) / column N")
-    p.add_argument("--config", help="model to fit (default configs/forearm.toml)")
+    p.add_argument("--config", help="model to fit: a config file or shipped name (default: the shipped forearm)")
     p.add_argument("-o", "--output", default="out/fitted.toml", help="fitted config (TOML)")
     p.add_argument("--plot", help="plot file (default: beside --output, .png)")
     p.add_argument("--json", help="report file (default: beside --output, .json)")
@@ -687,14 +682,15 @@ def add_parser(subparsers, add_device) -> None:
     p.add_argument("--bands", type=_bands_arg, default=DEFAULT_BANDS,
                    help="fit bands START:STOP:STEP nm (default 380:780:20)")
     p.add_argument("--angle", type=float, default=8.0, help="incidence angle (default 8°)")
-    p.add_argument("--specular", choices=("included", "excluded"), default="included")
+    p.add_argument("--specular", choices=("included", "excluded"), default="included",
+                   help="the measurement's specular component: included (SCI) or excluded (SCE)")
     p.add_argument("--seed", type=int, default=1, help="the common random numbers' seed")
     p.add_argument("--max-iter", type=int, default=6,
                    help="outer iterations (hybrid: photon-pass evaluations - 1) or LM iterations (mc)")
     p.add_argument("--forward", choices=("hybrid", "mc"), default="hybrid",
                    help="hybrid: adding-doubling surrogate corrected by the photon pass (default; "
                         "needs iadpython); mc: Levenberg-Marquardt on the photon pass alone")
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("-q", "--quiet", action="store_true", help="no per-iteration lines")
     add_device(p)
     p.set_defaults(func=cmd_fit)
 
@@ -713,7 +709,7 @@ def load_measured(path: str | None, subject: int | None, bands) -> tuple[np.ndar
 
 def cmd_fit(a) -> int:
     from . import paths
-    cfg_path = a.config or default_config_path()
+    cfg_path = C.find(a.config) if a.config else default_config_path()
     cfg = C.load(cfg_path)
     src = os.path.basename(cfg_path)
     bands = a.bands
@@ -729,8 +725,12 @@ def cmd_fit(a) -> int:
     base = os.path.splitext(a.output)[0]
     plot_path = a.plot or base + ".png"
     json_path = a.json or base + ".json"
-    for flag, p in (("-o/--output", a.output), ("--plot", plot_path), ("--json", json_path)):
-        paths.check_writable(p, flag)
+    if not a.output.lower().endswith(".toml"):
+        raise ConfigError("command line", "-o/--output", a.output, "must end in .toml (the fitted config)")
+    paths.check_writable(a.output, "-o/--output")
+    paths.check_plot(plot_path, "--plot")
+    paths.check_writable(json_path, "--json")
+    paths.check_distinct(**{"-o/--output": a.output, "--plot": plot_path, "--json": json_path})
 
     def log(it, p, rms):
         if not a.quiet:

@@ -427,7 +427,14 @@ def write_png(path, rgb_linear, exposure: float = 1.0) -> None:
         raise ValueError(f"rgb_linear must have shape (H, W, 3) or (H, W), got {a.shape}")
     enc = encode_srgb(a * float(exposure))
     u8 = np.ascontiguousarray(np.round(enc * 255.0).astype(np.uint8))
-    Image.fromarray(u8, mode=mode).save(os.fspath(path), format="PNG")
+    path = os.fspath(path)
+    tmp = f"{path}.{os.getpid()}.tmp"         # a kill mid-write leaves the old file, not half a PNG
+    try:
+        Image.fromarray(u8, mode=mode).save(tmp, format="PNG")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
 
 
 # --------------------------------------------------------------------- height maps

@@ -1,45 +1,77 @@
-"""Output paths the user names, checked before any work.
+"""Output paths the user names, checked before any work; a render's sidecars; its lock.
 
 A render, trace or comparison that can only fail at its end (or at its first checkpoint,
 minutes in) because a folder is missing or read-only wastes the run; these checks make that
-failure one line at the start.  A path whose folder does not exist yet is fine when the folder
-can be created (clppm creates it), and nothing is created by the check itself.
+failure one line at the start.  A path is checked by doing what the writer will do: make its
+folder and a temporary file in it (``os.access`` says yes to root, and CI runs as root).  Folders
+the check made are removed again: the writers make them when they write.
+
+A render's outputs follow the extension of ``-o``: ``x.exr`` is the spectral + RGB EXR with the
+sRGB PNG beside it (``x.png``); ``x.png`` is the PNG alone.  Either way the run report is
+``x.json``, the checkpoint ``x.ckpt.npz``, the preview ``x.preview.png`` and the lock ``x.lock``:
+no two of them can be the same file (:func:`render_outputs`).
 """
 from __future__ import annotations
 
 import os
+import socket
+import tempfile
 
 from .config import ConfigError
 
+#: what ``-o`` may end in, and what it then writes
+RENDER_FORMATS = {".exr": "the spectral + RGB EXR (with the sRGB PNG beside it)",
+                  ".png": "the sRGB PNG alone"}
+
 
 def writable_problem(path: str) -> str | None:
-    """Why ``path`` cannot be written as a file (one phrase), or None."""
+    """Why ``path`` cannot be written as a file (one phrase), or None: tried for real."""
+    if not path:
+        return "is empty"
     p = os.path.abspath(path)
-    if os.path.isdir(p):
+    if os.path.isdir(p) or path.endswith(os.sep):
         return "is a folder"
-    if os.path.exists(p):
-        return None if os.access(p, os.W_OK) else "exists and is not writable"
-    d = os.path.dirname(p)
-    while not os.path.isdir(d):             # the nearest folder that exists must take new entries
-        if os.path.exists(d):
-            return f"{d} is not a folder"
-        parent = os.path.dirname(d)
-        if parent == d:
-            break
-        d = parent
-    if not os.access(d, os.W_OK | os.X_OK):
-        return f"folder {d} is not writable"
-    return None
+    if os.path.exists(p) and not os.path.isfile(p):
+        return "exists and is not a regular file"
+    return _try_folder(os.path.dirname(p))
 
 
 def folder_problem(path: str) -> str | None:
     """Why files cannot be written into the folder ``path`` (made if missing), or None."""
+    if not path:
+        return "is empty"
     p = os.path.abspath(path)
     if os.path.exists(p) and not os.path.isdir(p):
         return "is not a folder"
-    if os.path.isdir(p):
-        return None if os.access(p, os.W_OK | os.X_OK) else "folder is not writable"
-    return writable_problem(os.path.join(p, "x"))
+    return _try_folder(p)
+
+
+def _try_folder(d: str) -> str | None:
+    """Make folder ``d`` and a temporary file in it; undo both; the reason it failed, or None."""
+    made = []
+    q = d
+    while not os.path.isdir(q):             # the folders that makedirs would create
+        if os.path.lexists(q):
+            return f"{q} is not a folder"
+        made.append(q)
+        parent = os.path.dirname(q)
+        if parent == q:
+            break
+        q = parent
+    try:
+        os.makedirs(d, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=d, prefix=".clppm-check-")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as e:
+        return f"folder {d}: {e.strerror or e}"
+    finally:
+        for f in made:                       # deepest first
+            try:
+                os.rmdir(f)
+            except OSError:
+                pass
+    return None
 
 
 def check_folder(path: str | None, flag: str, source: str = "command line") -> None:
@@ -60,12 +92,159 @@ def check_writable(path: str | None, flag: str, source: str = "command line") ->
         raise ConfigError(source, flag, path, f"cannot be written ({why})")
 
 
+def check_plot(path: str | None, flag: str = "--plot", source: str = "command line") -> None:
+    """A matplotlib figure file: an extension matplotlib can write, and a writable path."""
+    if path is None:
+        return
+    from matplotlib.backend_bases import FigureCanvasBase
+    ext = os.path.splitext(path)[1].lower().lstrip(".")
+    kinds = FigureCanvasBase.get_supported_filetypes()
+    if ext not in kinds:
+        raise ConfigError(source, flag, path, "must end in one of "
+                          + ", ".join("." + k for k in sorted(kinds)))
+    check_writable(path, flag, source)
+
+
+def check_distinct(source: str = "command line", **named: str | None) -> None:
+    """No two of the named output paths (flag -> path) may be the same file."""
+    seen = {}
+    for flag, p in named.items():
+        if not p:
+            continue
+        key = os.path.normcase(os.path.realpath(p))
+        if key in seen:
+            raise ConfigError(source, flag, p, f"is the same file as {seen[key]}; "
+                              "one output would overwrite the other")
+        seen[key] = flag
+
+
+def render_format(out: str) -> str:
+    """``"exr"`` or ``"png"``: what a render writes at ``out``; ValueError for anything else."""
+    ext = os.path.splitext(out)[1].lower()
+    if ext not in RENDER_FORMATS:
+        raise ValueError(out)
+    return ext[1:]
+
+
+def render_outputs(out: str) -> dict[str, str]:
+    """Every file a render with ``-o out`` writes (name -> path); all distinct by construction:
+    the main file keeps its extension, every sidecar is ``base`` + a suffix no main file has."""
+    base = os.path.splitext(out)[0]
+    files = {"image": out}
+    if render_format(out) == "exr":
+        files["png"] = base + ".png"
+    files.update(report=base + ".json", checkpoint=base + ".ckpt.npz",
+                 preview=base + ".preview.png", lock=base + ".lock")
+    return files
+
+
+def check_render_output(out: str | None, flag: str = "-o/--output", source: str = "command line") -> None:
+    """``-o``: an .exr or .png file name whose files can all be written."""
+    if out is None:
+        return
+    if not out or out.endswith(os.sep) or os.path.isdir(out):
+        raise ConfigError(source, flag, out, "must name a file ending in .exr or .png"
+                          + (" (it is a folder)" if out and os.path.isdir(out) else ""))
+    try:
+        files = render_outputs(out)
+    except ValueError:
+        raise ConfigError(source, flag, out, "must end in " + " or ".join(
+            f"{e} ({what})" for e, what in RENDER_FORMATS.items())) from None
+    for p in files.values():
+        check_writable(p, flag, source)
+
+
 def check_outputs(out: str | None = None, checkpoint: str | None = None, **more: str | None) -> None:
-    """Check a render's outputs: the EXR and its .png/.json siblings, the checkpoint, others."""
-    if out:
-        base = os.path.splitext(out)[0]
-        for p in (out, base + ".png", base + ".json"):
-            check_writable(p, "-o/--output")
+    """Check a render's outputs: the image and its sidecars, the checkpoint, others."""
+    check_render_output(out)
     check_writable(checkpoint, "checkpoint")
     for flag, p in more.items():
         check_writable(p, "--" + flag.replace("_", "-"))
+
+
+# ----------------------------------------------------------------------------- the lock
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:                  # someone else's process: alive
+        return True
+    return True
+
+
+def _holder(lock: str) -> tuple[int, str] | None:
+    """(pid, host) written in an existing lock file, or None if it holds neither."""
+    try:
+        with open(lock) as f:
+            pid, host = (f.read().split() + ["", ""])[:2]
+        return int(pid), host
+    except (OSError, ValueError):
+        return None
+
+
+class OutputLock:
+    """``x.lock`` beside a render's output, held for the whole run: a second writer of the same
+    output is refused (one line, exit 2); a lock left by a dead process is taken over."""
+
+    def __init__(self, out: str, flag: str = "-o/--output"):
+        self.out, self.flag = out, flag
+        self.path = render_outputs(out)["lock"]
+        self.held = False
+
+    def __enter__(self) -> "OutputLock":
+        d = os.path.dirname(os.path.abspath(self.path))
+        self.made = []                       # folders made for the lock: removed with it if empty
+        while not os.path.isdir(d):
+            self.made.append(d)
+            d = os.path.dirname(d)
+        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
+        me = f"{os.getpid()} {socket.gethostname()}\n"
+        for _ in range(3):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                h = _holder(self.path)
+                if h and (h[1] != socket.gethostname() or _alive(h[0])):
+                    raise ConfigError("command line", self.flag, self.out,
+                                      f"another clppm (pid {h[0]} on {h[1]}) is writing this output "
+                                      f"(lock {self.path}); wait for it or choose another -o") from None
+                try:                         # stale (its process is gone) or unreadable: take it over
+                    os.unlink(self.path)
+                except FileNotFoundError:
+                    pass
+                continue
+            with os.fdopen(fd, "w") as f:
+                f.write(me)
+            self.held = True
+            return self
+        raise ConfigError("command line", self.flag, self.out, f"cannot take the lock {self.path}")
+
+    def __exit__(self, *exc) -> None:
+        if self.held and _holder(self.path) == (os.getpid(), socket.gethostname()):
+            try:
+                os.unlink(self.path)
+            except OSError:
+                pass
+            for d in self.made:              # a render that wrote nothing leaves nothing
+                try:
+                    os.rmdir(d)
+                except OSError:
+                    break
+        self.held = False
+
+
+def check_checkpoint_free(out: str, resume: str | None, force: bool) -> None:
+    """A fresh render must not replace the checkpoint of another run without ``--force``;
+    ``--resume`` of that same checkpoint continues it."""
+    ck = render_outputs(out)["checkpoint"]
+    if force or not os.path.exists(ck):
+        return
+    if resume and os.path.exists(resume) and os.path.samefile(resume, ck):
+        return
+    from .checkpoint import pass_index
+    p = pass_index(ck)
+    held = f" (pass {p})" if p is not None else ""
+    raise ConfigError("command line", "-o/--output", out,
+                      f"the checkpoint {ck} of an earlier render{held} would be replaced: continue it "
+                      f"with --resume {ck}, or give --force to start over")

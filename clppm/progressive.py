@@ -80,17 +80,23 @@ def white_reference(cfg: dict, cam, wl, spectrum) -> np.ndarray:
 
 
 class _Interrupt:
-    """First SIGINT/SIGTERM: finish the current pass and stop; second: abort."""
+    """First SIGINT/SIGTERM: finish the current pass and stop; second: abort.  The signal that
+    stopped the last render is kept in ``_Interrupt.received`` (the command's exit code)."""
+
+    received: int | None = None
 
     def __init__(self):
         self.flag = False
         self.old = {}
 
     def __enter__(self):
+        _Interrupt.received = None
+
         def handler(sig, frame):
             if self.flag:
                 raise KeyboardInterrupt
             self.flag = True
+            _Interrupt.received = sig
         for s in (signal.SIGINT, signal.SIGTERM):
             try:
                 self.old[s] = signal.signal(s, handler)
@@ -103,14 +109,64 @@ class _Interrupt:
             signal.signal(s, h)
 
 
+def interrupt_signal() -> int | None:
+    """The signal (SIGINT or SIGTERM) that stopped the last render in this process, or None."""
+    return _Interrupt.received
+
+
+class _PlainProgress:
+    """Progress as plain lines (stderr is a file or a pipe: a log, a batch job): about every
+    10 % of the passes or every 30 s, and at the end."""
+
+    def __init__(self, total: int, initial: int):
+        self.total, self.n, self.t0, self.last = total, initial, time.perf_counter(), 0.0
+        self.every = max(1, total // 10)
+        self.start = initial
+
+    def update(self, k: int = 1) -> None:
+        import sys
+        self.n += k
+        t = time.perf_counter() - self.t0
+        if self.n % self.every and self.n != self.total and t - self.last < 30:
+            return
+        self.last = t
+        rate = (self.n - self.start) / t if t > 0 else 0.0
+        eta = f", {(self.total - self.n) / rate:.0f} s to go" if rate > 0 and self.n < self.total else ""
+        print(f"pass {self.n}/{self.total}: {t:.1f} s{eta}", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        pass
+
+
+def say(enabled: bool, msg: str) -> None:
+    """A setup status line on stderr (``building the volume...``) unless quiet."""
+    if enabled:
+        import sys
+        print(msg, file=sys.stderr, flush=True)
+
+
 def _progress(total, initial, enabled):
+    import sys
     if not enabled:
         return None
+    if not sys.stderr.isatty():
+        return _PlainProgress(total, initial)
     try:
         from tqdm import tqdm
         return tqdm(total=total, initial=initial, unit="pass", dynamic_ncols=True, leave=True)
     except ImportError:      # pragma: no cover
         return None
+
+
+def check_resume_passes(resume: str | None, passes: int, flag: str = "--passes") -> None:
+    """Resuming must not ask for fewer passes than the checkpoint holds (it cannot un-render)."""
+    if not resume:
+        return
+    have = ckpt.pass_index(resume)
+    if have is not None and passes < have:
+        raise C.ConfigError("command line", flag, passes,
+                            f"is below the {have} passes checkpoint {os.path.basename(resume)} holds; "
+                            f"give --passes {have} or more (or start over without --resume)")
 
 
 def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None, seed=None,
@@ -132,8 +188,13 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     import pyopencl as cl
     if resume:
         ckpt.load(resume)                       # fail fast on a missing or corrupt file
+        check_resume_passes(resume, int(rc["passes"]), "--passes" if passes is not None else "render.passes")
+    say(progress, f"building the volume and the eye pass ({cfg['camera']['resolution'][0]}x"
+                  f"{cfg['camera']['resolution'][1]}, method {rc['method']}) on {dev.name}...")
     sc = ppm.setup(cfg, dev, source)
     meta = run_identity(cfg, dev, sc.eye)
+    say(progress, f"{sc.eye.npoints} sample points; " + (f"resuming {os.path.basename(resume)}..." if resume
+                  else "calibrating the first photon search..."))
     run = RunState.start(sc, meta, resume)
     n_passes = int(rc["passes"])
     k = int(rc["chunk_passes"])
@@ -346,19 +407,23 @@ def finish(cfg, vol, eye, pp, pix: np.ndarray, pairs: int, emitted_total: int, p
 
 
 def write_outputs(out: str, res: RenderResult) -> None:
+    """The image at ``out``: ``.exr`` the spectral + RGB EXR and the PNG beside it; ``.png``
+    the PNG alone (:func:`clppm.paths.render_outputs`)."""
     d = os.path.dirname(os.path.abspath(out))
     os.makedirs(d, exist_ok=True)
-    hdr = {"clppm_report": json.dumps({k: res.report[k] for k in ("method", "scheme", "passes_done",
-                                                                   "photons_emitted", "exposure")})}
-    tmp = out + ".tmp.exr"
-    image.write_exr(tmp, res.rgb.astype(np.float32), spectral=res.spectral.astype(np.float32),
-                    wl=res.wl, header=hdr)
-    os.replace(tmp, out)
-    image.write_png(_sibling(out, ".png"), res.rgb, res.exposure)
+    files = paths.render_outputs(out)
+    if "png" in files:
+        hdr = {"clppm_report": json.dumps({k: res.report[k] for k in ("method", "scheme", "passes_done",
+                                                                       "photons_emitted", "exposure")})}
+        tmp = out + ".tmp.exr"
+        image.write_exr(tmp, res.rgb.astype(np.float32), spectral=res.spectral.astype(np.float32),
+                        wl=res.wl, header=hdr)
+        os.replace(tmp, out)
+    image.write_png(files.get("png", out), res.rgb, res.exposure)
 
 
 def _write_report(out: str, report: dict) -> None:
-    path = _sibling(out, ".json")
+    path = paths.render_outputs(out)["report"]
     tmp = path + ".tmp"
     with open(tmp, "w") as f:
         json.dump(report, f, indent=1, default=str)

@@ -416,7 +416,7 @@ def add_parser(subparsers, add_device) -> None:
     p.add_argument("--flat", action="store_true", help="relief and papillae off (the fit's forward model)")
     p.add_argument("--spot-mm", type=float, help="square beam spot side (relief models / with --port-mm)")
     p.add_argument("--port-mm", type=float, help="square sample port side, flat models (a lower bound)")
-    p.add_argument("--seed", type=int)
+    p.add_argument("--seed", type=int, help="random seed (default: the config's render.seed)")
     p.add_argument("--batches", type=int, default=10, help="batches for the standard errors")
     p.add_argument("--methods", help="render these schemes (e.g. a,b,c,d,e,f) and add image reflectance")
     p.add_argument("--passes", type=int, help="render passes (with --methods)")
@@ -440,7 +440,7 @@ def _res_arg(s: str):
 def cmd_reflectance(a) -> int:
     from . import nist, paths
     from .device import open_device
-    cfg = C.load(a.config)
+    cfg = C.load(C.find(a.config))
     src = os.path.basename(a.config)
     spec = a.specular == "included"
     if a.methods:
@@ -452,7 +452,8 @@ def cmd_reflectance(a) -> int:
         if v is not None and v <= 0:
             raise ConfigError("command line", name, v, "must be > 0")
     paths.check_writable(a.json, "--json")
-    paths.check_writable(a.plot, "--plot")
+    paths.check_plot(a.plot, "--plot")
+    paths.check_distinct(**{"--json": a.json, "--plot": a.plot})
     dev = open_device(a.device)
     bands = a.bands
     res = spectral_reflectance(cfg, photons=band_photons, angle_deg=a.angle, specular=spec,

@@ -3,7 +3,8 @@
 * A render killed with SIGKILL in the middle of a pass leaves a loadable checkpoint, and
   ``clppm render --resume`` finishes it with an EXR byte-identical to an uninterrupted
   run with the same seed.
-* SIGINT finishes the current pass, writes the image so far and a checkpoint, exits 0;
+* SIGINT (SIGTERM) finishes the current pass, writes the image so far and a checkpoint, says
+  how to resume and exits 130 (143), so that ``&&`` and batch schedulers see a cut-short render;
   resuming that checkpoint also gives the uninterrupted bytes.
 * A checkpoint from different parameters, a corrupt, truncated, empty or tampered file
   is refused: exit code 2 and one line naming the file and the reason.
@@ -116,19 +117,20 @@ def test_sigkill_mid_pass_then_resume_is_byte_identical(work, reference, capsys)
     assert out.read_bytes() == reference, "resumed render differs from the uninterrupted one"
 
 
-def test_sigint_writes_image_and_checkpoint_and_resumes(work, reference, capsys):
-    out = work / "int" / "y.exr"
+@pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_signal_writes_image_and_checkpoint_exits_nonzero_and_resumes(work, reference, capsys, sig, code):
+    out = work / f"int{int(sig)}" / "y.exr"
     ck = ckpt.default_path(str(out))
     proc = _spawn(work, out)
     try:
         _wait_for_pass(proc, ck, 1)
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         so, se = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 0, se
-    assert "interrupted" in so and "--resume" in so, so
+    assert proc.returncode == code, se
+    assert "interrupted by " + signal.Signals(sig).name in so and "--resume " + ck in so, so
     assert out.exists() and out.with_suffix(".png").exists()
     rep = json.loads(out.with_suffix(".json").read_text())
     assert rep["interrupted"] is True

@@ -1,0 +1,1 @@
+"""The scenes that ship with clppm (installed as the package clppm.configs)."""
