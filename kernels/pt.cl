@@ -473,7 +473,6 @@ __kernel void pt_pass(VOLUME_ARGS,
             t.dir = refract3(t.dir, sn, P->n_above / layer_n[0], ci, ct);
 #ifndef FLAT
             if (dot(t.dir, gn) >= 0.0f) t.dir = reflect3(t.dir, gn);
-            t.dir = unit3(t.dir);
 #endif
             t.L = 0;
             const float rr_w = E->rr_threshold * beta;
