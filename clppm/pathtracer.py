@@ -46,7 +46,7 @@ STATS = ["vertices", "nee_made", "nee_blocked", "paths_cut"]
 SCHEME = "path tracer: NEE through the flat interfaces, one band per path"
 SCHEME_RELIEF = ("path tracer: manifold NEE through the smooth height-field interfaces "
                  "(one Newton solve from the flat seed), one band per path")
-MNEE_STATS = ["solves", "solved", "newton_iterations", "vertex_above_smooth_surface"]
+MNEE_STATS = ["solves", "solved", "newton_iterations", "continued", "vertex_above_smooth_surface"]
 FLAT_REF = "configs/forearm_flat.toml"
 
 PT_DTYPE = np.dtype([
@@ -173,8 +173,8 @@ class PathTracer:
         self.pix_sq = cla.zeros(q, self.npix * nb, np.float64)
         self.pix_stats = cla.zeros(q, self.npix * 4, np.uint64)
         self.pix_bins = cla.zeros(q, self.npix * NBIN, np.float64)
-        self.pix_mnee = cla.zeros(q, self.npix * 4, np.uint64)
-        self.mnee_base = np.zeros(4, np.int64)         # counts of the passes before a resume
+        self.pix_mnee = cla.zeros(q, self.npix * len(MNEE_STATS), np.uint64)
+        self.mnee_base = np.zeros(len(MNEE_STATS), np.int64)         # counts of the passes before a resume
         sm = vol.smooth if vol.smooth is not None else np.zeros(1, np.float32)
         self.smooth = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
                                 hostbuf=np.ascontiguousarray(sm, np.float32).reshape(-1))
@@ -217,7 +217,7 @@ class PathTracer:
     def mnee_totals(self) -> list[int]:
         """The manifold solver's counts (MNEE_STATS) over all passes, resumed ones included."""
         return [int(a) + int(b) for a, b in zip(self.mnee_base,
-                                                 self.pix_mnee.get().reshape(-1, 4).sum(0))]
+                                                 self.pix_mnee.get().reshape(-1, len(MNEE_STATS)).sum(0))]
 
     def set_state(self, st: dict) -> None:
         if "mnee" in st:
@@ -342,9 +342,11 @@ def mnee_report(tot: list[int]) -> dict:
     d["success_rate"] = ok / n if n else None
     d["failed_share"] = (n - ok) / n if n else None
     d["mean_iterations"] = d["newton_iterations"] / n if n else None
+    d["continued_share"] = d["continued"] / n if n else None
     d["method"] = ("Newton on the landing constraint over the ray's momentum at the vertex, "
                    "ray differentials for the Jacobian, step halving, seeded by the flat solution; "
-                   "one solution per connection (docs/relief.md)")
+                   "where that fails, continuation from the flat surfaces; one solution per "
+                   "connection (docs/relief.md)")
     return d
 
 
@@ -503,9 +505,10 @@ def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mod
     dev.queue.finish()
     npts = out[:, 12].astype(int)
     keys = ["ok", "iters", "halvings", "G", "factor", "F", "cos_v", "cos_a", "ux", "uy", "wsel",
-            "layer", "npts", "err", "built"]
+            "layer", "npts", "err", "built", "why"]
     r = {k: out[:, j] for j, k in enumerate(keys)}
-    r["ok"] = r["ok"] > 0
+    r["continued"] = r["ok"] >= 2
+    r["ok"] = (r["ok"] % 2) > 0
     r["built"] = r["built"] > 0
     r["points"] = [pts[i, :npts[i]] for i in range(n)]
     return r

@@ -34,13 +34,16 @@
 #ifdef PT_FP64
 typedef double3 real3;
 #define MN_TOL 1e-9             /* landing error, relative to the vertex-light distance */
+#define HF_TOL 1e-13            /* intersection step, relative to the coordinates' size */
 #else
 typedef float3 real3;
 #define MN_TOL 2e-6f
+#define HF_TOL 1e-6f
 #endif
 #define MN_MAXIT 24             /* Newton iterations on the landing constraint */
 #define MN_HALF 12              /* step halvings per iteration */
 #define HF_MAXIT 24             /* Newton iterations per ray-height-field intersection */
+#define MN_CONT 64              /* continuation steps */
 
 /* h and its derivatives up to second order at (x, y) */
 typedef struct { real h, hx, hy, hxx, hxy, hyy; } HF;
@@ -103,25 +106,37 @@ typedef struct { real3 o, d, do1, do2, dd1, dd2; } Ray;
 /* Intersect the ray with interface k (Newton along the ray from the plane through h(o.xy));
  * on success the ray's origin and its differentials move to the hit, *f is h there, *t the
  * distance.  0: no convergence or a hit behind. */
+/* The surface deformed from the plane z = zr by lam in [0, 1] (lam = 1: the surface itself):
+ * the homotopy the solver continues along when Newton from the flat seed fails. */
+inline void hf_eval_l(__constant const Params* P, __constant const float4* iface,
+                      __global const float* smooth, int k, real x, real y, real lam, real zr, HF* o) {
+    hf_eval(P, iface, smooth, k, x, y, o);
+    if (lam != 1) {
+        o->h = zr + lam * (o->h - zr);
+        o->hx *= lam; o->hy *= lam; o->hxx *= lam; o->hxy *= lam; o->hyy *= lam;
+    }
+}
+
 inline int hf_hit(__constant const Params* P, __constant const float4* iface,
-                  __global const float* smooth, int k, Ray* r, HF* f, real* t_out) {
+                  __global const float* smooth, int k, real lam, real zr, Ray* r, HF* f, real* t_out) {
     if (r->d.z == 0) return 0;
-    hf_eval(P, iface, smooth, k, r->o.x, r->o.y, f);
+    hf_eval_l(P, iface, smooth, k, r->o.x, r->o.y, lam, zr, f);
     real t = (f->h - r->o.z) / r->d.z;
     int ok = 0;
     for (int it = 0; it < HF_MAXIT; ++it) {
         const real3 p = r->o + t * r->d;
-        hf_eval(P, iface, smooth, k, p.x, p.y, f);
+        hf_eval_l(P, iface, smooth, k, p.x, p.y, lam, zr, f);
         const real g = p.z - f->h;
         const real gp = r->d.z - f->hx * r->d.x - f->hy * r->d.y;
         if (!(fabs(gp) > (real)1e-6)) return 0;
         const real dt = g / gp;
         t -= dt;
-        if (fabs(dt) <= (real)(8 * REL_TOL) * (fabs(t) + 1)) { ok = 1; break; }
+        /* the step's floor is the rounding of the position (~1e-16 of 1e4 um), not of t */
+        if (fabs(dt) <= HF_TOL * (1 + fabs(t) + fabs(r->o.x) + fabs(r->o.y))) { ok = 1; break; }
     }
     if (!ok || !(t > 0)) return 0;
     const real3 p = r->o + t * r->d;
-    hf_eval(P, iface, smooth, k, p.x, p.y, f);
+    hf_eval_l(P, iface, smooth, k, p.x, p.y, lam, zr, f);
     /* transfer: dt = -(do + t dd) . N / (d . N), N = (-hx, -hy, 1) */
     const real3 N = (real3)(-f->hx, -f->hy, 1);
     const real dn = dot(r->d, N);
@@ -174,18 +189,21 @@ typedef struct {
     real3 s;                    /* the surface crossing (the last event's point) */
     real3 d0;                   /* the direction leaving the vertex */
     float F;                    /* product of Fresnel R or T over the events */
+    int why;                    /* where a failed trace stopped: 1 momentum, 2 heading, 3 hit, 4 TIR,
+                                   5 side, 6 air (10 x event + code) */
 } Trace;
 
 /* Trace the chain's events from vertex v (layer k0) with momentum u to the light's height;
  * pts (tests, else 0): 8 numbers per point (position, layer of the segment ending there,
  * upward normal), the vertex first, the point at the light's height last. */
-inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 l,
+inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 l, real lam,
                       __constant const Params* P, __constant const float4* iface,
                       __constant const float* layer_n, __global const float* smooth, Trace* T,
                       __global real* pts) {
     const real nv = layer_n[k0];
     const real sx = ux / nv, sy = uy / nv;
     const real s2 = sx * sx + sy * sy;
+    T->why = 1;
     if (!(s2 < 1)) return 0;
     const real cz = sqrt(1 - s2);
     const real dz = ch->up ? cz : -cz;
@@ -203,10 +221,10 @@ inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 
     for (int e = 0; e < ch->ne; ++e) {
         const int i = ch->ev[e] & 255, k = (ch->ev[e] >> 8) & 255, refl = ch->ev[e] >> 16;
         /* the ray must head for the interface the event names (i == k: the top of layer k) */
-        if ((i == k) != (r.d.z > 0)) return 0;
+        if ((i == k) != (r.d.z > 0)) { T->why = 10 * e + 2; return 0; }
         HF f;
         real t;
-        if (!hf_hit(P, iface, smooth, i, &r, &f, &t)) return 0;
+        if (!hf_hit(P, iface, smooth, i, lam, ch->zref[i], &r, &f, &t)) { T->why = 10 * e + 3; return 0; }
         T->len[k] += t;
         real len;
         const real3 n = hf_normal(&f, &len);
@@ -217,14 +235,16 @@ inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 
         }
         const real n1 = layer_n[k], n2 = n_across(P, layer_n, i, k);
         real ci;
-        if (!bend(&r, n, dn1, dn2, n1 / n2, refl, &ci)) return 0;
+        if (!bend(&r, n, dn1, dn2, n1 / n2, refl, &ci)) { T->why = 10 * e + 4; return 0; }
         float ctf;
         const float R = fresnel_R((float)n1, (float)n2, (float)ci, &ctf);
         T->F *= refl ? R : 1.0f - R;
         /* the ray leaves on the side the event says (reflected: back, transmitted: through) */
-        if ((dot(r.d, n) > 0) != ((i == k) != refl)) return 0;
+        if ((dot(r.d, n) > 0) != ((i == k) != refl)) { T->why = 10 * e + 5; return 0; }
     }
+    T->why = 6;
     if (!(r.d.z > 0)) return 0;
+    T->why = 0;
     T->s = r.o;
     T->cos_a = r.d.z;
     const real a = (l.z - r.o.z) / r.d.z;
@@ -245,40 +265,68 @@ inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 
 }
 
 /* Solver statistics of a connection */
-typedef struct { int ok, iters, halvings; } MneeStat;
+typedef struct { int ok, iters, halvings, cont; } MneeStat;
 
-/* Newton on c(u) = 0 from the seed u; returns 1 with the converged trace in *T. */
-inline int mnee_solve(const Chain* ch, real3 v, int k0, real* ux, real* uy, real3 l,
-                      __constant const Params* P, __constant const float4* iface,
-                      __constant const float* layer_n, __global const float* smooth,
-                      Trace* T, MneeStat* st) {
-    st->ok = 0; st->iters = 0; st->halvings = 0;
+/* Newton on c(u) = 0 for the surfaces at homotopy lam, from u; 1 with the converged trace. */
+inline int mnee_newton(const Chain* ch, real3 v, int k0, real* ux, real* uy, real3 l, real lam,
+                       __constant const Params* P, __constant const float4* iface,
+                       __constant const float* layer_n, __global const float* smooth,
+                       Trace* T, MneeStat* st) {
     const real3 dv = l - v;
     const real tol = (real)MN_TOL * sqrt(dot(dv, dv));
-    if (!mnee_trace(ch, v, k0, *ux, *uy, l, P, iface, layer_n, smooth, T, 0)) return 0;
+    if (!mnee_trace(ch, v, k0, *ux, *uy, l, lam, P, iface, layer_n, smooth, T, 0)) return 0;
     real err = sqrt(T->c[0] * T->c[0] + T->c[1] * T->c[1]);
     for (int it = 0; it < MN_MAXIT; ++it) {
-        if (err <= tol) { st->ok = 1; return 1; }
+        if (err <= tol) return 1;
         st->iters++;
         const real det = T->J[0] * T->J[3] - T->J[1] * T->J[2];
         if (!(fabs(det) > 0)) return 0;
         const real du = -(T->J[3] * T->c[0] - T->J[1] * T->c[1]) / det;
         const real dv2 = -(-T->J[2] * T->c[0] + T->J[0] * T->c[1]) / det;
-        real lam = 1;
+        real step = 1;
         int acc = 0;
         Trace Tn;
         for (int hlv = 0; hlv < MN_HALF; ++hlv) {
-            const real nx = *ux + lam * du, ny = *uy + lam * dv2;
-            if (mnee_trace(ch, v, k0, nx, ny, l, P, iface, layer_n, smooth, &Tn, 0)) {
+            const real nx = *ux + step * du, ny = *uy + step * dv2;
+            if (mnee_trace(ch, v, k0, nx, ny, l, lam, P, iface, layer_n, smooth, &Tn, 0)) {
                 const real en = sqrt(Tn.c[0] * Tn.c[0] + Tn.c[1] * Tn.c[1]);
                 if (en < err) { *ux = nx; *uy = ny; *T = Tn; err = en; acc = 1; break; }
             }
-            lam *= (real)0.5;
+            step *= (real)0.5;
             st->halvings++;
         }
         if (!acc) return 0;
     }
-    if (err <= tol) { st->ok = 1; return 1; }
+    return err <= tol;
+}
+
+/* The connection from the flat seed u (the exact solution for the planes through the
+ * interfaces' heights at the vertex, lam = 0): Newton on the surfaces themselves; where that
+ * fails (a fold of the map between the seed and the solution, or total internal reflection on
+ * the way), continuation in lam from 0 to 1 with adaptive steps, each solved by Newton from
+ * the last solution: it follows the solution branch the flat path deforms into. */
+inline int mnee_solve(const Chain* ch, real3 v, int k0, real* ux, real* uy, real3 l,
+                      __constant const Params* P, __constant const float4* iface,
+                      __constant const float* layer_n, __global const float* smooth,
+                      Trace* T, MneeStat* st) {
+    st->ok = 0; st->iters = 0; st->halvings = 0; st->cont = 0;
+    const real sx = *ux, sy = *uy;
+    if (mnee_newton(ch, v, k0, ux, uy, l, 1, P, iface, layer_n, smooth, T, st)) { st->ok = 1; return 1; }
+    st->cont = 1;
+    *ux = sx; *uy = sy;
+    real lam = 0, dl = (real)0.25;
+    for (int g = 0; g < MN_CONT; ++g) {
+        const real ln = fmin((real)1, lam + dl);
+        real nx = *ux, ny = *uy;
+        if (mnee_newton(ch, v, k0, &nx, &ny, l, ln, P, iface, layer_n, smooth, T, st)) {
+            *ux = nx; *uy = ny; lam = ln;
+            if (lam >= 1) { st->ok = 1; return 1; }
+            dl = fmin((real)0.5, dl * 2);
+        } else {
+            dl *= (real)0.5;
+            if (dl < (real)(1.0 / 256)) return 0;
+        }
+    }
     return 0;
 }
 

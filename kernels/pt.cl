@@ -106,6 +106,9 @@ inline float n_across(__constant const Params* P, __constant const float* layer_
 /* ---------------------------------------------------------------- specular chains */
 typedef struct {
     real H[NL];                 /* vertical distance run in each layer (um) */
+#ifndef FLAT
+    real zref[NL + 1];          /* the interfaces' heights at the vertex (mnee.h continuation) */
+#endif
     real Hair;                  /* the light's height above the surface */
     int ne;
     int ev[MAXE];               /* interface | from layer << 8 | reflected << 16, vertex first */
@@ -287,6 +290,7 @@ inline void chain_local_H(Chain* ch, real3 v, real lz, __constant const Params* 
     for (int e = 0; e < ch->ne; ++e) {
         const int i = ch->ev[e] & 255, k = (ch->ev[e] >> 8) & 255;
         hf_eval(P, iface, smooth, i, v.x, v.y, &f);
+        ch->zref[i] = f.h;
         ch->H[k] += fabs(f.h - z);
         z = f.h;
     }
@@ -424,7 +428,7 @@ __kernel void pt_pass(VOLUME_ARGS,
                       __global ulong* pix_stats,        /* [npix * 4] vertices, NEE made, blocked, cut */
                       __global double* pix_bins,        /* [npix * NBIN] value by vertex index */
                       __global const float* smooth,     /* Volume.smooth (relief builds) */
-                      __global ulong* pix_mnee)         /* [npix * 4] solves, solved, iterations, mismatch */
+                      __global ulong* pix_mnee)         /* [npix * 5] clppm/pathtracer.py MNEE_STATS */
 {
     const uint gid = (uint)get_global_id(0);
     if (gid >= E->count) return;
@@ -435,7 +439,7 @@ __kernel void pt_pass(VOLUME_ARGS,
     const float3 upv = (float3)(E->ux, E->uy, E->uz);
     const float3 lpos = (float3)(E->lx, E->ly, E->lz);
     ulong nvert = 0, nmade = 0, nblock = 0, ncut = 0;
-    ulong m_try = 0, m_ok = 0, m_it = 0, m_mis = 0;
+    ulong m_try = 0, m_ok = 0, m_it = 0, m_cont = 0, m_mis = 0;
     double bins[NBIN];
     for (int i = 0; i < NBIN; ++i) bins[i] = 0.0;
     const int nimg = P->lateral == 2 ? 1 : 0;           /* periodic: images -1..1 in x and y */
@@ -526,6 +530,7 @@ __kernel void pt_pass(VOLUME_ARGS,
                                     const float f = connect_mnee(&ch, vr, Ls, lpos - (float3)(sh, 0.0f), sh, b,
                                                                  P, iface, layer_n, optics, smooth, &dl, &ms, &T);
                                     m_try++; m_ok += (ulong)ms.ok; m_it += (ulong)ms.iters;
+                                    m_cont += (ulong)ms.cont;
                                     if (f > 0.0f) c += f * hg_eval(op.y, -dot(dl, t.dir));
                                 }
                         }
@@ -599,8 +604,8 @@ __kernel void pt_pass(VOLUME_ARGS,
     }
     __global ulong* st = pix_stats + (size_t)pix * 4;
     st[0] += nvert; st[1] += nmade; st[2] += nblock; st[3] += ncut;
-    __global ulong* sm = pix_mnee + (size_t)pix * 4;
-    sm[0] += m_try; sm[1] += m_ok; sm[2] += m_it; sm[3] += m_mis;
+    __global ulong* sm = pix_mnee + (size_t)pix * 5;
+    sm[0] += m_try; sm[1] += m_ok; sm[2] += m_it; sm[3] += m_cont; sm[4] += m_mis;
     for (int i = 0; i < NBIN; ++i) pix_bins[(size_t)pix * NBIN + i] += bins[i];
 }
 
@@ -686,14 +691,14 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
     Trace T;
     const float f = connect_mnee(&ch, v, Ls, light.xyz, (float2)(0.0f), 0, P, iface, layer_n, optics,
                                  smooth, &dl, &ms, &T);
-    o[0] = ms.ok; o[1] = ms.iters; o[2] = ms.halvings;
+    o[0] = ms.ok + 2 * ms.cont; o[1] = ms.iters; o[2] = ms.halvings; o[15] = T.why;
+    o[13] = sqrt(T.c[0] * T.c[0] + T.c[1] * T.c[1]);
     if (!ms.ok) return;
     o[3] = mnee_G(&T, P->n_above); o[4] = f; o[5] = T.F; o[6] = T.cos_v; o[7] = T.cos_a;
     o[8] = T.d0.x * layer_n[Ls]; o[9] = T.d0.y * layer_n[Ls]; o[10] = ch.wsel;
-    o[13] = sqrt(T.c[0] * T.c[0] + T.c[1] * T.c[1]);
     const real3 l = (real3)((real)light.x, (real)light.y, (real)light.z);
     Trace T2;
-    mnee_trace(&ch, v, Ls, o[8], o[9], l, P, iface, layer_n, smooth, &T2,
+    mnee_trace(&ch, v, Ls, o[8], o[9], l, 1, P, iface, layer_n, smooth, &T2,
                pts + (size_t)i * (MAXE + 2) * 8);
     o[12] = ch.ne + 2;
 }
