@@ -471,12 +471,14 @@ def connect_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, 
             "points": [pts[i, :npts[i]] for i in range(n)]}
 
 
-def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mode: int = 0) -> dict:
+def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mode: int = 0,
+               seeds: np.ndarray | None = None) -> dict:
     """Run the kernel's manifold connection (relief builds) for vertices ``verts`` (n, 4: x, y, z
     um, a layer guess) to the light at ``light_um``; mode as connect_probe.  Returns ok,
     iterations, halvings, G, the factor (band 0), the Fresnel product, cos theta_v, cos theta_a,
     u, wsel, the vertex's layer, the landing error, and the chain's points (n, 8: x, y, z,
-    layer, upward normal, 0; vertex first, the light's height last)."""
+    layer, upward normal, 0; vertex first, the light's height last).  ``seeds`` (n, 2): Newton
+    on the surfaces from these momenta instead of the flat seed (no continuation)."""
     import pyopencl as cl
     import pyopencl.cltypes as cltypes
     assert not vol.flat
@@ -498,8 +500,11 @@ def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mod
     obuf = cl.Buffer(dev.ctx, mf.READ_WRITE, out.nbytes)
     qbuf = cl.Buffer(dev.ctx, mf.READ_WRITE, pts.nbytes)
     light = np.array([*light_um, 0.0], np.float32).view(cltypes.float4)[0]
+    sd = np.ascontiguousarray(seeds if seeds is not None else np.zeros((n, 2)), real)
+    sbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=sd)
     cl.Kernel(prg, "t_mnee")(dev.queue, (P_.global_size(n),), (P_.WG,), pbuf, *vb.args(), chain, sm,
-                             light, np.int32(mode), np.uint32(n), vbuf, obuf, qbuf)
+                             light, np.int32(mode), np.uint32(n), vbuf, obuf, qbuf,
+                             np.int32(seeds is not None), sbuf)
     cl.enqueue_copy(dev.queue, out, obuf)
     cl.enqueue_copy(dev.queue, pts, qbuf)
     dev.queue.finish()

@@ -40,23 +40,28 @@ typedef float3 real3;
 #define MN_TOL 2e-6f
 #define HF_TOL 1e-6f
 #endif
-#define MN_MAXIT 24             /* Newton iterations on the landing constraint */
-#define MN_HALF 12              /* step halvings per iteration */
+#define MN_MAXIT 16             /* Newton iterations on the landing constraint */
+#define MN_HALF 6               /* step halvings per iteration */
+#define MN_BUDGET 160           /* traces per connection, all attempts together (then: failed) */
 #define HF_MAXIT 24             /* Newton iterations per ray-height-field intersection */
 #define MN_CONT 64              /* continuation steps */
+
+/* dot product written out (PoCL calls its library's dot out of line) */
+inline real rdot(real3 a, real3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
 
 /* h and its derivatives up to second order at (x, y) */
 typedef struct { real h, hx, hy, hxx, hxy, hyy; } HF;
 
-/* Catmull-Rom weights of the samples -1..2 at fraction f, and their first and second derivatives */
-inline void cr_weights(real f, real* w, real* w1, real* w2) {
-    const real f2 = f * f, f3 = f2 * f;
-    w[0] = (real)0.5 * (-f + 2 * f2 - f3);  w[1] = (real)0.5 * (2 - 5 * f2 + 3 * f3);
-    w[2] = (real)0.5 * (f + 4 * f2 - 3 * f3); w[3] = (real)0.5 * (-f2 + f3);
-    w1[0] = (real)0.5 * (-1 + 4 * f - 3 * f2); w1[1] = (real)0.5 * (-10 * f + 9 * f2);
-    w1[2] = (real)0.5 * (1 + 8 * f - 9 * f2);  w1[3] = (real)0.5 * (-2 * f + 3 * f2);
-    w2[0] = 2 - 3 * f; w2[1] = -5 + 9 * f; w2[2] = 4 - 9 * f; w2[3] = -1 + 3 * f;
-}
+/* Catmull-Rom weights of the samples -1..2 at fraction f (W), their first (D) and second (S)
+ * derivatives: scalars, so nothing is indexed (an indexed array would live on the stack) */
+#define CR_W(f, f2, f3, w0, w1, w2, w3) \
+    w0 = (real)0.5 * (-(f) + 2 * (f2) - (f3)); w1 = (real)0.5 * (2 - 5 * (f2) + 3 * (f3)); \
+    w2 = (real)0.5 * ((f) + 4 * (f2) - 3 * (f3)); w3 = (real)0.5 * ((f3) - (f2));
+#define CR_D(f, f2, w0, w1, w2, w3) \
+    w0 = (real)0.5 * (-1 + 4 * (f) - 3 * (f2)); w1 = (real)0.5 * (-10 * (f) + 9 * (f2)); \
+    w2 = (real)0.5 * (1 + 8 * (f) - 9 * (f2)); w3 = (real)0.5 * (-2 * (f) + 3 * (f2));
+#define CR_S(f, w0, w1, w2, w3) \
+    w0 = 2 - 3 * (f); w1 = -5 + 9 * (f); w2 = 4 - 9 * (f); w3 = -1 + 3 * (f);
 
 inline int hf_index(int i, int n, int periodic) {
     if (periodic) { i %= n; return i < 0 ? i + n : i; }
@@ -70,33 +75,42 @@ inline void hf_eval(__constant const Params* P, __constant const float4* iface,
     if (v < 0) { o->h = (real)IF_Z(k); return; }
     const real gx = (x - (real)P->x0) / (real)P->dx - (real)0.5;
     const real gy = (y - (real)P->y0) / (real)P->dy - (real)0.5;
-    const real fx0 = floor(gx), fy0 = floor(gy);
-    const int ix = (int)fx0, iy = (int)fy0;
-    real wx[4], wx1[4], wx2[4], wy[4], wy1[4], wy2[4];
-    cr_weights(gx - fx0, wx, wx1, wx2);
-    cr_weights(gy - fy0, wy, wy1, wy2);
+    const int ix = (int)gx - (gx < 0), iy = (int)gy - (gy < 0);      /* floor */
+    const real fx = gx - (real)ix, fy = gy - (real)iy;
+    const real fx2 = fx * fx, fx3 = fx2 * fx, fy2 = fy * fy, fy3 = fy2 * fy;
+    real a0, a1, a2, a3, b0, b1, b2, b3, c0, c1, c2, c3;
+    CR_W(fx, fx2, fx3, a0, a1, a2, a3)
+    CR_D(fx, fx2, b0, b1, b2, b3)
+    CR_S(fx, c0, c1, c2, c3)
     const int per = P->lateral == 2;
+    const int i0 = hf_index(ix - 1, P->nx, per), i1 = hf_index(ix, P->nx, per);
+    const int i2 = hf_index(ix + 1, P->nx, per), i3 = hf_index(ix + 2, P->nx, per);
     __global const float* base = smooth + (size_t)v * (size_t)(P->nx * P->ny);
-    real h = 0, hx = 0, hy = 0, hxx = 0, hxy = 0, hyy = 0;
-    for (int j = 0; j < 4; ++j) {
-        const int r = hf_index(iy - 1 + j, P->ny, per);
-        real a0 = 0, a1 = 0, a2 = 0;
-        for (int i = 0; i < 4; ++i) {
-            const real s = (real)base[(size_t)r * (size_t)P->nx + (size_t)hf_index(ix - 1 + i, P->nx, per)];
-            a0 += wx[i] * s; a1 += wx1[i] * s; a2 += wx2[i] * s;
-        }
-        h += wy[j] * a0; hx += wy[j] * a1; hxx += wy[j] * a2;
-        hy += wy1[j] * a0; hxy += wy1[j] * a1; hyy += wy2[j] * a0;
-    }
+    real r0[3], r1[3], r2[3], r3[3];
+#define CR_ROW(j, out) { \
+        __global const float* row = base + (size_t)hf_index(iy - 1 + (j), P->ny, per) * (size_t)P->nx; \
+        const real s0 = row[i0], s1 = row[i1], s2 = row[i2], s3 = row[i3]; \
+        out[0] = a0 * s0 + a1 * s1 + a2 * s2 + a3 * s3; \
+        out[1] = b0 * s0 + b1 * s1 + b2 * s2 + b3 * s3; \
+        out[2] = c0 * s0 + c1 * s1 + c2 * s2 + c3 * s3; }
+    CR_ROW(0, r0) CR_ROW(1, r1) CR_ROW(2, r2) CR_ROW(3, r3)
+#undef CR_ROW
+    CR_W(fy, fy2, fy3, a0, a1, a2, a3)
+    CR_D(fy, fy2, b0, b1, b2, b3)
+    CR_S(fy, c0, c1, c2, c3)
     const real idx = 1 / (real)P->dx, idy = 1 / (real)P->dy;
-    o->h = h; o->hx = hx * idx; o->hy = hy * idy;
-    o->hxx = hxx * idx * idx; o->hxy = hxy * idx * idy; o->hyy = hyy * idy * idy;
+    o->h = a0 * r0[0] + a1 * r1[0] + a2 * r2[0] + a3 * r3[0];
+    o->hx = (a0 * r0[1] + a1 * r1[1] + a2 * r2[1] + a3 * r3[1]) * idx;
+    o->hxx = (a0 * r0[2] + a1 * r1[2] + a2 * r2[2] + a3 * r3[2]) * idx * idx;
+    o->hy = (b0 * r0[0] + b1 * r1[0] + b2 * r2[0] + b3 * r3[0]) * idy;
+    o->hxy = (b0 * r0[1] + b1 * r1[1] + b2 * r2[1] + b3 * r3[1]) * idx * idy;
+    o->hyy = (c0 * r0[0] + c1 * r1[0] + c2 * r2[0] + c3 * r3[0]) * idy * idy;
 }
 
 /* Upward unit normal of the height field (and the unnormalised (-hx, -hy, 1)'s length) */
 inline real3 hf_normal(const HF* f, real* len) {
     const real3 N = (real3)(-f->hx, -f->hy, 1);
-    *len = sqrt(dot(N, N));
+    *len = sqrt(rdot(N, N));
     return N / *len;
 }
 
@@ -135,14 +149,14 @@ inline int hf_hit(__constant const Params* P, __constant const float4* iface,
         if (fabs(dt) <= HF_TOL * (1 + fabs(t) + fabs(r->o.x) + fabs(r->o.y))) { ok = 1; break; }
     }
     if (!ok || !(t > 0)) return 0;
+    /* f is h at the last iterate, within the step's rounding-level dt of the hit */
     const real3 p = r->o + t * r->d;
-    hf_eval_l(P, iface, smooth, k, p.x, p.y, lam, zr, f);
     /* transfer: dt = -(do + t dd) . N / (d . N), N = (-hx, -hy, 1) */
     const real3 N = (real3)(-f->hx, -f->hy, 1);
-    const real dn = dot(r->d, N);
+    const real dn = rdot(r->d, N);
     const real3 q1 = r->do1 + t * r->dd1, q2 = r->do2 + t * r->dd2;
-    r->do1 = q1 - (dot(q1, N) / dn) * r->d;
-    r->do2 = q2 - (dot(q2, N) / dn) * r->d;
+    r->do1 = q1 - (rdot(q1, N) / dn) * r->d;
+    r->do2 = q2 - (rdot(q2, N) / dn) * r->d;
     r->o = (real3)(p.x, p.y, f->h);
     *t_out = t;
     return 1;
@@ -151,18 +165,18 @@ inline int hf_hit(__constant const Params* P, __constant const float4* iface,
 /* Derivative of the unit upward normal along a surface displacement dp */
 inline real3 hf_dnormal(const HF* f, real3 n, real len, real3 dp) {
     const real3 dN = (real3)(-(f->hxx * dp.x + f->hxy * dp.y), -(f->hxy * dp.x + f->hyy * dp.y), 0);
-    return (dN - n * dot(n, dN)) / len;
+    return (dN - n * rdot(n, dN)) / len;
 }
 
 /* Refract (eta = n1 / n2) or reflect the ray at the hit with upward normal n; nf faces the
  * incoming ray.  Differentials by the product rule (Igehy 1999).  0 at total internal reflection. */
 inline int bend(Ray* r, real3 n, real3 dn1, real3 dn2, real eta, int refl, real* cos_i_out) {
-    const real s = dot(r->d, n) > 0 ? -1 : 1;          /* nf = s n faces the ray */
+    const real s = rdot(r->d, n) > 0 ? -1 : 1;          /* nf = s n faces the ray */
     const real3 nf = s * n, df1 = s * dn1, df2 = s * dn2;
-    const real ci = -dot(r->d, nf);
+    const real ci = -rdot(r->d, nf);
     *cos_i_out = ci;
-    const real dci1 = -(dot(r->dd1, nf) + dot(r->d, df1));
-    const real dci2 = -(dot(r->dd2, nf) + dot(r->d, df2));
+    const real dci1 = -(rdot(r->dd1, nf) + rdot(r->d, df1));
+    const real dci2 = -(rdot(r->dd2, nf) + rdot(r->d, df2));
     if (refl) {
         /* d' = d + 2 ci nf */
         r->dd1 = r->dd1 + 2 * (dci1 * nf + ci * df1);
@@ -240,7 +254,7 @@ inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 
         const float R = fresnel_R((float)n1, (float)n2, (float)ci, &ctf);
         T->F *= refl ? R : 1.0f - R;
         /* the ray leaves on the side the event says (reflected: back, transmitted: through) */
-        if ((dot(r.d, n) > 0) != ((i == k) != refl)) { T->why = 10 * e + 5; return 0; }
+        if ((rdot(r.d, n) > 0) != ((i == k) != refl)) { T->why = 10 * e + 5; return 0; }
     }
     T->why = 6;
     if (!(r.d.z > 0)) return 0;
@@ -265,7 +279,7 @@ inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 
 }
 
 /* Solver statistics of a connection */
-typedef struct { int ok, iters, halvings, cont; } MneeStat;
+typedef struct { int ok, iters, halvings, cont, traces; } MneeStat;
 
 /* Newton on c(u) = 0 for the surfaces at homotopy lam, from u; 1 with the converged trace. */
 inline int mnee_newton(const Chain* ch, real3 v, int k0, real* ux, real* uy, real3 l, real lam,
@@ -273,7 +287,9 @@ inline int mnee_newton(const Chain* ch, real3 v, int k0, real* ux, real* uy, rea
                        __constant const float* layer_n, __global const float* smooth,
                        Trace* T, MneeStat* st) {
     const real3 dv = l - v;
-    const real tol = (real)MN_TOL * sqrt(dot(dv, dv));
+    const real tol = (real)MN_TOL * sqrt(rdot(dv, dv));
+    if (st->traces >= MN_BUDGET) return 0;
+    st->traces++;
     if (!mnee_trace(ch, v, k0, *ux, *uy, l, lam, P, iface, layer_n, smooth, T, 0)) return 0;
     real err = sqrt(T->c[0] * T->c[0] + T->c[1] * T->c[1]);
     for (int it = 0; it < MN_MAXIT; ++it) {
@@ -287,6 +303,8 @@ inline int mnee_newton(const Chain* ch, real3 v, int k0, real* ux, real* uy, rea
         int acc = 0;
         Trace Tn;
         for (int hlv = 0; hlv < MN_HALF; ++hlv) {
+            if (st->traces >= MN_BUDGET) return 0;
+            st->traces++;
             const real nx = *ux + step * du, ny = *uy + step * dv2;
             if (mnee_trace(ch, v, k0, nx, ny, l, lam, P, iface, layer_n, smooth, &Tn, 0)) {
                 const real en = sqrt(Tn.c[0] * Tn.c[0] + Tn.c[1] * Tn.c[1]);
@@ -309,7 +327,7 @@ inline int mnee_solve(const Chain* ch, real3 v, int k0, real* ux, real* uy, real
                       __constant const Params* P, __constant const float4* iface,
                       __constant const float* layer_n, __global const float* smooth,
                       Trace* T, MneeStat* st) {
-    st->ok = 0; st->iters = 0; st->halvings = 0; st->cont = 0;
+    st->ok = 0; st->iters = 0; st->halvings = 0; st->cont = 0; st->traces = 0;
     const real sx = *ux, sy = *uy;
     if (mnee_newton(ch, v, k0, ux, uy, l, 1, P, iface, layer_n, smooth, T, st)) { st->ok = 1; return 1; }
     st->cont = 1;

@@ -672,7 +672,8 @@ __kernel void t_connect(VOLUME_ARGS, __constant const float* chain, const float4
  * = x, y, z, layer of the segment ending there (-1 air), upward normal there (0 at the ends). */
 __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const float* smooth,
                      const float4 light, const int mode, const uint n, __global const float4* verts,
-                     __global real* out, __global real* pts) {
+                     __global real* out, __global real* pts, const int use_seeds,
+                     __global const real* seeds) {
     const uint i = (uint)get_global_id(0);
     if (i >= n) return;
     __global real* o = out + (size_t)i * 16;
@@ -689,8 +690,18 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
     float3 dl;
     MneeStat ms;
     Trace T;
-    const float f = connect_mnee(&ch, v, Ls, light.xyz, (float2)(0.0f), 0, P, iface, layer_n, optics,
-                                 smooth, &dl, &ms, &T);
+    float f = 0.0f;
+    if (use_seeds) {
+        /* Newton on the surfaces from the given seed (several seeds: the solutions there are) */
+        const real3 l = (real3)((real)light.x, (real)light.y, (real)light.z);
+        chain_local_H(&ch, v, l.z, P, iface, smooth);
+        real ux = seeds[2 * i], uy = seeds[2 * i + 1];
+        ms.iters = 0; ms.halvings = 0; ms.cont = 0; ms.traces = 0;
+        ms.ok = mnee_newton(&ch, v, Ls, &ux, &uy, l, 1, P, iface, layer_n, smooth, &T, &ms);
+    } else {
+        f = connect_mnee(&ch, v, Ls, light.xyz, (float2)(0.0f), 0, P, iface, layer_n, optics,
+                         smooth, &dl, &ms, &T);
+    }
     o[0] = ms.ok + 2 * ms.cont; o[1] = ms.iters; o[2] = ms.halvings; o[15] = T.why;
     o[13] = sqrt(T.c[0] * T.c[0] + T.c[1] * T.c[1]);
     if (!ms.ok) return;
