@@ -45,8 +45,12 @@ BIN_LABELS = ["1", "2", "3", "4", "5-8", "9-16", "17-64", "65+"]
 STATS = ["vertices", "nee_made", "nee_blocked", "paths_cut"]
 SCHEME = "path tracer: NEE through the flat interfaces, one band per path"
 SCHEME_RELIEF = ("path tracer: manifold NEE through the smooth height-field interfaces "
-                 "(one Newton solve from the flat seed), one band per path")
-MNEE_STATS = ["solves", "solved", "newton_iterations", "continued", "vertex_above_smooth_surface"]
+                 "(Newton from the flat seed and several more, distinct solutions summed), one band per path")
+MNEE_STATS = ["solves", "solved", "newton_iterations", "continued", "vertex_above_smooth_surface",
+              "solutions"]
+# Seeds per connection beyond the flat one (relief): the light paths through a furrow or over a
+# papilla can be several (caustics); every distinct one found is added (docs/relief.md)
+MNEE_SEEDS = 8
 FLAT_REF = "configs/forearm_flat.toml"
 
 PT_DTYPE = np.dtype([
@@ -61,7 +65,7 @@ PT_DTYPE = np.dtype([
     ("lx", "f4"), ("ly", "f4"), ("lz", "f4"),
     ("alpha", "f4"), ("specular", "i4"),
     ("rr_threshold", "f4"), ("rr_m", "f4"), ("max_vertices", "i4"),
-    ("nee_od", "f4"), ("nee_q_floor", "f4"),
+    ("nee_od", "f4"), ("nee_q_floor", "f4"), ("mnee_seeds", "i4"),
 ])
 assert PT_DTYPE.itemsize == 4 * len(PT_DTYPE.names)
 
@@ -166,6 +170,7 @@ class PathTracer:
         e["specular"] = 1 if rc["specular"] else 0
         e["rr_threshold"], e["rr_m"], e["max_vertices"] = RR_THRESHOLD, RR_M, MAX_VERTICES
         e["nee_od"], e["nee_q_floor"] = NEE_OD, NEE_Q_FLOOR
+        e["mnee_seeds"] = MNEE_SEEDS
         self.e = e
         self.ebuf = cl.Buffer(dev.ctx, mf.READ_ONLY, PT_DTYPE.itemsize)
         nb = vol.nb
@@ -234,7 +239,7 @@ def run_identity(cfg: dict, dev: Device, tracer: PathTracer) -> dict:
     keep["render"] = {k: v for k, v in keep["render"].items()
                       if k not in ("passes", "preview_every", "checkpoint_every")}
     return {"integrator": "pt", "config": keep, "device": dev.name, "npix": tracer.npix,
-            "nb": tracer.vol.nb, "nbin": NBIN}
+            "nb": tracer.vol.nb, "nbin": NBIN, **({} if tracer.vol.flat else {"mnee_seeds": MNEE_SEEDS})}
 
 
 def band_scale(cfg: dict, wl: np.ndarray, spectrum: np.ndarray) -> np.ndarray:
@@ -343,10 +348,12 @@ def mnee_report(tot: list[int]) -> dict:
     d["failed_share"] = (n - ok) / n if n else None
     d["mean_iterations"] = d["newton_iterations"] / n if n else None
     d["continued_share"] = d["continued"] / n if n else None
+    d["mean_solutions"] = d["solutions"] / n if n else None
+    d["seeds_per_connection"] = 1 + MNEE_SEEDS
     d["method"] = ("Newton on the landing constraint over the ray's momentum at the vertex, "
                    "ray differentials for the Jacobian, step halving, seeded by the flat solution; "
-                   "where that fails, continuation from the flat surfaces; one solution per "
-                   "connection (docs/relief.md)")
+                   "where that fails, continuation from the flat surfaces; then Newton from "
+                   f"{MNEE_SEEDS} more seeds around it, every distinct solution added (docs/relief.md)")
     return d
 
 

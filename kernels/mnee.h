@@ -43,6 +43,7 @@ typedef float3 real3;
 #define MN_MAXIT 16             /* Newton iterations on the landing constraint */
 #define MN_HALF 6               /* step halvings per iteration */
 #define MN_BUDGET 160           /* traces per connection, all attempts together (then: failed) */
+#define MN_SEED_BUDGET 24       /* traces per extra seed */
 #define HF_MAXIT 24             /* Newton iterations per ray-height-field intersection */
 #define MN_CONT 64              /* continuation steps */
 

@@ -77,6 +77,7 @@ typedef struct {
     int max_vertices;           /* safety bound per path (counted as cut) */
     float nee_od;               /* NEE roulette: optical depth straight up beyond which ... */
     float nee_q_floor;          /* ... the connection is made with probability exp(nee_od - od) */
+    int mnee_seeds;             /* relief: seeds beyond the flat one per connection (mnee.h) */
 } PtParams;
 
 #define MAXE (4 * NL + 8)       /* chain events; a longer chain (R^4 smaller) counts as blocked */
@@ -297,32 +298,93 @@ inline void chain_local_H(Chain* ch, real3 v, real lz, __constant const Params* 
     ch->Hair = lz - z;
 }
 
-/* The connection through the height fields (mnee.h): as connect(), with the solver's outcome in
- * *st; the seed is the flat solution on the local planes. */
-inline float connect_mnee(Chain* ch, real3 v, int Ls, float3 lpos, float2 shift, int b,
-                          __constant const Params* P, __constant const float4* iface,
-                          __constant const float* layer_n, __global const float4* optics,
-                          __global const float* smooth, float3* dirL, MneeStat* st, Trace* T) {
-    const real3 l = (real3)((real)lpos.x, (real)lpos.y, (real)lpos.z);
+/* The flat seed: the momentum of the flat solution on the planes through the interfaces'
+ * heights at the vertex (chain_local_H). */
+inline void mnee_seed(Chain* ch, real3 v, real3 l, __constant const Params* P,
+                      __constant const float4* iface, __constant const float* layer_n,
+                      __global const float* smooth, real* ux, real* uy) {
     chain_local_H(ch, v, l.z, P, iface, smooth);
     const real dx = l.x - v.x, dy = l.y - v.y;
     const real rt = sqrt(dx * dx + dy * dy);
-    const real na = P->n_above;
     real S, dR;
-    const real p = solve_p(ch, rt, na, layer_n, &S, &dR);
-    real ux = rt > 0 ? p * dx / rt : 0, uy = rt > 0 ? p * dy / rt : 0;
-    if (!mnee_solve(ch, v, Ls, &ux, &uy, l, P, iface, layer_n, smooth, T, st)) return 0.0f;
+    const real p = solve_p(ch, rt, (real)P->n_above, layer_n, &S, &dR);
+    *ux = rt > 0 ? p * dx / rt : 0;
+    *uy = rt > 0 ? p * dy / rt : 0;
+}
+
+/* The factor of a converged trace, as connect() gives it: G, Fresnel, attenuation, over the
+ * chain's selection probability; 0 where the surface crossing is off the model. */
+inline float mnee_factor(const Trace* T, const Chain* ch, float2 shift, int b,
+                         __constant const Params* P, __global const float4* optics, float3* dirL) {
     if (P->lateral != 0) {
         const float sx = (float)T->s.x + shift.x, sy = (float)T->s.y + shift.y;
         if (sx < P->x0 || sx > P->x0 + P->xw || sy < P->y0 || sy > P->y0 + P->yw) return 0.0f;
     }
-    const real G = mnee_G(T, na);
+    const real G = mnee_G(T, (real)P->n_above);
     real od = 0;
     for (int k = 0; k < NL; ++k)
         if (T->len[k] > 0) od += (real)optics[k * NB + b].w * T->len[k];
     *dirL = (float3)((float)-T->d0.x, (float)-T->d0.y, (float)-T->d0.z);
     if (!(G > 0) || !isfinite((float)G)) return 0.0f;
     return (float)G * T->F * exp(-(float)od) / ch->wsel;
+}
+
+/* The connection through the height fields (mnee.h) from the flat seed: as connect(), with the
+ * solver's outcome in *st. */
+inline float connect_mnee(Chain* ch, real3 v, int Ls, float3 lpos, float2 shift, int b,
+                          __constant const Params* P, __constant const float4* iface,
+                          __constant const float* layer_n, __global const float4* optics,
+                          __global const float* smooth, float3* dirL, MneeStat* st, Trace* T) {
+    const real3 l = (real3)((real)lpos.x, (real)lpos.y, (real)lpos.z);
+    real ux, uy;
+    mnee_seed(ch, v, l, P, iface, layer_n, smooth, &ux, &uy);
+    if (!mnee_solve(ch, v, Ls, &ux, &uy, l, P, iface, layer_n, smooth, T, st)) return 0.0f;
+    return mnee_factor(T, ch, shift, b, P, optics, dirL);
+}
+
+#define MN_MAXSOL 8             /* distinct solutions kept per connection */
+
+/* Every light path through the chain that the flat seed (with continuation) and nseeds more
+ * seeds around it find (Newton on the surfaces from each), distinct ones summed, each with its
+ * own phase function value for the path direction wdir: the several-seeds estimator (bias: the
+ * solutions no seed reaches; docs/relief.md).  *nsol: distinct solutions found. */
+inline float connect_mnee_all(Chain* ch, real3 v, int Ls, float3 lpos, float2 shift, int b,
+                              float g, float3 wdir, int nseeds,
+                              __constant const Params* P, __constant const float4* iface,
+                              __constant const float* layer_n, __global const float4* optics,
+                              __global const float* smooth, MneeStat* st, int* nsol) {
+    const real3 l = (real3)((real)lpos.x, (real)lpos.y, (real)lpos.z);
+    real u0x, u0y;
+    mnee_seed(ch, v, l, P, iface, layer_n, smooth, &u0x, &u0y);
+    real sx[MN_MAXSOL], sy[MN_MAXSOL];
+    int ns = 0;
+    float c = 0.0f;
+    Trace T;
+    float3 dl;
+    real ux = u0x, uy = u0y;
+    if (mnee_solve(ch, v, Ls, &ux, &uy, l, P, iface, layer_n, smooth, &T, st)) {
+        sx[0] = ux; sy[0] = uy; ns = 1;
+        const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
+        if (f > 0.0f) c += f * hg_eval(g, -dot(dl, wdir));
+    }
+    for (int j = 0; j < nseeds && ns < MN_MAXSOL; ++j) {
+        /* rings of momentum offsets 0.1 and 0.25, golden-angle directions */
+        const real rad = (j & 1) ? (real)0.25 : (real)0.1;
+        const real ph = (real)2.39996322972865 * (real)j;
+        ux = u0x + rad * cos(ph); uy = u0y + rad * sin(ph);
+        MneeStat s2;
+        s2.iters = 0; s2.halvings = 0; s2.cont = 0; s2.traces = MN_BUDGET - MN_SEED_BUDGET;
+        if (!mnee_newton(ch, v, Ls, &ux, &uy, l, 1, P, iface, layer_n, smooth, &T, &s2)) continue;
+        st->iters += s2.iters;
+        int dup = 0;
+        for (int q = 0; q < ns; ++q) dup |= fabs(sx[q] - ux) + fabs(sy[q] - uy) < (real)1e-6;
+        if (dup) continue;
+        sx[ns] = ux; sy[ns] = uy; ns++;
+        const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
+        if (f > 0.0f) c += f * hg_eval(g, -dot(dl, wdir));
+    }
+    *nsol = ns;
+    return c;
 }
 
 /* Fresnel decision at a face (as photon.cl): gn geometric and sn smooth normal, both pointing
@@ -428,7 +490,7 @@ __kernel void pt_pass(VOLUME_ARGS,
                       __global ulong* pix_stats,        /* [npix * 4] vertices, NEE made, blocked, cut */
                       __global double* pix_bins,        /* [npix * NBIN] value by vertex index */
                       __global const float* smooth,     /* Volume.smooth (relief builds) */
-                      __global ulong* pix_mnee)         /* [npix * 5] clppm/pathtracer.py MNEE_STATS */
+                      __global ulong* pix_mnee)         /* [npix * 6] clppm/pathtracer.py MNEE_STATS */
 {
     const uint gid = (uint)get_global_id(0);
     if (gid >= E->count) return;
@@ -439,7 +501,7 @@ __kernel void pt_pass(VOLUME_ARGS,
     const float3 upv = (float3)(E->ux, E->uy, E->uz);
     const float3 lpos = (float3)(E->lx, E->ly, E->lz);
     ulong nvert = 0, nmade = 0, nblock = 0, ncut = 0;
-    ulong m_try = 0, m_ok = 0, m_it = 0, m_cont = 0, m_mis = 0;
+    ulong m_try = 0, m_ok = 0, m_it = 0, m_cont = 0, m_mis = 0, m_sol = 0;
     double bins[NBIN];
     for (int i = 0; i < NBIN; ++i) bins[i] = 0.0;
     const int nimg = P->lateral == 2 ? 1 : 0;           /* periodic: images -1..1 in x and y */
@@ -524,14 +586,13 @@ __kernel void pt_pass(VOLUME_ARGS,
                             for (int ix = -nimg; ix <= nimg; ++ix)
                                 for (int iy = -nimg; iy <= nimg; ++iy) {
                                     const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
-                                    float3 dl;
                                     MneeStat ms;
-                                    Trace T;
-                                    const float f = connect_mnee(&ch, vr, Ls, lpos - (float3)(sh, 0.0f), sh, b,
-                                                                 P, iface, layer_n, optics, smooth, &dl, &ms, &T);
+                                    int nsol;
+                                    c += connect_mnee_all(&ch, vr, Ls, lpos - (float3)(sh, 0.0f), sh, b, op.y,
+                                                          t.dir, E->mnee_seeds, P, iface, layer_n, optics,
+                                                          smooth, &ms, &nsol);
                                     m_try++; m_ok += (ulong)ms.ok; m_it += (ulong)ms.iters;
-                                    m_cont += (ulong)ms.cont;
-                                    if (f > 0.0f) c += f * hg_eval(op.y, -dot(dl, t.dir));
+                                    m_cont += (ulong)ms.cont; m_sol += (ulong)nsol;
                                 }
                         }
 #else
@@ -604,8 +665,8 @@ __kernel void pt_pass(VOLUME_ARGS,
     }
     __global ulong* st = pix_stats + (size_t)pix * 4;
     st[0] += nvert; st[1] += nmade; st[2] += nblock; st[3] += ncut;
-    __global ulong* sm = pix_mnee + (size_t)pix * 5;
-    sm[0] += m_try; sm[1] += m_ok; sm[2] += m_it; sm[3] += m_cont; sm[4] += m_mis;
+    __global ulong* sm = pix_mnee + (size_t)pix * 6;
+    sm[0] += m_try; sm[1] += m_ok; sm[2] += m_it; sm[3] += m_cont; sm[4] += m_mis; sm[5] += m_sol;
     for (int i = 0; i < NBIN; ++i) pix_bins[(size_t)pix * NBIN + i] += bins[i];
 }
 
