@@ -485,7 +485,9 @@ def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mod
     iterations, halvings, G, the factor (band 0), the Fresnel product, cos theta_v, cos theta_a,
     u, wsel, the vertex's layer, the landing error, and the chain's points (n, 8: x, y, z,
     layer, upward normal, 0; vertex first, the light's height last).  ``seeds`` (n, 2): Newton
-    on the surfaces from these momenta instead of the flat seed (no continuation)."""
+    on the surfaces from these momenta instead of the flat seed (no continuation).  Without
+    seeds also ``all_factor`` and ``solutions``: the render's connection, every distinct solution
+    of the flat seed and the MNEE_SEEDS more summed (band 0, isotropic phase function x 4 pi)."""
     import pyopencl as cl
     import pyopencl.cltypes as cltypes
     assert not vol.flat
@@ -501,7 +503,7 @@ def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mod
     v = np.ascontiguousarray(verts, np.float32)
     n = len(v)
     maxp = 4 * vol.nl + 10
-    out = np.zeros((n, 16), real)
+    out = np.zeros((n, 20), real)
     pts = np.zeros((n, maxp, 8), real)
     vbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=v)
     obuf = cl.Buffer(dev.ctx, mf.READ_WRITE, out.nbytes)
@@ -511,13 +513,13 @@ def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mod
     sbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=sd)
     cl.Kernel(prg, "t_mnee")(dev.queue, (P_.global_size(n),), (P_.WG,), pbuf, *vb.args(), chain, sm,
                              light, np.int32(mode), np.uint32(n), vbuf, obuf, qbuf,
-                             np.int32(seeds is not None), sbuf)
+                             np.int32(seeds is not None), sbuf, np.int32(MNEE_SEEDS))
     cl.enqueue_copy(dev.queue, out, obuf)
     cl.enqueue_copy(dev.queue, pts, qbuf)
     dev.queue.finish()
     npts = out[:, 12].astype(int)
     keys = ["ok", "iters", "halvings", "G", "factor", "F", "cos_v", "cos_a", "ux", "uy", "wsel",
-            "layer", "npts", "err", "built", "why"]
+            "layer", "npts", "err", "built", "why", "all_factor", "solutions"]
     r = {k: out[:, j] for j, k in enumerate(keys)}
     r["continued"] = r["ok"] >= 2
     r["ok"] = (r["ok"] % 2) > 0

@@ -734,11 +734,11 @@ __kernel void t_connect(VOLUME_ARGS, __constant const float* chain, const float4
 __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const float* smooth,
                      const float4 light, const int mode, const uint n, __global const float4* verts,
                      __global real* out, __global real* pts, const int use_seeds,
-                     __global const real* seeds) {
+                     __global const real* seeds, const int mnee_seeds) {
     const uint i = (uint)get_global_id(0);
     if (i >= n) return;
-    __global real* o = out + (size_t)i * 16;
-    for (int j = 0; j < 16; ++j) o[j] = 0;
+    __global real* o = out + (size_t)i * 20;
+    for (int j = 0; j < 20; ++j) o[j] = 0;
     const real3 v = (real3)((real)verts[i].x, (real)verts[i].y, (real)verts[i].z);
     const int Ls = smooth_layer(P, iface, smooth, v, clamp((int)verts[i].w, 0, NL - 1));
     o[11] = Ls;
@@ -762,6 +762,17 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
     } else {
         f = connect_mnee(&ch, v, Ls, light.xyz, (float2)(0.0f), 0, P, iface, layer_n, optics,
                          smooth, &dl, &ms, &T);
+    }
+    if (use_seeds == 0) {
+        /* the render's connection: every distinct solution of the flat seed and MNEE seeds
+         * (isotropic phase function, times 4 pi: the sum of the factors) */
+        MneeStat s3;
+        int nsol;
+        Chain c2 = ch;
+        o[16] = 4 * PI_F * connect_mnee_all(&c2, v, Ls, light.xyz, (float2)(0.0f), 0, 0.0f,
+                                            (float3)(0.0f, 0.0f, 1.0f), mnee_seeds, P, iface, layer_n,
+                                            optics, smooth, &s3, &nsol);
+        o[17] = nsol;
     }
     o[0] = ms.ok + 2 * ms.cont; o[1] = ms.iters; o[2] = ms.halvings; o[15] = T.why;
     o[13] = sqrt(T.c[0] * T.c[0] + T.c[1] * T.c[1]);
