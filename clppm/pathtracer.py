@@ -16,8 +16,13 @@ exactly on the host (``band_counts``); each band's radiance is the mean over its
 A pass is N = ``render.pt_samples_per_pass`` paths per pixel, a pure function of (seed, pass):
 sums are float64, added per pixel in a fixed order, so a resumed render is byte-identical.
 
-Scope: flat scenes (``relief.kind = "flat"``, ``papillae.amplitude_um = 0``) and a point
-light; anything else is refused before any work (``check_scene``).
+Relief (a furrowed surface, interfaces that follow it, the wavy junction): the eye path walks
+the voxel volume as the photon pass does and refracts at the smooth surfaces' normals; the
+connection to the light goes through those smooth height fields by manifold next-event
+estimation (kernels/mnee.h, docs/relief.md), and the report gives the solver's statistics.
+
+Scope: a point light above the surface; anything else is refused before any work
+(``check_scene``).
 """
 from __future__ import annotations
 
@@ -40,6 +45,13 @@ NBIN = 8
 BIN_LABELS = ["1", "2", "3", "4", "5-8", "9-16", "17-64", "65+"]
 STATS = ["vertices", "nee_made", "nee_blocked", "paths_cut"]
 SCHEME = "path tracer: NEE through the flat interfaces, one band per path"
+SCHEME_RELIEF = ("path tracer: manifold NEE through the smooth height-field interfaces "
+                 "(Newton from the flat seed and several more, distinct solutions summed), one band per path")
+MNEE_STATS = ["solves", "solved", "newton_iterations", "continued", "vertex_above_smooth_surface",
+              "solutions"]
+# Seeds per connection beyond the flat one (relief): the light paths through a furrow or over a
+# papilla can be several (caustics); every distinct one found is added (docs/relief.md)
+MNEE_SEEDS = 8
 FLAT_REF = "configs/forearm_flat.toml"
 
 PT_DTYPE = np.dtype([
@@ -54,7 +66,7 @@ PT_DTYPE = np.dtype([
     ("lx", "f4"), ("ly", "f4"), ("lz", "f4"),
     ("alpha", "f4"), ("specular", "i4"),
     ("rr_threshold", "f4"), ("rr_m", "f4"), ("max_vertices", "i4"),
-    ("nee_od", "f4"), ("nee_q_floor", "f4"),
+    ("nee_od", "f4"), ("nee_q_floor", "f4"), ("mnee_seeds", "i4"),
 ])
 assert PT_DTYPE.itemsize == 4 * len(PT_DTYPE.names)
 
@@ -71,13 +83,7 @@ LAUNCH_SECONDS = 1.0     # target duration of one kernel launch (PoCL: keep the 
 
 def check_scene(cfg: dict, source: str = "<config>") -> None:
     """Refuse what the path tracer does not handle, before any work (one line, key and value)."""
-    rel, pap, L = cfg["relief"], cfg["papillae"], cfg["light"]
-    why = ("the path tracer handles flat scenes only: manifold next-event estimation through "
-           f"the relief is not implemented; {FLAT_REF} is the reference scene")
-    if rel["kind"] != "flat":
-        raise ConfigError(source, "relief.kind", rel["kind"], why)
-    if pap["amplitude_um"] > 0:
-        raise ConfigError(source, "papillae.amplitude_um", pap["amplitude_um"], why)
+    L = cfg["light"]
     if L["kind"] != "point":
         raise ConfigError(source, "light.kind", L["kind"],
                           "the path tracer's next-event estimation needs a point light "
@@ -165,6 +171,7 @@ class PathTracer:
         e["specular"] = 1 if rc["specular"] else 0
         e["rr_threshold"], e["rr_m"], e["max_vertices"] = RR_THRESHOLD, RR_M, MAX_VERTICES
         e["nee_od"], e["nee_q_floor"] = NEE_OD, NEE_Q_FLOOR
+        e["mnee_seeds"] = MNEE_SEEDS
         self.e = e
         self.ebuf = cl.Buffer(dev.ctx, mf.READ_ONLY, PT_DTYPE.itemsize)
         nb = vol.nb
@@ -172,6 +179,11 @@ class PathTracer:
         self.pix_sq = cla.zeros(q, self.npix * nb, np.float64)
         self.pix_stats = cla.zeros(q, self.npix * 4, np.uint64)
         self.pix_bins = cla.zeros(q, self.npix * NBIN, np.float64)
+        self.pix_mnee = cla.zeros(q, self.npix * len(MNEE_STATS), np.uint64)
+        self.mnee_base = np.zeros(len(MNEE_STATS), np.int64)         # counts of the passes before a resume
+        sm = vol.smooth if vol.smooth is not None else np.zeros(1, np.float32)
+        self.smooth = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                                hostbuf=np.ascontiguousarray(sm, np.float32).reshape(-1))
         self.launch = min(self.npix, max(P_.WG, 16384 // self.nspp))   # ~16k paths, then timed
         self.spectrum = transport.source_spectrum(cfg, vol.wl)
         self.offsets = band_offsets(self.npix, nb)
@@ -191,7 +203,7 @@ class PathTracer:
             t0 = time.perf_counter()
             self.kernel(q, (P_.global_size(n),), (P_.WG,), self.pbuf, *self.vbuf.args(), self.ebuf,
                         self.chain, self.pix_sum.data, self.pix_sq.data, self.pix_stats.data,
-                        self.pix_bins.data)
+                        self.pix_bins.data, self.smooth, self.pix_mnee.data)
             q.finish()
             dt = time.perf_counter() - t0
             done += n
@@ -208,7 +220,14 @@ class PathTracer:
                 "pix_stats": self.pix_stats.get().reshape(self.npix, 4),
                 "pix_bins": self.pix_bins.get().reshape(self.npix, NBIN)}
 
+    def mnee_totals(self) -> list[int]:
+        """The manifold solver's counts (MNEE_STATS) over all passes, resumed ones included."""
+        return [int(a) + int(b) for a, b in zip(self.mnee_base,
+                                                 self.pix_mnee.get().reshape(-1, len(MNEE_STATS)).sum(0))]
+
     def set_state(self, st: dict) -> None:
+        if "mnee" in st:
+            self.mnee_base = np.asarray(st["mnee"], np.int64)
         self.pix_sum.set(np.ascontiguousarray(st["pix_sum"].reshape(-1), np.float64))
         self.pix_sq.set(np.ascontiguousarray(st["pix_sq"].reshape(-1), np.float64))
         self.pix_stats.set(np.ascontiguousarray(st["pix_stats"].reshape(-1), np.uint64))
@@ -220,7 +239,7 @@ def run_identity(cfg: dict, dev: Device, tracer: PathTracer) -> dict:
     keep = json.loads(json.dumps(cfg, default=str))
     keep["render"] = {k: v for k, v in keep["render"].items() if k not in C.NOT_PICTURE}
     return {"integrator": "pt", "config": keep, "device": dev.name, "npix": tracer.npix,
-            "nb": tracer.vol.nb, "nbin": NBIN}
+            "nb": tracer.vol.nb, "nbin": NBIN, **({} if tracer.vol.flat else {"mnee_seeds": MNEE_SEEDS})}
 
 
 def band_scale(cfg: dict, wl: np.ndarray, spectrum: np.ndarray) -> np.ndarray:
@@ -292,7 +311,7 @@ def _finish(cfg, tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_s
     report = {
         "clppm": __import__("clppm").__version__,
         "config": json.loads(json.dumps(cfg, default=str)),
-        "integrator": "pt", "method": "pt", "scheme": SCHEME,
+        "integrator": "pt", "method": "pt", "scheme": SCHEME if vol.flat else SCHEME_RELIEF,
         "device": dev.info(),
         "passes_done": passes_done, "passes_requested": rc["passes"], "interrupted": interrupted,
         "samples_per_pass": tracer.nspp, "samples_per_pixel": samples,
@@ -307,6 +326,7 @@ def _finish(cfg, tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_s
         if trace_s > 0 else None,
         "nee_value_by_vertex_index": {k: (float(v) / btot if btot > 0 else 0.0)
                                       for k, v in zip(BIN_LABELS, bins)},
+        "manifold_nee": None if vol.flat else mnee_report(tracer.mnee_totals()),
         "noise": noise(arrays["pix_sum"], arrays["pix_sq"], counts, scale, wl),
         "seconds": dict(timing, total=total),
         "exposure": exposure, "white_reference_Y": Yw,
@@ -318,6 +338,23 @@ def _finish(cfg, tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_s
     }
     return progressive.RenderResult(spectral=L, xyz=xyz, rgb=rgb, wl=wl, report=report,
                                     exposure=exposure)
+
+
+def mnee_report(tot: list[int]) -> dict:
+    """The run report's solver statistics: success rate, iterations, failures."""
+    d = dict(zip(MNEE_STATS, tot))
+    n, ok = d["solves"], d["solved"]
+    d["success_rate"] = ok / n if n else None
+    d["failed_share"] = (n - ok) / n if n else None
+    d["mean_iterations"] = d["newton_iterations"] / n if n else None
+    d["continued_share"] = d["continued"] / n if n else None
+    d["mean_solutions"] = d["solutions"] / n if n else None
+    d["seeds_per_connection"] = 1 + MNEE_SEEDS
+    d["method"] = ("Newton on the landing constraint over the ray's momentum at the vertex, "
+                   "ray differentials for the Jacobian, step halving, seeded by the flat solution; "
+                   "where that fails, continuation from the flat surfaces; then Newton from "
+                   f"{MNEE_SEEDS} more seeds around it, every distinct solution added (docs/relief.md)")
+    return d
 
 
 def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str | None = None,
@@ -343,11 +380,11 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
     timing = {"volume": 0.0, "trace": 0.0, "output": 0.0}
     t0 = time.perf_counter()
     vol = volume.build(cfg, source)
-    assert vol.flat, "check_scene admits flat scenes only"
     timing["volume"] = time.perf_counter() - t0
     npix, nb = w * h, vol.nb
     check_alloc(dev, {"pixel sums": npix * nb * 8, "pixel sums of squares": npix * nb * 8,
-                      "pixel statistics": npix * 32, "value by vertex index": npix * NBIN * 8,
+                      "pixel statistics": npix * 64, "value by vertex index": npix * NBIN * 8,
+                      "smooth heights": 0 if vol.smooth is None else int(vol.smooth.nbytes),
                       **vol.device_bytes()})
     if resume:
         ckpt.load_pt(resume)                    # fail fast on a missing or corrupt file
@@ -374,7 +411,8 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
                     bar.update(1)
                 stop = intr.flag or (stop_after is not None and p >= stop_after)
                 if ckpath and ((cp_every and p % cp_every == 0) or stop or p == n_passes):
-                    ckpt.save_pt(ckpath, meta, {"pass_index": p, "timing": timing},
+                    ckpt.save_pt(ckpath, meta, {"pass_index": p, "timing": timing,
+                                                "mnee": tracer.mnee_totals()},
                                  tracer.state_arrays())
                     last_ckpt = p
                 if snapshot_every and on_snapshot and (p % snapshot_every == 0 or p == n_passes or stop):
@@ -438,3 +476,53 @@ def connect_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, 
     return {"p": out[:, 0], "domega_dA": out[:, 1], "factor": out[:, 2], "cos_L": out[:, 3],
             "wsel": out[:, 4], "ok": out[:, 5] > 0,
             "points": [pts[i, :npts[i]] for i in range(n)]}
+
+
+def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mode: int = 0,
+               seeds: np.ndarray | None = None) -> dict:
+    """Run the kernel's manifold connection (relief builds) for vertices ``verts`` (n, 4: x, y, z
+    um, a layer guess) to the light at ``light_um``; mode as connect_probe.  Returns ok,
+    iterations, halvings, G, the factor (band 0), the Fresnel product, cos theta_v, cos theta_a,
+    u, wsel, the vertex's layer, the landing error, and the chain's points (n, 8: x, y, z,
+    layer, upward normal, 0; vertex first, the light's height last).  ``seeds`` (n, 2): Newton
+    on the surfaces from these momenta instead of the flat seed (no continuation).  Without
+    seeds also ``all_factor`` and ``solutions``: the render's connection, every distinct solution
+    of the flat seed and the MNEE_SEEDS more summed (band 0, isotropic phase function x 4 pi)."""
+    import pyopencl as cl
+    import pyopencl.cltypes as cltypes
+    assert not vol.flat
+    prg = build(dev, vol)
+    real = np.float64 if fp64(dev) else np.float32
+    vb = transport.upload_volume(dev, vol)
+    p = P_.new_params()
+    transport.volume_params(p, vol)
+    mf = cl.mem_flags
+    pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
+    chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
+    sm = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=vol.smooth.reshape(-1))
+    v = np.ascontiguousarray(verts, np.float32)
+    n = len(v)
+    maxp = 4 * vol.nl + 10
+    out = np.zeros((n, 20), real)
+    pts = np.zeros((n, maxp, 8), real)
+    vbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=v)
+    obuf = cl.Buffer(dev.ctx, mf.READ_WRITE, out.nbytes)
+    qbuf = cl.Buffer(dev.ctx, mf.READ_WRITE, pts.nbytes)
+    light = np.array([*light_um, 0.0], np.float32).view(cltypes.float4)[0]
+    sd = np.ascontiguousarray(seeds if seeds is not None else np.zeros((n, 2)), real)
+    sbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=sd)
+    cl.Kernel(prg, "t_mnee")(dev.queue, (P_.global_size(n),), (P_.WG,), pbuf, *vb.args(), chain, sm,
+                             light, np.int32(mode), np.uint32(n), vbuf, obuf, qbuf,
+                             np.int32(seeds is not None), sbuf, np.int32(MNEE_SEEDS))
+    cl.enqueue_copy(dev.queue, out, obuf)
+    cl.enqueue_copy(dev.queue, pts, qbuf)
+    dev.queue.finish()
+    npts = out[:, 12].astype(int)
+    keys = ["ok", "iters", "halvings", "G", "factor", "F", "cos_v", "cos_a", "ux", "uy", "wsel",
+            "layer", "npts", "err", "built", "why", "all_factor", "solutions"]
+    r = {k: out[:, j] for j, k in enumerate(keys)}
+    r["continued"] = r["ok"] >= 2
+    r["ok"] = (r["ok"] % 2) > 0
+    r["built"] = r["built"] > 0
+    r["points"] = [pts[i, :npts[i]] for i in range(n)]
+    return r

@@ -43,6 +43,10 @@ class Volume:
     n_above: float = 1.0
     n_below: float = 1.0
     info: dict = field(default_factory=dict)
+    # (nvar, ny, nx) float32: the varying interfaces' heights before snapping to the voxel grid,
+    # the samples of the smooth surfaces the path tracer's manifold connection solves on
+    # (docs/relief.md); None where nothing varies
+    smooth: np.ndarray | None = None
 
     @property
     def nl(self) -> int:
@@ -258,18 +262,22 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
             continue
         shape = {"flat": 0.0, "surface": s, "papillae": s + w}[L["bottom"]]   # papillae ride on the relief
         z[i + 1] = base + shape
+    zs = z.copy()
+    for k in range(1, nl + 1):
+        zs[k] = np.minimum(zs[k], zs[k - 1])
     if m["quantize"]:
         fin = np.abs(z) < BIG / 2
         z[fin] = np.round(z[fin] / dz) * dz
     for k in range(1, nl + 1):                     # layers never overlap
         z[k] = np.minimum(z[k], z[k - 1])
     iface = np.zeros((nl + 1, 4), np.float32)
-    var = []
+    var, svar = [], []
     for k in range(nl + 1):
         lo, hi = float(z[k].min()), float(z[k].max())
         if hi - lo > 1e-6:
             iface[k] = (np.nan, lo, hi, len(var))
             var.append(z[k].astype(np.float32))
+            svar.append(zs[k].astype(np.float32))
         else:
             iface[k] = (hi, hi, hi, -1)
     iface[:, 0] = np.where(np.isnan(iface[:, 0]), 0.0, iface[:, 0])
@@ -282,7 +290,8 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
                  thickness=thickness, mua=mua * 1e-4, mus=mus * 1e-4, g=g,
                  iface=iface, heights=np.ascontiguousarray(heights, np.float32),
                  normals=np.ascontiguousarray(normals), x0=0.0, y0=0.0, dx=dx, dy=dy, nx=nx, ny=ny,
-                 dz=dz, lateral=m["lateral"], n_above=m["n_outside"], n_below=m["n_below"])
+                 dz=dz, lateral=m["lateral"], n_above=m["n_outside"], n_below=m["n_below"],
+                 smooth=np.ascontiguousarray(np.stack(svar), np.float32) if svar else None)
     vol.info = {"columns": [nx, ny], "varying_interfaces": len(var),
                 "device_bytes": sum(vol.device_bytes().values())}
     return vol

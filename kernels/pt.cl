@@ -77,6 +77,7 @@ typedef struct {
     int max_vertices;           /* safety bound per path (counted as cut) */
     float nee_od;               /* NEE roulette: optical depth straight up beyond which ... */
     float nee_q_floor;          /* ... the connection is made with probability exp(nee_od - od) */
+    int mnee_seeds;             /* relief: seeds beyond the flat one per connection (mnee.h) */
 } PtParams;
 
 #define MAXE (4 * NL + 8)       /* chain events; a longer chain (R^4 smaller) counts as blocked */
@@ -106,6 +107,9 @@ inline float n_across(__constant const Params* P, __constant const float* layer_
 /* ---------------------------------------------------------------- specular chains */
 typedef struct {
     real H[NL];                 /* vertical distance run in each layer (um) */
+#ifndef FLAT
+    real zref[NL + 1];          /* the interfaces' heights at the vertex (mnee.h continuation) */
+#endif
     real Hair;                  /* the light's height above the surface */
     int ne;
     int ev[MAXE];               /* interface | from layer << 8 | reflected << 16, vertex first */
@@ -261,6 +265,222 @@ inline float connect(const Chain* ch, float3 v, int Lv, float3 lpos, float2 shif
     return (float)G * F * exp(-(float)od) / ch->wsel;
 }
 
+#ifndef FLAT
+#include "mnee.h"
+
+/* The layer of height z at (x, y) among the smooth surfaces (mnee.h), starting from the voxel
+ * model's layer L: the two differ within half a voxel of an interface.  -1: above the surface. */
+inline int smooth_layer(__constant const Params* P, __constant const float4* iface,
+                        __global const float* smooth, real3 v, int L) {
+    HF f;
+    for (int g = 0; g < 2 * NL + 2; ++g) {
+        if (L >= 0) { hf_eval(P, iface, smooth, L, v.x, v.y, &f); if (v.z > f.h) { L--; continue; } }
+        if (L + 1 < NL) { hf_eval(P, iface, smooth, L + 1, v.x, v.y, &f); if (v.z <= f.h) { L++; continue; } }
+        break;
+    }
+    return L;
+}
+
+/* The chain's vertical runs H_k and the light's height above the surface on the planes through
+ * the smooth surfaces' heights below the vertex: the flat problem whose solution seeds Newton. */
+inline void chain_local_H(Chain* ch, real3 v, real lz, __constant const Params* P,
+                          __constant const float4* iface, __global const float* smooth) {
+    for (int k = 0; k < NL; ++k) ch->H[k] = 0;
+    real z = v.z;
+    HF f;
+    for (int e = 0; e < ch->ne; ++e) {
+        const int i = ch->ev[e] & 255, k = (ch->ev[e] >> 8) & 255;
+        hf_eval(P, iface, smooth, i, v.x, v.y, &f);
+        ch->zref[i] = f.h;
+        ch->H[k] += fabs(f.h - z);
+        z = f.h;
+    }
+    ch->Hair = lz - z;
+}
+
+/* The flat seed: the momentum of the flat solution on the planes through the interfaces'
+ * heights at the vertex (chain_local_H). */
+inline void mnee_seed(Chain* ch, real3 v, real3 l, __constant const Params* P,
+                      __constant const float4* iface, __constant const float* layer_n,
+                      __global const float* smooth, real* ux, real* uy) {
+    chain_local_H(ch, v, l.z, P, iface, smooth);
+    const real dx = l.x - v.x, dy = l.y - v.y;
+    const real rt = sqrt(dx * dx + dy * dy);
+    real S, dR;
+    const real p = solve_p(ch, rt, (real)P->n_above, layer_n, &S, &dR);
+    *ux = rt > 0 ? p * dx / rt : 0;
+    *uy = rt > 0 ? p * dy / rt : 0;
+}
+
+/* The factor of a converged trace, as connect() gives it: G, Fresnel, attenuation, over the
+ * chain's selection probability; 0 where the surface crossing is off the model. */
+inline float mnee_factor(const Trace* T, const Chain* ch, float2 shift, int b,
+                         __constant const Params* P, __global const float4* optics, float3* dirL) {
+    if (P->lateral != 0) {
+        const float sx = (float)T->s.x + shift.x, sy = (float)T->s.y + shift.y;
+        if (sx < P->x0 || sx > P->x0 + P->xw || sy < P->y0 || sy > P->y0 + P->yw) return 0.0f;
+    }
+    const real G = mnee_G(T, (real)P->n_above);
+    real od = 0;
+    for (int k = 0; k < NL; ++k)
+        if (T->len[k] > 0) od += (real)optics[k * NB + b].w * T->len[k];
+    *dirL = (float3)((float)-T->d0.x, (float)-T->d0.y, (float)-T->d0.z);
+    if (!(G > 0) || !isfinite((float)G)) return 0.0f;
+    return (float)G * T->F * exp(-(float)od) / ch->wsel;
+}
+
+/* The connection through the height fields (mnee.h) from the flat seed: as connect(), with the
+ * solver's outcome in *st. */
+inline float connect_mnee(Chain* ch, real3 v, int Ls, float3 lpos, float2 shift, int b,
+                          __constant const Params* P, __constant const float4* iface,
+                          __constant const float* layer_n, __global const float4* optics,
+                          __global const float* smooth, float3* dirL, MneeStat* st, Trace* T) {
+    const real3 l = (real3)((real)lpos.x, (real)lpos.y, (real)lpos.z);
+    real ux, uy;
+    mnee_seed(ch, v, l, P, iface, layer_n, smooth, &ux, &uy);
+    if (!mnee_solve(ch, v, Ls, &ux, &uy, l, P, iface, layer_n, smooth, T, st)) return 0.0f;
+    return mnee_factor(T, ch, shift, b, P, optics, dirL);
+}
+
+#define MN_MAXSOL 8             /* distinct solutions kept per connection */
+
+/* Every light path through the chain that the flat seed (with continuation) and nseeds more
+ * seeds around it find (Newton on the surfaces from each), distinct ones summed, each with its
+ * own phase function value for the path direction wdir: the several-seeds estimator (bias: the
+ * solutions no seed reaches; docs/relief.md).  *nsol: distinct solutions found. */
+inline float connect_mnee_all(Chain* ch, real3 v, int Ls, float3 lpos, float2 shift, int b,
+                              float g, float3 wdir, int nseeds,
+                              __constant const Params* P, __constant const float4* iface,
+                              __constant const float* layer_n, __global const float4* optics,
+                              __global const float* smooth, MneeStat* st, int* nsol) {
+    const real3 l = (real3)((real)lpos.x, (real)lpos.y, (real)lpos.z);
+    real u0x, u0y;
+    mnee_seed(ch, v, l, P, iface, layer_n, smooth, &u0x, &u0y);
+    real sx[MN_MAXSOL], sy[MN_MAXSOL];
+    int ns = 0;
+    float c = 0.0f;
+    Trace T;
+    float3 dl;
+    real ux = u0x, uy = u0y;
+    if (mnee_solve(ch, v, Ls, &ux, &uy, l, P, iface, layer_n, smooth, &T, st)) {
+        sx[0] = ux; sy[0] = uy; ns = 1;
+        const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
+        if (f > 0.0f) c += f * hg_eval(g, -dot(dl, wdir));
+    }
+    for (int j = 0; j < nseeds && ns < MN_MAXSOL; ++j) {
+        /* rings of momentum offsets 0.1 and 0.25, golden-angle directions */
+        const real rad = (j & 1) ? (real)0.25 : (real)0.1;
+        const real ph = (real)2.39996322972865 * (real)j;
+        ux = u0x + rad * cos(ph); uy = u0y + rad * sin(ph);
+        MneeStat s2;
+        s2.iters = 0; s2.halvings = 0; s2.cont = 0; s2.traces = MN_BUDGET - MN_SEED_BUDGET;
+        if (!mnee_newton(ch, v, Ls, &ux, &uy, l, 1, P, iface, layer_n, smooth, &T, &s2)) continue;
+        st->iters += s2.iters;
+        int dup = 0;
+        for (int q = 0; q < ns; ++q) dup |= fabs(sx[q] - ux) + fabs(sy[q] - uy) < (real)1e-6;
+        if (dup) continue;
+        sx[ns] = ux; sy[ns] = uy; ns++;
+        const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
+        if (f > 0.0f) c += f * hg_eval(g, -dot(dl, wdir));
+    }
+    *nsol = ns;
+    return c;
+}
+
+/* Fresnel decision at a face (as photon.cl): gn geometric and sn smooth normal, both pointing
+ * from the current medium into the next.  1: transmitted (dir refracted), 0: reflected. */
+inline int pt_fresnel_cross(float3* dir, float3 gn, float3 sn, float n1, float n2, float u) {
+    float ci = dot(*dir, sn);
+    if (ci <= 1e-6f) { sn = gn; ci = dot(*dir, gn); }
+    float ct;
+    const float R = fresnel_R(n1, n2, ci, &ct);
+    if (u < R) {
+        float3 r = reflect3(*dir, sn);
+        if (dot(r, gn) > 0.0f) r = reflect3(r, gn);
+        *dir = unit3(r);
+        return 0;
+    }
+    float3 t = refract3(*dir, -sn, n1 / n2, ci, ct);
+    if (dot(t, gn) <= 0.0f) t = reflect3(t, gn);
+    *dir = unit3(t);
+    return 1;
+}
+
+/* Upward smooth normal of interface k at p (float) */
+inline float3 smooth_normal(__constant const Params* P, __constant const float4* iface,
+                            __global const float* smooth, int k, float3 p) {
+    HF f;
+    hf_eval(P, iface, smooth, k, p.x, p.y, &f);
+    real len;
+    const real3 n = hf_normal(&f, &len);
+    return (float3)((float)n.x, (float)n.y, (float)n.z);
+}
+
+/* Enter the skin from the air at the first hit of t (an eye ray): Fresnel sampled at the smooth
+ * normal; 0 when it misses or is reflected (to the black sky). */
+inline int pt_enter(Track* t, VOLUME_ARGS, __global const float* smooth, Rng* rng) {
+    float3 gn;
+    if (!hit_surface(t, P, iface, heights, &gn)) return 0;
+    float3 sn = smooth_normal(P, iface, smooth, 0, t->pos);
+    float3 d = t->dir;
+    if (!pt_fresnel_cross(&d, -gn, -sn, P->n_above, layer_n[0], rng_u01(rng))) return 0;
+    t->dir = d; t->L = 0;
+    return 1;
+}
+
+/* A boundary event of the eye path in the voxel volume, refracting at the smooth surfaces'
+ * normals; *beta takes the radiance factor.  Returns 0 when the path ends. */
+inline int pt_boundary(Track* t, int ev, float* beta, Rng* rng, VOLUME_ARGS,
+                       __global const float* smooth) {
+    if (ev == EV_NONE) return 0;
+    if (ev == EV_ZONE) { locate_column(t, P); return 1; }
+    const int L = t->L;
+    int L2, k;
+    float3 gn;
+    const int oix = t->ix, oiy = t->iy;
+    const float3 opos = t->pos;
+    if (ev == EV_TOP || ev == EV_BOTTOM) {
+        const int up = ev == EV_TOP;
+        L2 = up ? L - 1 : L + 1;
+        k = up ? L : L + 1;
+        t->pos.z = iface_z(iface, heights, P, k, col_index(P, t->ix, t->iy));
+        gn = (float3)(0.0f, 0.0f, up ? 1.0f : -1.0f);
+    } else {
+        const int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
+        const int donly = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
+        if (cross_wall(t, P, axis, donly)) return 0;
+        if (donly) locate_column(t, P);
+        L2 = layer_at(iface, heights, P, col_index(P, t->ix, t->iy), t->pos.z, L);
+        if (L2 == L) return 1;
+        k = L2 < L ? L : L + 1;
+        gn = axis == 0 ? (float3)(t->dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
+                       : (float3)(0.0f, t->dir.y > 0.0f ? 1.0f : -1.0f, 0.0f);
+    }
+    const float n1 = layer_n[L];
+    const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+    if (n1 != n2) {
+        float3 sn = smooth_normal(P, iface, smooth, k, t->pos);
+        if (L2 > L) sn = -sn;
+        if (!pt_fresnel_cross(&t->dir, gn, sn, n1, n2, rng_u01(rng))) {
+            if (ev != EV_TOP && ev != EV_BOTTOM) { t->ix = oix; t->iy = oiy; t->pos = opos; }
+            return 1;
+        }
+        if (L2 < 0) {
+            /* out through the relief: across the air to where the ray meets the skin again (the
+             * radiance factors out and back in cancel) */
+            t->pos += 1e-3f * t->dir;
+            return pt_enter(t, VOLUME_PASS, smooth, rng);
+        }
+        if (L2 >= NL) return 0;
+        *beta *= (n1 / n2) * (n1 / n2);
+    } else if (L2 < 0 || L2 >= NL) {
+        return 0;
+    }
+    t->L = L2;
+    return 1;
+}
+#endif
+
 /* ---------------------------------------------------------------- the pass */
 __kernel void pt_pass(VOLUME_ARGS,
                       __constant const PtParams* E,
@@ -268,7 +488,9 @@ __kernel void pt_pass(VOLUME_ARGS,
                       __global double* pix_sum,         /* [npix * NB] sum of path values */
                       __global double* pix_sq,          /* [npix * NB] sum of their squares */
                       __global ulong* pix_stats,        /* [npix * 4] vertices, NEE made, blocked, cut */
-                      __global double* pix_bins)        /* [npix * NBIN] value by vertex index */
+                      __global double* pix_bins,        /* [npix * NBIN] value by vertex index */
+                      __global const float* smooth,     /* Volume.smooth (relief builds) */
+                      __global ulong* pix_mnee)         /* [npix * 6] clppm/pathtracer.py MNEE_STATS */
 {
     const uint gid = (uint)get_global_id(0);
     if (gid >= E->count) return;
@@ -279,6 +501,7 @@ __kernel void pt_pass(VOLUME_ARGS,
     const float3 upv = (float3)(E->ux, E->uy, E->uz);
     const float3 lpos = (float3)(E->lx, E->ly, E->lz);
     ulong nvert = 0, nmade = 0, nblock = 0, ncut = 0;
+    ulong m_try = 0, m_ok = 0, m_it = 0, m_cont = 0, m_mis = 0, m_sol = 0;
     double bins[NBIN];
     for (int i = 0; i < NBIN; ++i) bins[i] = 0.0;
     const int nimg = P->lateral == 2 ? 1 : 0;           /* periodic: images -1..1 in x and y */
@@ -298,17 +521,25 @@ __kernel void pt_pass(VOLUME_ARGS,
         float3 gn;
         if (hit_surface(&t, P, iface, heights, &gn)) {
             /* ---- surface: highlight, then refraction with tw and (n_outside / n_0)^2 */
+#ifdef FLAT
             const float3 sn = (float3)(0.0f, 0.0f, 1.0f);
+#else
+            float3 sn = smooth_normal(P, iface, smooth, 0, t.pos);
+            if (-dot(t.dir, sn) <= 1e-6f) sn = gn;
+#endif
             if (E->specular) {
                 const float3 lp = lpos - t.pos;
                 const float d2 = dot(lp, lp);
                 value += specular_geo(sn, -t.dir, lp * rsqrt(d2), E->alpha, P->n_above, layer_n[0]) / d2;
             }
-            const float ci = -t.dir.z;
+            const float ci = -dot(t.dir, sn);
             float ct;
             const float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
             float beta = (1.0f - R) * (P->n_above / layer_n[0]) * (P->n_above / layer_n[0]);
             t.dir = refract3(t.dir, sn, P->n_above / layer_n[0], ci, ct);
+#ifndef FLAT
+            if (dot(t.dir, gn) >= 0.0f) t.dir = reflect3(t.dir, gn);
+#endif
             t.L = 0;
             const float rr_w = E->rr_threshold * beta;
             float tau = neg_log_u01(rng_u01(&rng));
@@ -327,13 +558,44 @@ __kernel void pt_pass(VOLUME_ARGS,
                     if (!(beta > 0.0f)) break;
                     /* next-event estimation, with roulette where the light is hopelessly far */
                     float odv = 0.0f;
+#ifdef FLAT
                     odv += optics[t.L * NB + b].w * (IF_Z(t.L) - t.pos.z);
                     for (int k = 0; k < t.L; ++k) odv += optics[k * NB + b].w * (IF_Z(k) - IF_Z(k + 1));
+#else
+                    {
+                        const int col = col_index(P, t.ix, t.iy);
+                        float zt = iface_z(iface, heights, P, t.L, col);
+                        odv += optics[t.L * NB + b].w * fmax(zt - t.pos.z, 0.0f);
+                        for (int k = t.L - 1; k >= 0; --k) {
+                            const float zk = iface_z(iface, heights, P, k, col);
+                            odv += optics[k * NB + b].w * (zk - zt);
+                            zt = zk;
+                        }
+                    }
+#endif
                     float q = 1.0f;
                     if (odv > E->nee_od) q = fmax(exp(E->nee_od - odv), E->nee_q_floor);
                     if (q >= 1.0f || rng_u01(&rng) <= q) {
                         Chain ch;
                         float c = 0.0f;
+#ifndef FLAT
+                        const real3 vr = (real3)((real)t.pos.x, (real)t.pos.y, (real)t.pos.z);
+                        const int Ls = smooth_layer(P, iface, smooth, vr, t.L);
+                        if (Ls < 0) m_mis++;
+                        if (Ls >= 0 && chain_build(&ch, Ls, t.pos.z, lpos.z, 1, -1, &rng, iface, chain)) {
+                            for (int ix = -nimg; ix <= nimg; ++ix)
+                                for (int iy = -nimg; iy <= nimg; ++iy) {
+                                    const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
+                                    MneeStat ms;
+                                    int nsol;
+                                    c += connect_mnee_all(&ch, vr, Ls, lpos - (float3)(sh, 0.0f), sh, b, op.y,
+                                                          t.dir, E->mnee_seeds, P, iface, layer_n, optics,
+                                                          smooth, &ms, &nsol);
+                                    m_try++; m_ok += (ulong)ms.ok; m_it += (ulong)ms.iters;
+                                    m_cont += (ulong)ms.cont; m_sol += (ulong)nsol;
+                                }
+                        }
+#else
                         if (chain_build(&ch, t.L, t.pos.z, lpos.z, 1, -1, &rng, iface, chain)) {
                             for (int ix = -nimg; ix <= nimg; ++ix)
                                 for (int iy = -nimg; iy <= nimg; ++iy) {
@@ -345,6 +607,7 @@ __kernel void pt_pass(VOLUME_ARGS,
                                     if (f > 0.0f) c += f * hg_eval(op.y, -dot(dl, t.dir));
                                 }
                         }
+#endif
                         if (c > 0.0f) {
                             c *= beta / q;
                             value += c;
@@ -367,6 +630,10 @@ __kernel void pt_pass(VOLUME_ARGS,
                 /* ---- boundary */
                 t.pos += db * t.dir;
                 if (mut > 0.0f) tau = fmax(tau - db * mut, 0.0f);
+#ifndef FLAT
+                if (!pt_boundary(&t, ev, &beta, &rng, VOLUME_PASS, smooth)) break;
+                continue;
+#endif
                 if (ev == EV_NONE) break;
                 if (ev == EV_TOP || ev == EV_BOTTOM) {
                     const int up = ev == EV_TOP;
@@ -398,6 +665,8 @@ __kernel void pt_pass(VOLUME_ARGS,
     }
     __global ulong* st = pix_stats + (size_t)pix * 4;
     st[0] += nvert; st[1] += nmade; st[2] += nblock; st[3] += ncut;
+    __global ulong* sm = pix_mnee + (size_t)pix * 6;
+    sm[0] += m_try; sm[1] += m_ok; sm[2] += m_it; sm[3] += m_cont; sm[4] += m_mis; sm[5] += m_sol;
     for (int i = 0; i < NBIN; ++i) pix_bins[(size_t)pix * NBIN + i] += bins[i];
 }
 
@@ -455,3 +724,65 @@ __kernel void t_connect(VOLUME_ARGS, __constant const float* chain, const float4
 #undef PUT
     o[6] = np;
 }
+
+#ifndef FLAT
+/* For each vertex (xyz; its layer is found on the smooth surfaces): the chain (mode as t_connect)
+ * connected through the height fields.  out[i * 16 + ...] = ok, Newton iterations, halvings, G,
+ * factor (band 0), Fresnel product, cos theta_v, cos theta_a, u_x, u_y, selection probability,
+ * vertex layer, number of points, landing error, chain built; pts[(i * (MAXE + 2) + j) * 8 + ...]
+ * = x, y, z, layer of the segment ending there (-1 air), upward normal there (0 at the ends). */
+__kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const float* smooth,
+                     const float4 light, const int mode, const uint n, __global const float4* verts,
+                     __global real* out, __global real* pts, const int use_seeds,
+                     __global const real* seeds, const int mnee_seeds) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    __global real* o = out + (size_t)i * 20;
+    for (int j = 0; j < 20; ++j) o[j] = 0;
+    const real3 v = (real3)((real)verts[i].x, (real)verts[i].y, (real)verts[i].z);
+    const int Ls = smooth_layer(P, iface, smooth, v, clamp((int)verts[i].w, 0, NL - 1));
+    o[11] = Ls;
+    if (Ls < 0) return;
+    Rng rng;
+    rng_init(&rng, i, 0u, 6u, 12345u, 0u);
+    Chain ch;
+    if (!chain_build(&ch, Ls, (float)v.z, light.z, mode < 0, mode > 0 ? mode : -1, &rng, iface, chain)) return;
+    o[14] = 1;
+    float3 dl;
+    MneeStat ms;
+    Trace T;
+    float f = 0.0f;
+    if (use_seeds) {
+        /* Newton on the surfaces from the given seed (several seeds: the solutions there are) */
+        const real3 l = (real3)((real)light.x, (real)light.y, (real)light.z);
+        chain_local_H(&ch, v, l.z, P, iface, smooth);
+        real ux = seeds[2 * i], uy = seeds[2 * i + 1];
+        ms.iters = 0; ms.halvings = 0; ms.cont = 0; ms.traces = 0;
+        ms.ok = mnee_newton(&ch, v, Ls, &ux, &uy, l, 1, P, iface, layer_n, smooth, &T, &ms);
+    } else {
+        f = connect_mnee(&ch, v, Ls, light.xyz, (float2)(0.0f), 0, P, iface, layer_n, optics,
+                         smooth, &dl, &ms, &T);
+    }
+    if (use_seeds == 0) {
+        /* the render's connection: every distinct solution of the flat seed and MNEE seeds
+         * (isotropic phase function, times 4 pi: the sum of the factors) */
+        MneeStat s3;
+        int nsol;
+        Chain c2 = ch;
+        o[16] = 4 * PI_F * connect_mnee_all(&c2, v, Ls, light.xyz, (float2)(0.0f), 0, 0.0f,
+                                            (float3)(0.0f, 0.0f, 1.0f), mnee_seeds, P, iface, layer_n,
+                                            optics, smooth, &s3, &nsol);
+        o[17] = nsol;
+    }
+    o[0] = ms.ok + 2 * ms.cont; o[1] = ms.iters; o[2] = ms.halvings; o[15] = T.why;
+    o[13] = sqrt(T.c[0] * T.c[0] + T.c[1] * T.c[1]);
+    if (!ms.ok) return;
+    o[3] = mnee_G(&T, P->n_above); o[4] = f; o[5] = T.F; o[6] = T.cos_v; o[7] = T.cos_a;
+    o[8] = T.d0.x * layer_n[Ls]; o[9] = T.d0.y * layer_n[Ls]; o[10] = ch.wsel;
+    const real3 l = (real3)((real)light.x, (real)light.y, (real)light.z);
+    Trace T2;
+    mnee_trace(&ch, v, Ls, o[8], o[9], l, 1, P, iface, layer_n, smooth, &T2,
+               pts + (size_t)i * (MAXE + 2) * 8);
+    o[12] = ch.ne + 2;
+}
+#endif
