@@ -14,7 +14,7 @@ import time
 from clppm import config as C, volume, pathtracer as pt
 from clppm.device import open_device
 dev = open_device(None)
-c = C.load("configs/forearm.toml"); c["camera"]["resolution"] = [8, 6]; c["render"]["pt_samples_per_pass"] = 64
+c = C.load("configs/forearm.toml"); c["camera"]["resolution"] = [8, 6]; c["render"]["pt_samples_per_pass"] = 64; c["render"]["pt_relief"] = True
 c["render"]["specular"] = False
 vol = volume.build(c)
 res = {}

@@ -160,6 +160,10 @@ SCHEMA: dict[str, dict[str, F]] = {
                        doc="importance storage: the smallest storage probability (bounds weights)"),
         "pt_samples_per_pass": F("int", 16, lo=1, hi=4096,
                                  doc="path tracer (--integrator pt): eye paths per pixel per pass"),
+        "pt_relief": F("bool", False,
+                       doc="path tracer on a relief scene (manifold next-event estimation): "
+                           "experimental, it still misses some light paths (docs/relief.md), so it "
+                           "is never used as a reference"),
     },
 }
 
@@ -194,6 +198,11 @@ NOT_PICTURE = ("passes", "preview_every", "checkpoint_every")
 FINISHING = ("exposure",)
 
 MAX_LAYERS = 16
+
+
+def is_flat(cfg: dict) -> bool:
+    """Flat layers: no surface relief and no wavy junction."""
+    return cfg["relief"]["kind"] == "flat" and cfg["papillae"]["amplitude_um"] <= 0
 D65_RANGE_NM = (300.0, 780.0)     # colour.SDS_ILLUMINANTS["D65"] (spectra.d65)
 
 

@@ -91,6 +91,13 @@ def check_scene(cfg: dict, source: str = "<config>") -> None:
     if L["position_mm"][2] <= 0:
         raise ConfigError(source, "light.position_mm", L["position_mm"],
                           "the path tracer needs the point light above the skin surface (z > 0)")
+    if not C.is_flat(cfg) and not cfg["render"]["pt_relief"]:
+        key, value = (("relief.kind", cfg["relief"]["kind"]) if cfg["relief"]["kind"] != "flat"
+                      else ("papillae.amplitude_um", cfg["papillae"]["amplitude_um"]))
+        raise ConfigError(source, key, value,
+                          "the path tracer's manifold connection through relief is experimental "
+                          "and misses some light (docs/relief.md): --set render.pt_relief=true runs "
+                          f"it anyway; {FLAT_REF} is the reference scene")
 
 
 def chain_tables(vol: volume.Volume) -> np.ndarray:

@@ -342,8 +342,11 @@ def kernel_hash(names=None) -> str:
 
 
 def pt_possible(cfg: dict) -> bool:
-    """Whether the path tracer can render the scene (flat, point light above the surface)."""
+    """Whether the path tracer is a reference for the scene (flat, point light above the
+    surface): its relief connection is experimental (render.pt_relief) and never one."""
     from .pathtracer import check_scene
+    if not C.is_flat(cfg):
+        return False
     try:
         check_scene(cfg, "<reference>")
     except Exception:

@@ -46,8 +46,7 @@ DEFAULT_ANGLE = 8.0
 
 
 # ----------------------------------------------------------------------------- geometry
-def is_flat(cfg: dict) -> bool:
-    return cfg["relief"]["kind"] == "flat" and cfg["papillae"]["amplitude_um"] <= 0
+is_flat = C.is_flat
 
 
 def beam_direction(angle_deg: float) -> list[float]:
