@@ -49,7 +49,7 @@ GRID_PARAMS_DTYPE = np.dtype([
     ("h", np.float32), ("inv_h", np.float32),
     ("nx", np.int32), ("ny", np.int32), ("nz", np.int32),
     ("ncells", np.uint32),
-    ("pad0", np.uint32), ("pad1", np.uint32), ("pad2", np.uint32),
+    ("hz", np.float32), ("inv_hz", np.float32), ("pad2", np.uint32),
 ])
 assert GRID_PARAMS_DTYPE.itemsize == 48
 
@@ -71,33 +71,43 @@ def _cells_for(extent: np.ndarray, h: float) -> np.ndarray:
     return np.maximum(1, np.ceil(extent / h)).astype(np.int64)
 
 
-def grid_params(lo, hi, h: float, max_cells: int = DEFAULT_MAX_CELLS) -> np.void:
+def grid_params(lo, hi, h: float, max_cells: int = DEFAULT_MAX_CELLS, hz: float | None = None) -> np.void:
     """``GridParams`` (a numpy record of :data:`GRID_PARAMS_DTYPE`) for the box
-    ``[lo, hi)`` and cell edge ``h`` (µm), ``h`` grown as needed so that
-    ``nx*ny*nz <= max_cells``.  The effective ``h`` is ``params["h"]``."""
+    ``[lo, hi)`` and cell edge ``h`` (µm; cells ``hz`` deep, default ``h``: cubic), ``h``
+    and ``hz`` grown by one factor as needed so that ``nx*ny*nz <= max_cells``.  The
+    effective sizes are ``params["h"]`` and ``params["hz"]``."""
     lo = np.asarray(lo, dtype=np.float64).reshape(3)
     hi = np.asarray(hi, dtype=np.float64).reshape(3)
     h = float(h)
+    aspect = 1.0 if hz is None else float(hz) / h if h > 0 else float("nan")
     max_cells = int(max_cells)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise ValueError(f"grid box must be finite, got lo={lo}, hi={hi}")
     if not (math.isfinite(h) and h > 0):
         raise ValueError(f"grid cell size must be positive and finite, got {h}")
+    if not (math.isfinite(aspect) and aspect > 0):
+        raise ValueError(f"grid cell depth must be positive and finite, got {hz}")
     if not 1 <= max_cells <= 2 ** 31 - 1:
         raise ValueError(f"max_cells must be in [1, 2**31-1], got {max_cells}")
     extent = np.maximum(hi - lo, 0.0)
-    n = _cells_for(extent, h)
+
+    def cells(h):
+        return _cells_for(extent, np.array([h, h, h * aspect]))
+
+    n = cells(h)
     if int(np.prod(n)) > max_cells:
         h *= (float(np.prod(n)) / max_cells) ** (1.0 / 3.0)
-        n = _cells_for(extent, h)
+        n = cells(h)
         while int(np.prod(n)) > max_cells:
             h *= 1.01
-            n = _cells_for(extent, h)
+            n = cells(h)
     rec = np.zeros((), dtype=GRID_PARAMS_DTYPE)
     rec["lo_x"], rec["lo_y"], rec["lo_z"] = lo.astype(np.float32)
     h32 = np.float32(h)
-    rec["h"] = h32
+    hz32 = h32 if hz is None else np.float32(h * aspect)
+    rec["h"], rec["hz"] = h32, hz32
     rec["inv_h"] = np.float32(1.0) / h32
+    rec["inv_hz"] = np.float32(1.0) / hz32
     rec["nx"], rec["ny"], rec["nz"] = n
     rec["ncells"] = int(np.prod(n))
     return rec[()]
@@ -270,10 +280,11 @@ def _as_device(dev: Device, a, n: int, bufs: GridBuffers, name: str):
 def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
           method: str = "counting", max_cells: int = DEFAULT_MAX_CELLS,
           buffers: GridBuffers | None = None, timings: dict | None = None,
-          extra=None, extra_stride: int = 0) -> Grid:
+          extra=None, extra_stride: int = 0, hz: float | None = None) -> Grid:
     """Sort ``n`` photons (``pos_w`` = (x, y, z µm, weight), ``dir_b`` = (dx, dy,
     dz, band) float4 device arrays) into a grid over ``[lo, hi)`` with cell edge
-    ``h`` (grown if the box needs more than ``max_cells`` cells).
+    ``h`` (cells ``hz`` deep, default cubic; grown if the box needs more than ``max_cells``
+    cells).
 
     Everything stays on the device; the call enqueues work and returns without
     waiting (the queue is in order).  ``method`` is ``"counting"`` (default:
@@ -287,7 +298,7 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     if n < 0 or n > 2 ** 32 - 2:
         raise ValueError(f"photon count out of range: {n}")
     bufs = buffers or default_buffers(dev)
-    params = grid_params(lo, hi, h, max_cells)
+    params = grid_params(lo, hi, h, max_cells, hz)
     ncells = int(params["ncells"])
     q = dev.queue
     k = _kernels(dev)

@@ -66,6 +66,7 @@ class Scene:
     target: int                      # stored photons per pass
     capacity: int
     box: tuple                       # x0, y0, x1, y1, deepest sample point z, top z
+    hz: float | None = None          # the beam's grid cell depth (um; None: cubic cells)
     timing: dict = field(default_factory=lambda: {k: 0.0 for k in STAGES})
 
     @property
@@ -171,7 +172,8 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     pp.set_storage(rc["storage"], eye.cone_deg, rc["store_scale"], rc["store_min"])
     pp.set_emission(rc["emission"])
     prg = dev.build("gather.cl", {**transport.defines(vol, pp.hero), "ESTIMATOR": ESTIMATORS[rc["estimator"]]})
-    kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "init_radius", "count_within")}
+    kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "init_radius", "count_within",
+                                              "photon_slabs")}
     mf = cl.mem_flags
     hgtab = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hg_table(vol))
     lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
@@ -180,7 +182,7 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     box = (vol.x0, vol.y0, vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy, zdeep, vol.z_top)
     sc = Scene(cfg=cfg, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, kernels=kernels, hgtab=hgtab,
                layer_z=layer_z, gbufs=hashgrid.GridBuffers(dev), target=target, capacity=capacity,
-               box=box)
+               box=box, hz=beam_cell_depth(eye) if rc["estimator"] == "beam" else None)
     sc.timing.update(timing)
     return sc
 
@@ -189,15 +191,41 @@ def _round(n: int, wg: int = 64) -> int:
     return max(wg, (n + wg - 1) // wg * wg)
 
 
-def build_grid(sc: Scene, n: int, radii_median: float, rmax: float) -> hashgrid.Grid:
+def beam_cell_depth(eye: eyepass.EyeData) -> float | None:
+    """The beam's grid cell depth: the median depth extent of the eye-ray pieces (at least
+    1 um).  The disc has no depth, so a piece's query box is its own depth extent (plus the
+    waves of a layer-conforming one) and cells as deep as the lateral R/2 (hundreds of um)
+    would make every piece of a ray test the same photons: cells about one piece deep cut the
+    candidates per pair (bench/gather.py) without changing which pairs are found."""
+    if eye.geo is None or eye.npieces == 0:
+        return None
+    g = eye.geo.get()[:2 * eye.npieces]
+    ext = np.abs(g[0::2]["w"] * g[1::2]["z"])
+    return max(float(np.median(ext)), 1.0)
+
+
+def build_grid(sc: Scene, n: int, radii_median: float, rmax: float, flat: bool = False) -> hashgrid.Grid:
     """Grid over the photons that sample points can reach (the sample points' box padded by
-    the largest radius), cells of half the median radius."""
+    the largest radius), cells of half the median radius; with ``flat`` (the beam's passes)
+    cells ``sc.hz`` deep (not deeper than wide)."""
     x0, y0, x1, y1, zdeep, ztop = sc.box
     pad = rmax * 1.001 + 1.0
     lo, hi = (x0 - pad, y0 - pad, zdeep - pad), (x1 + pad, y1 + pad, ztop + pad)
     h = hashgrid.choose_cell_size([radii_median], lo, hi)
+    hz = min(sc.hz, h) if flat and sc.hz is not None else None
     return hashgrid.build(sc.dev, sc.pp.pos_w, sc.pp.dir_b, n, lo, hi, h, buffers=sc.gbufs,
-                          extra=sc.pp.extra, extra_stride=sc.pp.hero - 1)
+                          extra=sc.pp.extra, extra_stride=sc.pp.hero - 1, hz=hz)
+
+
+def photon_slabs(sc: Scene, grid: hashgrid.Grid):
+    """Per sorted photon: its layer's top and bottom at its column (kernel photon_slabs)."""
+    import pyopencl.cltypes as cltypes
+    sl = sc.gbufs.get("sslab", max(grid.n, 1), cltypes.float2)
+    if grid.n:
+        sc.kernels["photon_slabs"](sc.dev.queue, (_round(grid.n),), (64,), sc.pp.pbuf, sc.vbuf.iface,
+                                   sc.vbuf.heights, grid.spos_w.data, grid.sdir_b.data,
+                                   np.uint32(grid.n), sl.data)
+    return sl
 
 
 def calibrate(sc: Scene) -> Calibration:
@@ -292,7 +320,8 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
         scale = 1.0
         radii = st.R.get()[:sc.npts]
         med, rmax = float(np.median(radii)), float(radii.max())
-    grid = build_grid(sc, n, med, rmax)
+    grid = build_grid(sc, n, med, rmax, flat=sc.beam)
+    sslab = photon_slabs(sc, grid) if sc.beam else None
     q.finish()
     sc.timing["grid"] += time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -305,8 +334,8 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
     if sc.beam:
         sc.kernels["gather_beam"](q, (_round(sc.npix),), (64,), grid.params, sc.pp.pbuf, sc.vbuf.iface,
                                   sc.vbuf.heights, grid.cell_start.data,
-                                  grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
-                                  e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, *tail)
+                                  grid.spos_w.data, grid.sdir_b.data, sslab.data, extra, sc.hgtab,
+                                  sc.vbuf.optics, e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, *tail)
     else:
         sc.kernels["gather"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,
                              grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,

@@ -73,8 +73,8 @@ inline void query_cells(const GridParams gp, float3 x, float R, int L,
     grid_query_range(gp, x, R, c0, c1);
 #if ESTIMATOR == 2
     const float2 lz = layer_z[L];
-    c0->z = max(c0->z, grid_axis(lz.x - 1.0f, gp.lo_z, gp.inv_h, gp.nz));
-    c1->z = min(c1->z, grid_axis(lz.y + 1.0f, gp.lo_z, gp.inv_h, gp.nz));
+    c0->z = max(c0->z, grid_axis(lz.x - 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
+    c1->z = min(c1->z, grid_axis(lz.y + 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
 #endif
 }
 
@@ -221,7 +221,7 @@ __kernel void init_radius(const GridParams gp,
                 n += cell_start[row + (uint)(c1.x - c0.x) + 1u] - cell_start[row];
             }
         const float vol = (float)(c1.x - c0.x + 1) * (float)(c1.y - c0.y + 1) * (float)(c1.z - c0.z + 1)
-                          * gp.h * gp.h * gp.h;
+                          * gp.h * gp.h * gp.hz;
         float Rn;
         if (n == 0) Rn = 2.0f * R;
         else Rn = cbrt(3.0f * K * vol / (4.0f * PI_F * (float)n));
@@ -293,6 +293,21 @@ __kernel void count_within(const GridParams gp,
  * T(t*) is per band, from the optical depth at the piece's start plus mu_t of the piece's layer.
  * Phase: the photon's layer's g (the scattering happens at the photon). */
 
+/* Top and bottom of each stored photon's layer at its own column (layer_slab), once per pass
+ * instead of once per (piece, candidate): the beam gather's layer-conforming depth reads it. */
+__kernel void photon_slabs(__constant const Params* P, __constant const float4* iface,
+                           __global const float* heights, __global const float4* spos_w,
+                           __global const float4* sdir_b, const uint n, __global float2* sslab)
+{
+    const uint j = get_global_id(0);
+    if (j >= n) return;
+#ifdef FLAT
+    sslab[j] = (float2)(0.0f);
+#else
+    sslab[j] = layer_slab(P, iface, heights, spos_w[j].xyz, (int)sdir_b[j].w >> 8);
+#endif
+}
+
 __kernel void gather_beam(const GridParams gp,
                           __constant const Params* P,       /* the volume: columns, sides */
                           __constant const float4* iface,
@@ -300,6 +315,7 @@ __kernel void gather_beam(const GridParams gp,
                           __global const uint* cell_start,
                           __global const float4* spos_w,
                           __global const float4* sdir_b,
+                          __global const float2* sslab,     /* photon_slabs: its layer at its column */
                           __global const float* sextra,     /* HERO_C-1 band weights per photon */
                           __global const float4* hgtab,     /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
                           __global const float4* optics,    /* [NL*NB]: ..., mut (um^-1) in .w */
@@ -377,7 +393,7 @@ __kernel void gather_beam(const GridParams gp,
 #ifndef FLAT
                             if (conform) {
                                 if ((bl >> 8) != Lk) continue;
-                                const float2 tb_p = layer_slab(P, iface, heights, p.xyz, Lk);
+                                const float2 tb_p = sslab[j];
                                 if (tb_p.y > -1e29f && tb_r.y > -1e29f) {
                                     wl = (tb_r.x - tb_r.y) / fmax(tb_p.x - tb_p.y, 1e-3f);
                                     pz = tb_r.x - (tb_p.x - p.z) * wl;
