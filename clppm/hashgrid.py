@@ -280,7 +280,7 @@ def _as_device(dev: Device, a, n: int, bufs: GridBuffers, name: str):
 def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
           method: str = "counting", max_cells: int = DEFAULT_MAX_CELLS,
           buffers: GridBuffers | None = None, timings: dict | None = None,
-          extra=None, extra_stride: int = 0, hz: float | None = None) -> Grid:
+          extra=None, extra_stride: int = 0, hz: float | None = None, key_pos=None) -> Grid:
     """Sort ``n`` photons (``pos_w`` = (x, y, z µm, weight), ``dir_b`` = (dx, dy,
     dz, band) float4 device arrays) into a grid over ``[lo, hi)`` with cell edge
     ``h`` (cells ``hz`` deep, default cubic; grown if the box needs more than ``max_cells``
@@ -291,7 +291,10 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     histogram with ``atomic_inc`` + exclusive scan + scatter) or ``"radix"``
     (``pyopencl.algorithm.RadixSort`` of (cell, index) pairs).  With a
     ``timings`` dict, the queue is drained after each stage and the stage's
-    seconds are added to ``timings[stage]`` (bench only: it serialises).
+    seconds are added to ``timings[stage]`` (bench only: it serialises).  With ``key_pos``
+    (float4 per photon) the cell of photon i is that of ``key_pos[i]`` instead of its position
+    (the beam's layer-conforming depth, kernels/gather.cl); the records sorted are still
+    ``pos_w`` and ``dir_b``.
     """
     import pyopencl.array as cla
     n = int(n)
@@ -305,6 +308,7 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     f4 = cltypes.float4
     pos = _as_device(dev, pos_w, n, bufs, "pos_w")
     dirb = _as_device(dev, dir_b, n, bufs, "dir_b")
+    kpos = pos if key_pos is None else _as_device(dev, key_pos, n, bufs, "key_pos")
     cell_start = bufs.get("cell_start", ncells + 1, np.uint32)
     spos = bufs.get("spos_w", n, f4)
     sdir = bufs.get("sdir_b", n, f4)
@@ -327,13 +331,13 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
         rank = bufs.get("rank", n, np.uint32)
         cell_start.fill(0)
         stage("clear")
-        k["grid_count"](q, _gsize(n), (_WG,), params, un, pos, cell_start.data, rank.data)
+        k["grid_count"](q, _gsize(n), (_WG,), params, un, kpos, cell_start.data, rank.data)
         stage("count")
         # in place: counts -> exclusive prefix sums, cell_start[ncells] == n
         _scan(dev)(cell_start, allocator=bufs.pool)
         stage("scan")
         perm = bufs.get("idx", n, np.int32)
-        k["grid_scatter"](q, _gsize(n), (_WG,), params, un, pos,
+        k["grid_scatter"](q, _gsize(n), (_WG,), params, un, kpos,
                           cell_start.data, rank.data, perm.data)
         stage("scatter")
         k["grid_permute"](q, _gsize(n), (_WG,), un, perm.data, pos, dirb,
@@ -343,7 +347,7 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     elif method == "radix":
         keys = bufs.get("keys", n, np.uint32)
         idx = bufs.get("idx", n, np.int32)
-        k["grid_keys"](q, _gsize(n), (_WG,), params, un, pos, keys.data, idx.data)
+        k["grid_keys"](q, _gsize(n), (_WG,), params, un, kpos, keys.data, idx.data)
         stage("keys")
         key_bits = max(1, (ncells - 1).bit_length())
         (skeys, sidx), _ = _radix(dev)(keys, idx, key_bits=key_bits, queue=q,

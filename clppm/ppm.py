@@ -62,6 +62,7 @@ class Scene:
     kernels: dict
     hgtab: object
     layer_z: object
+    vlay: object                     # [NL+1] float4: the beam grid's depth keys (depth_keys)
     gbufs: hashgrid.GridBuffers
     target: int                      # stored photons per pass
     capacity: int
@@ -173,15 +174,16 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     pp.set_emission(rc["emission"])
     prg = dev.build("gather.cl", {**transport.defines(vol, pp.hero), "ESTIMATOR": ESTIMATORS[rc["estimator"]]})
     kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "init_radius", "count_within",
-                                              "photon_slabs")}
+                                              "photon_slabs", "photon_keys")}
     mf = cl.mem_flags
     hgtab = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hg_table(vol))
     lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
     layer_z = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(lz))
+    vlay = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=depth_keys(vol.iface))
     zdeep = eye.zmin if eye.npoints else vol.z_top
     box = (vol.x0, vol.y0, vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy, zdeep, vol.z_top)
     sc = Scene(cfg=cfg, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, kernels=kernels, hgtab=hgtab,
-               layer_z=layer_z, gbufs=hashgrid.GridBuffers(dev), target=target, capacity=capacity,
+               layer_z=layer_z, vlay=vlay, gbufs=hashgrid.GridBuffers(dev), target=target, capacity=capacity,
                box=box, hz=beam_cell_depth(eye) if rc["estimator"] == "beam" else None)
     sc.timing.update(timing)
     return sc
@@ -189,6 +191,42 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
 
 def _round(n: int, wg: int = 64) -> int:
     return max(wg, (n + wg - 1) // wg * wg)
+
+
+def depth_keys(iface: np.ndarray) -> np.ndarray:
+    """Per layer L (kernel photon_keys): the mean heights of its top and bottom interface and
+    1 where its photons are filed at their layer-conforming depth (an interface of L varies
+    and its bottom is finite); row NL: the lowest and highest z of those photons (+-1 um) and
+    the largest distance of a key from its photon's z."""
+    nl = len(iface) - 1
+    out = np.zeros((nl + 1, 4), np.float32)
+    lo, hi, shift = np.inf, -np.inf, 0.0
+    for L in range(nl):
+        top, bot = iface[L], iface[L + 1]
+        if not ((top[3] >= 0 or bot[3] >= 0) and bot[1] > -1e29):
+            continue
+        zt, zb = 0.5 * (top[1] + top[2]), 0.5 * (bot[1] + bot[2])
+        out[L] = (zt, zb, 1.0, 0.0)
+        th = zt - zb
+        kmin, kmax = zt - 1.5 * th, zt + 0.5 * th         # phi clamped to [-1/2, 3/2]
+        lo, hi = min(lo, bot[1]), max(hi, top[2])
+        shift = max(shift, top[2] - kmin, kmax - bot[1])
+    if np.isfinite(lo):
+        out[nl] = (lo - 1.0, hi + 1.0, shift + 1.0, 0.0)
+    else:
+        out[nl] = (1e30, -1e30, 0.0, 0.0)
+    return out
+
+
+def photon_keys(sc: Scene, n: int):
+    """Per stored photon (unsorted): its grid position with the depth key (kernel photon_keys)."""
+    import pyopencl.cltypes as cltypes
+    k = sc.gbufs.get("kpos", max(n, 1), cltypes.float4)
+    if n:
+        sc.kernels["photon_keys"](sc.dev.queue, (_round(n),), (64,), sc.pp.pbuf, sc.vbuf.iface,
+                                  sc.vbuf.heights, sc.vlay, sc.pp.pos_w, sc.pp.dir_b,
+                                  np.uint32(n), k.data)
+    return k
 
 
 def beam_cell_depth(eye: eyepass.EyeData) -> float | None:
@@ -204,7 +242,8 @@ def beam_cell_depth(eye: eyepass.EyeData) -> float | None:
     return max(float(np.median(ext)), 1.0)
 
 
-def build_grid(sc: Scene, n: int, radii_median: float, rmax: float, flat: bool = False) -> hashgrid.Grid:
+def build_grid(sc: Scene, n: int, radii_median: float, rmax: float, flat: bool = False,
+               key_pos=None) -> hashgrid.Grid:
     """Grid over the photons that sample points can reach (the sample points' box padded by
     the largest radius), cells of half the median radius; with ``flat`` (the beam's passes)
     cells ``sc.hz`` deep (not deeper than wide)."""
@@ -214,7 +253,7 @@ def build_grid(sc: Scene, n: int, radii_median: float, rmax: float, flat: bool =
     h = hashgrid.choose_cell_size([radii_median], lo, hi)
     hz = min(sc.hz, h) if flat and sc.hz is not None else None
     return hashgrid.build(sc.dev, sc.pp.pos_w, sc.pp.dir_b, n, lo, hi, h, buffers=sc.gbufs,
-                          extra=sc.pp.extra, extra_stride=sc.pp.hero - 1, hz=hz)
+                          extra=sc.pp.extra, extra_stride=sc.pp.hero - 1, hz=hz, key_pos=key_pos)
 
 
 def photon_slabs(sc: Scene, grid: hashgrid.Grid):
@@ -320,7 +359,8 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
         scale = 1.0
         radii = st.R.get()[:sc.npts]
         med, rmax = float(np.median(radii)), float(radii.max())
-    grid = build_grid(sc, n, med, rmax, flat=sc.beam)
+    keys = photon_keys(sc, n) if sc.beam else None
+    grid = build_grid(sc, n, med, rmax, flat=sc.beam, key_pos=keys)
     sslab = photon_slabs(sc, grid) if sc.beam else None
     q.finish()
     sc.timing["grid"] += time.perf_counter() - t0
@@ -334,7 +374,7 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
     if sc.beam:
         sc.kernels["gather_beam"](q, (_round(sc.npix),), (64,), grid.params, sc.pp.pbuf, sc.vbuf.iface,
                                   sc.vbuf.heights, grid.cell_start.data,
-                                  grid.spos_w.data, grid.sdir_b.data, sslab.data, extra, sc.hgtab,
+                                  grid.spos_w.data, grid.sdir_b.data, sslab.data, sc.vlay, extra, sc.hgtab,
                                   sc.vbuf.optics, e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, *tail)
     else:
         sc.kernels["gather"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,

@@ -293,6 +293,41 @@ __kernel void count_within(const GridParams gp,
  * T(t*) is per band, from the optical depth at the piece's start plus mu_t of the piece's layer.
  * Phase: the photon's layer's g (the scattering happens at the photon). */
 
+#define PHI_LO (-0.5f)
+#define PHI_HI 1.5f
+inline float phi_key(float4 vz, float phi) {
+    return vz.x - clamp(phi, PHI_LO, PHI_HI) * (vz.x - vz.y);
+}
+
+/* The depth-key range of a piece's query (photon_keys).  A conforming piece of a virtual layer
+ * L accepts photons of L whose conformed depth tb_r.x - phi (tb_r.x - tb_r.y) lies in its depth
+ * range [za, zb] (padded: 1e-2 um plus 1e-5 of the magnitudes, far above the rounding of
+ * either side's phi, which share the subtraction top - z), so phi in [(tb_r.x - zb)/H,
+ * (tb_r.x - za)/H]; a layer at most 1e-2 um thick at the ray's column takes every phi.  Any
+ * other query keeps its z range, widened by the largest shift of a virtual photon's key from
+ * its z (vlay[NL].z) where it reaches the virtual layers' z span (vlay[NL].xy). */
+inline void query_depth_keys(__constant const float4* vlay, int L, float2 tb_r, float za, float zb,
+                             float* lo, float* hi) {
+#ifndef FLAT
+    const float4 vz = L >= 0 ? vlay[L] : (float4)(0.0f);
+    if (vz.z != 0.0f) {
+        const float H = tb_r.x - tb_r.y;
+        const float pad = 1e-2f + 1e-5f * (fabs(tb_r.x) + fabs(za) + fabs(H));
+        float pa = PHI_LO, pb = PHI_HI;
+        if (H > 1e-2f) {
+            pa = (tb_r.x - (fmax(za, zb) + pad)) / H;
+            pb = (tb_r.x - (fmin(za, zb) - pad)) / H;
+        }
+        const float kpad = 1e-3f + 1e-5f * (fabs(vz.x) + fabs(vz.y));
+        *hi = phi_key(vz, pa) + kpad;
+        *lo = phi_key(vz, pb) - kpad;
+        return;
+    }
+    const float4 span = vlay[NL];
+    if (*hi >= span.x && *lo <= span.y) { *lo -= span.z; *hi += span.z; }
+#endif
+}
+
 /* Top and bottom of each stored photon's layer at its own column (layer_slab), once per pass
  * instead of once per (piece, candidate): the beam gather's layer-conforming depth reads it. */
 __kernel void photon_slabs(__constant const Params* P, __constant const float4* iface,
@@ -308,6 +343,35 @@ __kernel void photon_slabs(__constant const Params* P, __constant const float4* 
 #endif
 }
 
+/* The grid's depth key of each photon.  The beam gather measures a photon's depth in its
+ * layer's own coordinates (its fraction phi of the layer at its column, placed at the same
+ * fraction at the eye ray's column), so a piece of a layer-conforming layer L accepts photons
+ * whose phi lies in a narrow range, while their z spans the waves of L's interfaces (tens of
+ * um against a piece a few um deep).  Photons of such a layer ("virtual" in vlay[L].z) are
+ * filed at the depth key  zr_top - phi (zr_top - zr_bot)  (vlay[L].xy: the mean heights of
+ * L's interfaces), every other photon at its z.  phi = (top - z) / max(top - bottom, 1e-3) as
+ * in gather_beam, from the same subtraction, clamped to [-1/2, 3/2] (the query clamps alike). */
+
+__kernel void photon_keys(__constant const Params* P, __constant const float4* iface,
+                          __global const float* heights, __constant const float4* vlay,
+                          __global const float4* pos_w, __global const float4* dir_b,
+                          const uint n, __global float4* kpos)
+{
+    const uint j = get_global_id(0);
+    if (j >= n) return;
+    const float4 p = pos_w[j];
+    float z = p.z;
+#ifndef FLAT
+    const int L = clamp((int)dir_b[j].w >> 8, 0, NL - 1);
+    const float4 vz = vlay[L];
+    if (vz.z != 0.0f) {
+        const float2 tb = layer_slab(P, iface, heights, p.xyz, L);
+        z = phi_key(vz, (tb.x - p.z) / fmax(tb.x - tb.y, 1e-3f));
+    }
+#endif
+    kpos[j] = (float4)(p.x, p.y, z, 0.0f);
+}
+
 __kernel void gather_beam(const GridParams gp,
                           __constant const Params* P,       /* the volume: columns, sides */
                           __constant const float4* iface,
@@ -316,6 +380,7 @@ __kernel void gather_beam(const GridParams gp,
                           __global const float4* spos_w,
                           __global const float4* sdir_b,
                           __global const float2* sslab,     /* photon_slabs: its layer at its column */
+                          __constant const float4* vlay,    /* [NL+1] depth keys (photon_keys) */
                           __global const float* sextra,     /* HERO_C-1 band weights per photon */
                           __global const float4* hgtab,     /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
                           __global const float4* optics,    /* [NL*NB]: ..., mut (um^-1) in .w */
@@ -377,14 +442,20 @@ __kernel void gather_beam(const GridParams gp,
                     const float3 e = s0 + len * d;
                     const float Rp = R * (1.0f + GRID_R_PAD);
                     const float zp = vert ? 1e-3f + 1e-6f * fabs(s0.z) + zpad : Rp;
-                    const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, fmin(s0.z, e.z) - zp);
-                    const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, fmax(s0.z, e.z) + zp);
+                    float zlo = fmin(s0.z, e.z) - zp, zhi = fmax(s0.z, e.z) + zp;
+                    query_depth_keys(vlay, conform ? Lk : -1, tb_r, s0.z, e.z, &zlo, &zhi);
+                    const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, zlo);
+                    const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, zhi);
                     const int4 c0 = grid_coords(gp, lo), c1 = grid_coords(gp, hi);
                     __global const float4* mut_k = optics + Lk * NB;
                     for (int iz = c0.z; iz <= c1.z; ++iz)
                     for (int iy = c0.y; iy <= c1.y; ++iy) {
                         const uint row = grid_cell_index(gp, c0.x, iy, iz);
                         const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
+#ifdef COUNT_CANDIDATES         /* bench/gather.py: the photons tested, in place of the pairs */
+                        M += je - jb;
+                        continue;
+#endif
                         for (uint j = jb; j < je; ++j) {
                             const float4 p = spos_w[j];
                             const float4 dd = sdir_b[j];
