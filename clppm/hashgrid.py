@@ -49,7 +49,7 @@ GRID_PARAMS_DTYPE = np.dtype([
     ("h", np.float32), ("inv_h", np.float32),
     ("nx", np.int32), ("ny", np.int32), ("nz", np.int32),
     ("ncells", np.uint32),
-    ("hz", np.float32), ("inv_hz", np.float32), ("pad2", np.uint32),
+    ("hz", np.float32), ("inv_hz", np.float32), ("nclass", np.uint32),
 ])
 assert GRID_PARAMS_DTYPE.itemsize == 48
 
@@ -71,11 +71,14 @@ def _cells_for(extent: np.ndarray, h: float) -> np.ndarray:
     return np.maximum(1, np.ceil(extent / h)).astype(np.int64)
 
 
-def grid_params(lo, hi, h: float, max_cells: int = DEFAULT_MAX_CELLS, hz: float | None = None) -> np.void:
+def grid_params(lo, hi, h: float, max_cells: int = DEFAULT_MAX_CELLS, hz: float | None = None,
+                nclass: int = 1) -> np.void:
     """``GridParams`` (a numpy record of :data:`GRID_PARAMS_DTYPE`) for the box
     ``[lo, hi)`` and cell edge ``h`` (µm; cells ``hz`` deep, default ``h``: cubic), ``h``
     and ``hz`` grown by one factor as needed so that ``nx*ny*nz <= max_cells``.  The
-    effective sizes are ``params["h"]`` and ``params["hz"]``."""
+    effective sizes are ``params["h"]`` and ``params["hz"]``.  With ``nclass > 1`` the grid
+    is that many grids (the photon's class in its key position's ``.w``): ``ncells`` counts
+    them all."""
     lo = np.asarray(lo, dtype=np.float64).reshape(3)
     hi = np.asarray(hi, dtype=np.float64).reshape(3)
     h = float(h)
@@ -91,14 +94,18 @@ def grid_params(lo, hi, h: float, max_cells: int = DEFAULT_MAX_CELLS, hz: float 
         raise ValueError(f"max_cells must be in [1, 2**31-1], got {max_cells}")
     extent = np.maximum(hi - lo, 0.0)
 
+    nclass = int(nclass)
+    if not 1 <= nclass <= max_cells:
+        raise ValueError(f"grid classes must be in [1, max_cells], got {nclass}")
+
     def cells(h):
         return _cells_for(extent, np.array([h, h, h * aspect]))
 
     n = cells(h)
-    if int(np.prod(n)) > max_cells:
-        h *= (float(np.prod(n)) / max_cells) ** (1.0 / 3.0)
+    if int(np.prod(n)) * nclass > max_cells:
+        h *= (float(np.prod(n)) * nclass / max_cells) ** (1.0 / 3.0)
         n = cells(h)
-        while int(np.prod(n)) > max_cells:
+        while int(np.prod(n)) * nclass > max_cells:
             h *= 1.01
             n = cells(h)
     rec = np.zeros((), dtype=GRID_PARAMS_DTYPE)
@@ -109,7 +116,8 @@ def grid_params(lo, hi, h: float, max_cells: int = DEFAULT_MAX_CELLS, hz: float 
     rec["inv_h"] = np.float32(1.0) / h32
     rec["inv_hz"] = np.float32(1.0) / hz32
     rec["nx"], rec["ny"], rec["nz"] = n
-    rec["ncells"] = int(np.prod(n))
+    rec["ncells"] = int(np.prod(n)) * nclass
+    rec["nclass"] = nclass
     return rec[()]
 
 
@@ -280,7 +288,8 @@ def _as_device(dev: Device, a, n: int, bufs: GridBuffers, name: str):
 def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
           method: str = "counting", max_cells: int = DEFAULT_MAX_CELLS,
           buffers: GridBuffers | None = None, timings: dict | None = None,
-          extra=None, extra_stride: int = 0, hz: float | None = None, key_pos=None) -> Grid:
+          extra=None, extra_stride: int = 0, hz: float | None = None, key_pos=None,
+          nclass: int = 1) -> Grid:
     """Sort ``n`` photons (``pos_w`` = (x, y, z µm, weight), ``dir_b`` = (dx, dy,
     dz, band) float4 device arrays) into a grid over ``[lo, hi)`` with cell edge
     ``h`` (cells ``hz`` deep, default cubic; grown if the box needs more than ``max_cells``
@@ -294,14 +303,15 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     seconds are added to ``timings[stage]`` (bench only: it serialises).  With ``key_pos``
     (float4 per photon) the cell of photon i is that of ``key_pos[i]`` instead of its position
     (the beam's layer-conforming depth, kernels/gather.cl); the records sorted are still
-    ``pos_w`` and ``dir_b``.
+    ``pos_w`` and ``dir_b``; with ``nclass > 1`` its ``.w`` is the photon's class (a grid
+    per class, :func:`grid_params`).
     """
     import pyopencl.array as cla
     n = int(n)
     if n < 0 or n > 2 ** 32 - 2:
         raise ValueError(f"photon count out of range: {n}")
     bufs = buffers or default_buffers(dev)
-    params = grid_params(lo, hi, h, max_cells, hz)
+    params = grid_params(lo, hi, h, max_cells, hz, nclass)
     ncells = int(params["ncells"])
     q = dev.queue
     k = _kernels(dev)

@@ -68,6 +68,7 @@ class Scene:
     capacity: int
     box: tuple                       # x0, y0, x1, y1, deepest sample point z, top z
     hz: float | None = None          # the beam's grid cell depth (um; None: cubic cells)
+    gclass: int = 1                  # the beam gather's band classes (band_classes)
     timing: dict = field(default_factory=lambda: {k: 0.0 for k in STAGES})
 
     @property
@@ -172,9 +173,11 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
                               band_sampling=rc["band_sampling"])
     pp.set_storage(rc["storage"], eye.cone_deg, rc["store_scale"], rc["store_min"])
     pp.set_emission(rc["emission"])
-    prg = dev.build("gather.cl", {**transport.defines(vol, pp.hero), "ESTIMATOR": ESTIMATORS[rc["estimator"]]})
-    kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "init_radius", "count_within",
-                                              "photon_slabs", "photon_keys")}
+    gclass = band_classes(vol.nb, pp.hero)
+    prg = dev.build("gather.cl", {**transport.defines(vol, pp.hero), "ESTIMATOR": ESTIMATORS[rc["estimator"]],
+                                  "GCLASS": gclass})
+    kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "gather_beam_points", "init_radius",
+                                              "count_within", "photon_slabs", "photon_keys")}
     mf = cl.mem_flags
     hgtab = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hg_table(vol))
     lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
@@ -184,7 +187,7 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     box = (vol.x0, vol.y0, vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy, zdeep, vol.z_top)
     sc = Scene(cfg=cfg, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, kernels=kernels, hgtab=hgtab,
                layer_z=layer_z, vlay=vlay, gbufs=hashgrid.GridBuffers(dev), target=target, capacity=capacity,
-               box=box, hz=beam_cell_depth(eye) if rc["estimator"] == "beam" else None)
+               box=box, hz=beam_cell_depth(eye) if rc["estimator"] == "beam" else None, gclass=gclass)
     sc.timing.update(timing)
     return sc
 
@@ -249,11 +252,15 @@ def build_grid(sc: Scene, n: int, radii_median: float, rmax: float, flat: bool =
     cells ``sc.hz`` deep (not deeper than wide)."""
     x0, y0, x1, y1, zdeep, ztop = sc.box
     pad = rmax * 1.001 + 1.0
-    lo, hi = (x0 - pad, y0 - pad, zdeep - pad), (x1 + pad, y1 + pad, ztop + pad)
+    # the discs have no depth: pieces not near horizontal reach only their own depth (and the
+    # waves of a conforming layer); photons beyond the box still go to its edge cells
+    zpad = pad if not flat or sc.eye.grazing else 1.0 + float(np.max(np.ptp(sc.vol.iface[:, 1:3], 1)))
+    lo, hi = (x0 - pad, y0 - pad, zdeep - zpad), (x1 + pad, y1 + pad, ztop + zpad)
     h = hashgrid.choose_cell_size([radii_median], lo, hi)
     hz = min(sc.hz, h) if flat and sc.hz is not None else None
     return hashgrid.build(sc.dev, sc.pp.pos_w, sc.pp.dir_b, n, lo, hi, h, buffers=sc.gbufs,
-                          extra=sc.pp.extra, extra_stride=sc.pp.hero - 1, hz=hz, key_pos=key_pos)
+                          extra=sc.pp.extra, extra_stride=sc.pp.hero - 1, hz=hz, key_pos=key_pos,
+                          nclass=sc.gclass if flat else 1)
 
 
 def photon_slabs(sc: Scene, grid: hashgrid.Grid):
@@ -372,10 +379,7 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
             np.float64(pass_scale))
     extra = grid.sextra.data if grid.sextra is not None else sc.pp.extra
     if sc.beam:
-        sc.kernels["gather_beam"](q, (_round(sc.npix),), (64,), grid.params, sc.pp.pbuf, sc.vbuf.iface,
-                                  sc.vbuf.heights, grid.cell_start.data,
-                                  grid.spos_w.data, grid.sdir_b.data, sslab.data, sc.vlay, extra, sc.hgtab,
-                                  sc.vbuf.optics, e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, *tail)
+        gather_beam(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
     else:
         sc.kernels["gather"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,
                              grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
@@ -385,6 +389,31 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
     sc.timing["gather"] += time.perf_counter() - t0
     info["radius_scale"] = scale
     return info
+
+
+def gather_beam(sc: Scene, grid: hashgrid.Grid, sslab, extra, st: PointState, acc: Accumulators,
+                alpha: float, scale: float, pass_scale: float) -> None:
+    """The beam gather: a work item per pixel and band class (kernels/gather.cl), then each
+    point's count, radius update and the pixels' pair counts (gather_beam_points)."""
+    q, e = sc.dev.queue, sc.eye
+    st.M.fill(0)
+    sc.kernels["gather_beam"](q, (_round(sc.npix), sc.gclass), (64, 1), grid.params, sc.pp.pbuf,
+                              sc.vbuf.iface, sc.vbuf.heights, grid.cell_start.data, grid.spos_w.data,
+                              grid.sdir_b.data, sslab.data, sc.vlay, extra, sc.hgtab, sc.vbuf.optics,
+                              e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, st.R.data,
+                              st.N.data, st.M.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp),
+                              np.int32(sc.global_radius), np.float32(scale), np.float64(pass_scale))
+    sc.kernels["gather_beam_points"](q, (_round(sc.npix),), (64,), e.ray_start.data, st.R.data,
+                                     st.N.data, st.M.data, acc.pairs.data, np.int32(sc.npix),
+                                     np.int32(e.camera.spp), np.float32(alpha),
+                                     np.int32(sc.global_radius))
+
+
+def band_classes(nb: int, hero: int) -> int:
+    """The beam gather's band classes (GCLASS): the largest divisor of nb / hero up to 9, so a
+    work item holds nb / GCLASS bands (9 of 81) and the bands of a photon lie in one class."""
+    step = nb // max(hero, 1)
+    return max(d for d in range(1, 10) if step % d == 0)
 
 
 @dataclass

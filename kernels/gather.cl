@@ -45,6 +45,13 @@
 #define ESTIMATOR 2
 #endif
 
+/* The beam gather's band classes: class g holds the bands g + GCLASS k, k < NBC.  GCLASS
+ * divides NB / HERO_C, so the bands of one photon (h + j NB / HERO_C) are all of one class. */
+#ifndef GCLASS
+#define GCLASS 1
+#endif
+#define NBC (NB / GCLASS)
+
 /* Volume of the sphere (centre height z, radius R) between the planes slab.x (top) and slab.y
  * (bottom): integral of pi (R^2 - u^2) du over the part of [-R, R] inside the slab. */
 inline float estimator_volume(float z, float R, float2 slab) {
@@ -369,7 +376,7 @@ __kernel void photon_keys(__constant const Params* P, __constant const float4* i
         z = phi_key(vz, (tb.x - p.z) / fmax(tb.x - tb.y, 1e-3f));
     }
 #endif
-    kpos[j] = (float4)(p.x, p.y, z, 0.0f);
+    kpos[j] = (float4)(p.x, p.y, z, (float)((((int)dir_b[j].w) & 255) % GCLASS));
 }
 
 __kernel void gather_beam(const GridParams gp,
@@ -390,23 +397,23 @@ __kernel void gather_beam(const GridParams gp,
                           __global const float4* geo,       /* per piece: (start, len), (dir, layer) */
                           __global float* pt_R,
                           __global float* pt_N,
-                          __global uint* pt_M,
+                          volatile __global uint* pt_M,     /* zeroed; photons found, all classes */
                           __global double* pix_acc,
-                          __global ulong* pix_pairs,
                           const int npix, const int spp,
-                          const float alpha, const int global_radius, const float radius_scale,
+                          const int global_radius, const float radius_scale,
                           const double pass_scale)
 {
     const int pix = get_global_id(0);
+    const int g = get_global_id(1);                 /* the band class: bands g + GCLASS k */
     if (pix >= npix) return;
-    float accp[NB];
-    for (int b = 0; b < NB; ++b) accp[b] = 0.0f;
-    ulong pairs = 0;
+    const uint cls0 = grid_cells_xyz(gp) * (uint)g; /* the class's grid */
+    float accp[NBC];
+    for (int k = 0; k < NBC; ++k) accp[k] = 0.0f;
     for (int s = 0; s < spp; ++s) {
         const uint r = (uint)pix * (uint)spp + (uint)s;
         const uint i0 = ray_start[r], i1 = ray_start[r + 1];
-        float od[NB];                   /* optical depth from the entry to the piece's start */
-        for (int b = 0; b < NB; ++b) od[b] = 0.0f;
+        float od[NBC];                  /* optical depth from the entry to the piece's start */
+        for (int k = 0; k < NBC; ++k) od[k] = 0.0f;
         for (uint i = i0; i < i1; ++i) {
             const float4 pp = pt_pos[i];
             const float R = global_radius ? pt_R[i] * radius_scale : pt_R[i];
@@ -415,8 +422,8 @@ __kernel void gather_beam(const GridParams gp,
              * depth: the ray drifts sideways with depth (outwards at the sides, ~0.1 per unit
              * depth), so a window placed at the sample point would reach past the side */
             const float Rwin = window_reach(R);
-            long acc[NB];
-            for (int b = 0; b < NB; ++b) acc[b] = 0;
+            long acc[NBC];
+            for (int k = 0; k < NBC; ++k) acc[k] = 0;
             uint M = 0;
             const uint k0 = pt_piece[i], k1 = pt_piece[i + 1];
             for (uint k = k0; k < k1; ++k) {
@@ -450,7 +457,7 @@ __kernel void gather_beam(const GridParams gp,
                     __global const float4* mut_k = optics + Lk * NB;
                     for (int iz = c0.z; iz <= c1.z; ++iz)
                     for (int iy = c0.y; iy <= c1.y; ++iy) {
-                        const uint row = grid_cell_index(gp, c0.x, iy, iz);
+                        const uint row = grid_cell_index(gp, c0.x, iy, iz) + cls0;
                         const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
 #ifdef COUNT_CANDIDATES         /* bench/gather.py: the photons tested, in place of the pairs */
                         M += je - jb;
@@ -498,38 +505,62 @@ __kernel void gather_beam(const GridParams gp,
                             const float cw = dot(dd.xyz, d);                   /* w_eye = -d */
                             const float wk = p.w * wax * wl * wwin;
                             __global const float4* hg = hgtab + (bl >> 8) * NB;
+#if HERO_C == NBC                       /* the photon carries every band of the class */
+                            const int kh = (bl & 255) / GCLASS;         /* its hero's place */
+                            for (int k = 0; k < NBC; ++k) {
+                                const int c = k >= kh ? k - kh : k - kh + NBC;
+                                const int b = g + GCLASS * k;
+#else
                             for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
                                 const int b = sw_band(bl & 255, c);
+                                const int k = b / GCLASS;
+#endif
                                 const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin;
                                 const float4 h = hg[b];
                                 const float q = h.x + h.y * cw;
                                 const float rq = native_rsqrt(q);
-                                const float T = exp_neg(od[b] + mut_k[b].w * ts);
-                                acc[b] = add_sat(acc[b], (long)fmin(h.z * rq * rq * rq * w * T * FIX, 9.0e18f));
+                                const float T = exp_neg(od[k] + mut_k[b].w * ts);
+                                acc[k] = add_sat(acc[k], (long)fmin(h.z * rq * rq * rq * w * T * FIX, 9.0e18f));
                             }
                             ++M;
                         }
                     }
                 }
-                for (int b = 0; b < NB; ++b) od[b] += optics[Lk * NB + b].w * len;
+                for (int k = 0; k < NBC; ++k) od[k] += optics[Lk * NB + g + GCLASS * k].w * len;
             }
             if (R > 0.0f) {
                 const float f = pp.w / (PI_F * R2) * INV_FIX;
-                for (int b = 0; b < NB; ++b)
-                    if (acc[b] != 0) accp[b] += f * (float)acc[b];
+                for (int k = 0; k < NBC; ++k)
+                    if (acc[k] != 0) accp[k] += f * (float)acc[k];
             }
-            /* progressive radius update, in 2-D: the disc's area shrinks as N grows */
-            if (!global_radius && M > 0u) {
-                const float N = pt_N[i];
-                const float Nn = N + alpha * (float)M;
-                pt_N[i] = Nn;
-                pt_R[i] = R * sqrt(Nn / (N + (float)M));
-            }
-            pt_M[i] = M;
-            pairs += M;
+            if (M > 0u) atomic_add(&pt_M[i], M);    /* integers: the classes' order is immaterial */
         }
     }
-    __global double* out = pix_acc + (size_t)pix * NB;
-    for (int b = 0; b < NB; ++b) out[b] += (double)accp[b] * pass_scale;
+    __global double* out = pix_acc + (size_t)pix * NB + g;
+    for (int k = 0; k < NBC; ++k) out[GCLASS * k] += (double)accp[k] * pass_scale;
+}
+
+/* After gather_beam: each point's photons found (all classes), its progressive radius update
+ * (in 2-D: the disc's area shrinks as N grows) and the pixel's pair count. */
+__kernel void gather_beam_points(__global const uint* ray_start, __global float* pt_R,
+                                 __global float* pt_N, __global const uint* pt_M,
+                                 __global ulong* pix_pairs, const int npix, const int spp,
+                                 const float alpha, const int global_radius)
+{
+    const int pix = get_global_id(0);
+    if (pix >= npix) return;
+    ulong pairs = 0;
+    const uint i0 = ray_start[(uint)pix * (uint)spp], i1 = ray_start[(uint)(pix + 1) * (uint)spp];
+    for (uint i = i0; i < i1; ++i) {
+        const uint M = pt_M[i];
+        if (!global_radius && M > 0u) {
+            const float R = pt_R[i];
+            const float N = pt_N[i];
+            const float Nn = N + alpha * (float)M;
+            pt_N[i] = Nn;
+            pt_R[i] = R * sqrt(Nn / (N + (float)M));
+        }
+        pairs += M;
+    }
     pix_pairs[pix] += pairs;
 }

@@ -75,7 +75,7 @@ typedef struct {
     int nx, ny, nz;           /* cells per axis */
     uint ncells;              /* nx*ny*nz */
     float hz, inv_hz;         /* cell depth (um; = h unless the caller asks for flat cells) */
-    uint pad2;                /* 48 bytes in all */
+    uint nclass;              /* > 1: that many grids, photon class in the key's .w; 48 bytes in all */
 } GridParams;
 
 #ifndef GRID_R_PAD
@@ -107,6 +107,21 @@ inline uint grid_cell_of(const GridParams gp, const float3 p)
 {
     const int4 c = grid_coords(gp, p);
     return grid_cell_index(gp, c.x, c.y, c.z);
+}
+
+/* nx*ny*nz: the cells of one class */
+inline uint grid_cells_xyz(const GridParams gp)
+{
+    return (uint)gp.nx * (uint)gp.ny * (uint)gp.nz;
+}
+
+/* The sort key of a photon whose key position is p: its cell, and with classes (nclass > 1)
+ * its class p.w (a small integer as float) times the cells of a class, so that each class
+ * is a grid of its own in one cell_start. */
+inline uint grid_key_of(const GridParams gp, const float4 p)
+{
+    const uint c = grid_cell_of(gp, p.xyz);
+    return gp.nclass > 1u ? c + grid_cells_xyz(gp) * min((uint)p.w, gp.nclass - 1u) : c;
 }
 
 inline void grid_query_range(const GridParams gp, const float3 x, const float R,
