@@ -49,7 +49,7 @@ GRID_PARAMS_DTYPE = np.dtype([
     ("h", np.float32), ("inv_h", np.float32),
     ("nx", np.int32), ("ny", np.int32), ("nz", np.int32),
     ("ncells", np.uint32),
-    ("pad0", np.uint32), ("pad1", np.uint32), ("pad2", np.uint32),
+    ("hz", np.float32), ("inv_hz", np.float32), ("nclass", np.uint32),
 ])
 assert GRID_PARAMS_DTYPE.itemsize == 48
 
@@ -71,35 +71,53 @@ def _cells_for(extent: np.ndarray, h: float) -> np.ndarray:
     return np.maximum(1, np.ceil(extent / h)).astype(np.int64)
 
 
-def grid_params(lo, hi, h: float, max_cells: int = DEFAULT_MAX_CELLS) -> np.void:
+def grid_params(lo, hi, h: float, max_cells: int = DEFAULT_MAX_CELLS, hz: float | None = None,
+                nclass: int = 1) -> np.void:
     """``GridParams`` (a numpy record of :data:`GRID_PARAMS_DTYPE`) for the box
-    ``[lo, hi)`` and cell edge ``h`` (µm), ``h`` grown as needed so that
-    ``nx*ny*nz <= max_cells``.  The effective ``h`` is ``params["h"]``."""
+    ``[lo, hi)`` and cell edge ``h`` (µm; cells ``hz`` deep, default ``h``: cubic), ``h``
+    and ``hz`` grown by one factor as needed so that ``nx*ny*nz <= max_cells``.  The
+    effective sizes are ``params["h"]`` and ``params["hz"]``.  With ``nclass > 1`` the grid
+    is that many grids (the photon's class in its key position's ``.w``): ``ncells`` counts
+    them all."""
     lo = np.asarray(lo, dtype=np.float64).reshape(3)
     hi = np.asarray(hi, dtype=np.float64).reshape(3)
     h = float(h)
+    aspect = 1.0 if hz is None else float(hz) / h if h > 0 else float("nan")
     max_cells = int(max_cells)
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise ValueError(f"grid box must be finite, got lo={lo}, hi={hi}")
     if not (math.isfinite(h) and h > 0):
         raise ValueError(f"grid cell size must be positive and finite, got {h}")
+    if not (math.isfinite(aspect) and aspect > 0):
+        raise ValueError(f"grid cell depth must be positive and finite, got {hz}")
     if not 1 <= max_cells <= 2 ** 31 - 1:
         raise ValueError(f"max_cells must be in [1, 2**31-1], got {max_cells}")
     extent = np.maximum(hi - lo, 0.0)
-    n = _cells_for(extent, h)
-    if int(np.prod(n)) > max_cells:
-        h *= (float(np.prod(n)) / max_cells) ** (1.0 / 3.0)
-        n = _cells_for(extent, h)
-        while int(np.prod(n)) > max_cells:
+
+    nclass = int(nclass)
+    if not 1 <= nclass <= max_cells:
+        raise ValueError(f"grid classes must be in [1, max_cells], got {nclass}")
+
+    def cells(h):
+        return _cells_for(extent, np.array([h, h, h * aspect]))
+
+    n = cells(h)
+    if int(np.prod(n)) * nclass > max_cells:
+        h *= (float(np.prod(n)) * nclass / max_cells) ** (1.0 / 3.0)
+        n = cells(h)
+        while int(np.prod(n)) * nclass > max_cells:
             h *= 1.01
-            n = _cells_for(extent, h)
+            n = cells(h)
     rec = np.zeros((), dtype=GRID_PARAMS_DTYPE)
     rec["lo_x"], rec["lo_y"], rec["lo_z"] = lo.astype(np.float32)
     h32 = np.float32(h)
-    rec["h"] = h32
+    hz32 = h32 if hz is None else np.float32(h * aspect)
+    rec["h"], rec["hz"] = h32, hz32
     rec["inv_h"] = np.float32(1.0) / h32
+    rec["inv_hz"] = np.float32(1.0) / hz32
     rec["nx"], rec["ny"], rec["nz"] = n
-    rec["ncells"] = int(np.prod(n))
+    rec["ncells"] = int(np.prod(n)) * nclass
+    rec["nclass"] = nclass
     return rec[()]
 
 
@@ -270,30 +288,37 @@ def _as_device(dev: Device, a, n: int, bufs: GridBuffers, name: str):
 def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
           method: str = "counting", max_cells: int = DEFAULT_MAX_CELLS,
           buffers: GridBuffers | None = None, timings: dict | None = None,
-          extra=None, extra_stride: int = 0) -> Grid:
+          extra=None, extra_stride: int = 0, hz: float | None = None, key_pos=None,
+          nclass: int = 1) -> Grid:
     """Sort ``n`` photons (``pos_w`` = (x, y, z µm, weight), ``dir_b`` = (dx, dy,
     dz, band) float4 device arrays) into a grid over ``[lo, hi)`` with cell edge
-    ``h`` (grown if the box needs more than ``max_cells`` cells).
+    ``h`` (cells ``hz`` deep, default cubic; grown if the box needs more than ``max_cells``
+    cells).
 
     Everything stays on the device; the call enqueues work and returns without
     waiting (the queue is in order).  ``method`` is ``"counting"`` (default:
     histogram with ``atomic_inc`` + exclusive scan + scatter) or ``"radix"``
     (``pyopencl.algorithm.RadixSort`` of (cell, index) pairs).  With a
     ``timings`` dict, the queue is drained after each stage and the stage's
-    seconds are added to ``timings[stage]`` (bench only: it serialises).
+    seconds are added to ``timings[stage]`` (bench only: it serialises).  With ``key_pos``
+    (float4 per photon) the cell of photon i is that of ``key_pos[i]`` instead of its position
+    (the beam's layer-conforming depth, kernels/gather.cl); the records sorted are still
+    ``pos_w`` and ``dir_b``; with ``nclass > 1`` its ``.w`` is the photon's class (a grid
+    per class, :func:`grid_params`).
     """
     import pyopencl.array as cla
     n = int(n)
     if n < 0 or n > 2 ** 32 - 2:
         raise ValueError(f"photon count out of range: {n}")
     bufs = buffers or default_buffers(dev)
-    params = grid_params(lo, hi, h, max_cells)
+    params = grid_params(lo, hi, h, max_cells, hz, nclass)
     ncells = int(params["ncells"])
     q = dev.queue
     k = _kernels(dev)
     f4 = cltypes.float4
     pos = _as_device(dev, pos_w, n, bufs, "pos_w")
     dirb = _as_device(dev, dir_b, n, bufs, "dir_b")
+    kpos = pos if key_pos is None else _as_device(dev, key_pos, n, bufs, "key_pos")
     cell_start = bufs.get("cell_start", ncells + 1, np.uint32)
     spos = bufs.get("spos_w", n, f4)
     sdir = bufs.get("sdir_b", n, f4)
@@ -316,13 +341,13 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
         rank = bufs.get("rank", n, np.uint32)
         cell_start.fill(0)
         stage("clear")
-        k["grid_count"](q, _gsize(n), (_WG,), params, un, pos, cell_start.data, rank.data)
+        k["grid_count"](q, _gsize(n), (_WG,), params, un, kpos, cell_start.data, rank.data)
         stage("count")
         # in place: counts -> exclusive prefix sums, cell_start[ncells] == n
         _scan(dev)(cell_start, allocator=bufs.pool)
         stage("scan")
         perm = bufs.get("idx", n, np.int32)
-        k["grid_scatter"](q, _gsize(n), (_WG,), params, un, pos,
+        k["grid_scatter"](q, _gsize(n), (_WG,), params, un, kpos,
                           cell_start.data, rank.data, perm.data)
         stage("scatter")
         k["grid_permute"](q, _gsize(n), (_WG,), un, perm.data, pos, dirb,
@@ -332,7 +357,7 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     elif method == "radix":
         keys = bufs.get("keys", n, np.uint32)
         idx = bufs.get("idx", n, np.int32)
-        k["grid_keys"](q, _gsize(n), (_WG,), params, un, pos, keys.data, idx.data)
+        k["grid_keys"](q, _gsize(n), (_WG,), params, un, kpos, keys.data, idx.data)
         stage("keys")
         key_bits = max(1, (ncells - 1).bit_length())
         (skeys, sidx), _ = _radix(dev)(keys, idx, key_bits=key_bits, queue=q,

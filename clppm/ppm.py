@@ -62,10 +62,13 @@ class Scene:
     kernels: dict
     hgtab: object
     layer_z: object
+    vlay: object                     # [NL+1] float4: the beam grid's depth keys (depth_keys)
     gbufs: hashgrid.GridBuffers
     target: int                      # stored photons per pass
     capacity: int
     box: tuple                       # x0, y0, x1, y1, deepest sample point z, top z
+    hz: float | None = None          # the beam's grid cell depth (um; None: cubic cells)
+    gclass: int = 1                  # the beam gather's band classes (band_classes)
     timing: dict = field(default_factory=lambda: {k: 0.0 for k in STAGES})
 
     @property
@@ -170,17 +173,21 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
                               band_sampling=rc["band_sampling"])
     pp.set_storage(rc["storage"], eye.cone_deg, rc["store_scale"], rc["store_min"])
     pp.set_emission(rc["emission"])
-    prg = dev.build("gather.cl", {**transport.defines(vol, pp.hero), "ESTIMATOR": ESTIMATORS[rc["estimator"]]})
-    kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "init_radius", "count_within")}
+    gclass = band_classes(vol.nb, pp.hero)
+    prg = dev.build("gather.cl", {**transport.defines(vol, pp.hero), "ESTIMATOR": ESTIMATORS[rc["estimator"]],
+                                  "GCLASS": gclass})
+    kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "gather_beam_points", "init_radius",
+                                              "count_within", "photon_slabs", "photon_keys")}
     mf = cl.mem_flags
     hgtab = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hg_table(vol))
     lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
     layer_z = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(lz))
+    vlay = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=depth_keys(vol.iface))
     zdeep = eye.zmin if eye.npoints else vol.z_top
     box = (vol.x0, vol.y0, vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy, zdeep, vol.z_top)
     sc = Scene(cfg=cfg, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, kernels=kernels, hgtab=hgtab,
-               layer_z=layer_z, gbufs=hashgrid.GridBuffers(dev), target=target, capacity=capacity,
-               box=box)
+               layer_z=layer_z, vlay=vlay, gbufs=hashgrid.GridBuffers(dev), target=target, capacity=capacity,
+               box=box, hz=beam_cell_depth(eye) if rc["estimator"] == "beam" else None, gclass=gclass)
     sc.timing.update(timing)
     return sc
 
@@ -189,15 +196,82 @@ def _round(n: int, wg: int = 64) -> int:
     return max(wg, (n + wg - 1) // wg * wg)
 
 
-def build_grid(sc: Scene, n: int, radii_median: float, rmax: float) -> hashgrid.Grid:
+def depth_keys(iface: np.ndarray) -> np.ndarray:
+    """Per layer L (kernel photon_keys): the mean heights of its top and bottom interface and
+    1 where its photons are filed at their layer-conforming depth (an interface of L varies
+    and its bottom is finite); row NL: the lowest and highest z of those photons (+-1 um) and
+    the largest distance of a key from its photon's z."""
+    nl = len(iface) - 1
+    out = np.zeros((nl + 1, 4), np.float32)
+    lo, hi, shift = np.inf, -np.inf, 0.0
+    for L in range(nl):
+        top, bot = iface[L], iface[L + 1]
+        if not ((top[3] >= 0 or bot[3] >= 0) and bot[1] > -1e29):
+            continue
+        zt, zb = 0.5 * (top[1] + top[2]), 0.5 * (bot[1] + bot[2])
+        out[L] = (zt, zb, 1.0, 0.0)
+        th = zt - zb
+        kmin, kmax = zt - 1.5 * th, zt + 0.5 * th         # phi clamped to [-1/2, 3/2]
+        lo, hi = min(lo, bot[1]), max(hi, top[2])
+        shift = max(shift, top[2] - kmin, kmax - bot[1])
+    if np.isfinite(lo):
+        out[nl] = (lo - 1.0, hi + 1.0, shift + 1.0, 0.0)
+    else:
+        out[nl] = (1e30, -1e30, 0.0, 0.0)
+    return out
+
+
+def photon_keys(sc: Scene, n: int):
+    """Per stored photon (unsorted): its grid position with the depth key (kernel photon_keys)."""
+    import pyopencl.cltypes as cltypes
+    k = sc.gbufs.get("kpos", max(n, 1), cltypes.float4)
+    if n:
+        sc.kernels["photon_keys"](sc.dev.queue, (_round(n),), (64,), sc.pp.pbuf, sc.vbuf.iface,
+                                  sc.vbuf.heights, sc.vlay, sc.pp.pos_w, sc.pp.dir_b,
+                                  np.uint32(n), k.data)
+    return k
+
+
+def beam_cell_depth(eye: eyepass.EyeData) -> float | None:
+    """The beam's grid cell depth: the median depth extent of the eye-ray pieces (at least
+    1 um).  The disc has no depth, so a piece's query box is its own depth extent (plus the
+    waves of a layer-conforming one) and cells as deep as the lateral R/2 (hundreds of um)
+    would make every piece of a ray test the same photons: cells about one piece deep cut the
+    candidates per pair (bench/gather.py) without changing which pairs are found."""
+    if eye.geo is None or eye.npieces == 0:
+        return None
+    g = eye.geo.get()[:2 * eye.npieces]
+    ext = np.abs(g[0::2]["w"] * g[1::2]["z"])
+    return max(float(np.median(ext)), 1.0)
+
+
+def build_grid(sc: Scene, n: int, radii_median: float, rmax: float, flat: bool = False,
+               key_pos=None) -> hashgrid.Grid:
     """Grid over the photons that sample points can reach (the sample points' box padded by
-    the largest radius), cells of half the median radius."""
+    the largest radius), cells of half the median radius; with ``flat`` (the beam's passes)
+    cells ``sc.hz`` deep (not deeper than wide)."""
     x0, y0, x1, y1, zdeep, ztop = sc.box
     pad = rmax * 1.001 + 1.0
-    lo, hi = (x0 - pad, y0 - pad, zdeep - pad), (x1 + pad, y1 + pad, ztop + pad)
+    # the discs have no depth: pieces not near horizontal reach only their own depth (and the
+    # waves of a conforming layer); photons beyond the box still go to its edge cells
+    zpad = pad if not flat or sc.eye.grazing else 1.0 + float(np.max(np.ptp(sc.vol.iface[:, 1:3], 1)))
+    lo, hi = (x0 - pad, y0 - pad, zdeep - zpad), (x1 + pad, y1 + pad, ztop + zpad)
     h = hashgrid.choose_cell_size([radii_median], lo, hi)
+    hz = min(sc.hz, h) if flat and sc.hz is not None else None
     return hashgrid.build(sc.dev, sc.pp.pos_w, sc.pp.dir_b, n, lo, hi, h, buffers=sc.gbufs,
-                          extra=sc.pp.extra, extra_stride=sc.pp.hero - 1)
+                          extra=sc.pp.extra, extra_stride=sc.pp.hero - 1, hz=hz, key_pos=key_pos,
+                          nclass=sc.gclass if flat else 1)
+
+
+def photon_slabs(sc: Scene, grid: hashgrid.Grid):
+    """Per sorted photon: its layer's top and bottom at its column (kernel photon_slabs)."""
+    import pyopencl.cltypes as cltypes
+    sl = sc.gbufs.get("sslab", max(grid.n, 1), cltypes.float2)
+    if grid.n:
+        sc.kernels["photon_slabs"](sc.dev.queue, (_round(grid.n),), (64,), sc.pp.pbuf, sc.vbuf.iface,
+                                   sc.vbuf.heights, grid.spos_w.data, grid.sdir_b.data,
+                                   np.uint32(grid.n), sl.data)
+    return sl
 
 
 def calibrate(sc: Scene) -> Calibration:
@@ -292,7 +366,9 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
         scale = 1.0
         radii = st.R.get()[:sc.npts]
         med, rmax = float(np.median(radii)), float(radii.max())
-    grid = build_grid(sc, n, med, rmax)
+    keys = photon_keys(sc, n) if sc.beam else None
+    grid = build_grid(sc, n, med, rmax, flat=sc.beam, key_pos=keys)
+    sslab = photon_slabs(sc, grid) if sc.beam else None
     q.finish()
     sc.timing["grid"] += time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -303,10 +379,7 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
             np.float64(pass_scale))
     extra = grid.sextra.data if grid.sextra is not None else sc.pp.extra
     if sc.beam:
-        sc.kernels["gather_beam"](q, (_round(sc.npix),), (64,), grid.params, sc.pp.pbuf, sc.vbuf.iface,
-                                  sc.vbuf.heights, grid.cell_start.data,
-                                  grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
-                                  e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, *tail)
+        gather_beam(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
     else:
         sc.kernels["gather"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,
                              grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
@@ -316,6 +389,31 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
     sc.timing["gather"] += time.perf_counter() - t0
     info["radius_scale"] = scale
     return info
+
+
+def gather_beam(sc: Scene, grid: hashgrid.Grid, sslab, extra, st: PointState, acc: Accumulators,
+                alpha: float, scale: float, pass_scale: float) -> None:
+    """The beam gather: a work item per pixel and band class (kernels/gather.cl), then each
+    point's count, radius update and the pixels' pair counts (gather_beam_points)."""
+    q, e = sc.dev.queue, sc.eye
+    st.M.fill(0)
+    sc.kernels["gather_beam"](q, (_round(sc.npix), sc.gclass), (64, 1), grid.params, sc.pp.pbuf,
+                              sc.vbuf.iface, sc.vbuf.heights, grid.cell_start.data, grid.spos_w.data,
+                              grid.sdir_b.data, sslab.data, sc.vlay, extra, sc.hgtab, sc.vbuf.optics,
+                              e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, st.R.data,
+                              st.N.data, st.M.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp),
+                              np.int32(sc.global_radius), np.float32(scale), np.float64(pass_scale))
+    sc.kernels["gather_beam_points"](q, (_round(sc.npix),), (64,), e.ray_start.data, st.R.data,
+                                     st.N.data, st.M.data, acc.pairs.data, np.int32(sc.npix),
+                                     np.int32(e.camera.spp), np.float32(alpha),
+                                     np.int32(sc.global_radius))
+
+
+def band_classes(nb: int, hero: int) -> int:
+    """The beam gather's band classes (GCLASS): the largest divisor of nb / hero up to 9, so a
+    work item holds nb / GCLASS bands (9 of 81) and the bands of a photon lie in one class."""
+    step = nb // max(hero, 1)
+    return max(d for d in range(1, 10) if step % d == 0)
 
 
 @dataclass

@@ -45,6 +45,13 @@
 #define ESTIMATOR 2
 #endif
 
+/* The beam gather's band classes: class g holds the bands g + GCLASS k, k < NBC.  GCLASS
+ * divides NB / HERO_C, so the bands of one photon (h + j NB / HERO_C) are all of one class. */
+#ifndef GCLASS
+#define GCLASS 1
+#endif
+#define NBC (NB / GCLASS)
+
 /* Volume of the sphere (centre height z, radius R) between the planes slab.x (top) and slab.y
  * (bottom): integral of pi (R^2 - u^2) du over the part of [-R, R] inside the slab. */
 inline float estimator_volume(float z, float R, float2 slab) {
@@ -73,8 +80,8 @@ inline void query_cells(const GridParams gp, float3 x, float R, int L,
     grid_query_range(gp, x, R, c0, c1);
 #if ESTIMATOR == 2
     const float2 lz = layer_z[L];
-    c0->z = max(c0->z, grid_axis(lz.x - 1.0f, gp.lo_z, gp.inv_h, gp.nz));
-    c1->z = min(c1->z, grid_axis(lz.y + 1.0f, gp.lo_z, gp.inv_h, gp.nz));
+    c0->z = max(c0->z, grid_axis(lz.x - 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
+    c1->z = min(c1->z, grid_axis(lz.y + 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
 #endif
 }
 
@@ -221,7 +228,7 @@ __kernel void init_radius(const GridParams gp,
                 n += cell_start[row + (uint)(c1.x - c0.x) + 1u] - cell_start[row];
             }
         const float vol = (float)(c1.x - c0.x + 1) * (float)(c1.y - c0.y + 1) * (float)(c1.z - c0.z + 1)
-                          * gp.h * gp.h * gp.h;
+                          * gp.h * gp.h * gp.hz;
         float Rn;
         if (n == 0) Rn = 2.0f * R;
         else Rn = cbrt(3.0f * K * vol / (4.0f * PI_F * (float)n));
@@ -293,6 +300,85 @@ __kernel void count_within(const GridParams gp,
  * T(t*) is per band, from the optical depth at the piece's start plus mu_t of the piece's layer.
  * Phase: the photon's layer's g (the scattering happens at the photon). */
 
+#define PHI_LO (-0.5f)
+#define PHI_HI 1.5f
+inline float phi_key(float4 vz, float phi) {
+    return vz.x - clamp(phi, PHI_LO, PHI_HI) * (vz.x - vz.y);
+}
+
+/* The depth-key range of a piece's query (photon_keys).  A conforming piece of a virtual layer
+ * L accepts photons of L whose conformed depth tb_r.x - phi (tb_r.x - tb_r.y) lies in its depth
+ * range [za, zb] (padded: 1e-2 um plus 1e-5 of the magnitudes, far above the rounding of
+ * either side's phi, which share the subtraction top - z), so phi in [(tb_r.x - zb)/H,
+ * (tb_r.x - za)/H]; a layer at most 1e-2 um thick at the ray's column takes every phi.  Any
+ * other query keeps its z range, widened by the largest shift of a virtual photon's key from
+ * its z (vlay[NL].z) where it reaches the virtual layers' z span (vlay[NL].xy). */
+inline void query_depth_keys(__constant const float4* vlay, int L, float2 tb_r, float za, float zb,
+                             float* lo, float* hi) {
+#ifndef FLAT
+    const float4 vz = L >= 0 ? vlay[L] : (float4)(0.0f);
+    if (vz.z != 0.0f) {
+        const float H = tb_r.x - tb_r.y;
+        const float pad = 1e-2f + 1e-5f * (fabs(tb_r.x) + fabs(za) + fabs(H));
+        float pa = PHI_LO, pb = PHI_HI;
+        if (H > 1e-2f) {
+            pa = (tb_r.x - (fmax(za, zb) + pad)) / H;
+            pb = (tb_r.x - (fmin(za, zb) - pad)) / H;
+        }
+        const float kpad = 1e-3f + 1e-5f * (fabs(vz.x) + fabs(vz.y));
+        *hi = phi_key(vz, pa) + kpad;
+        *lo = phi_key(vz, pb) - kpad;
+        return;
+    }
+    const float4 span = vlay[NL];
+    if (*hi >= span.x && *lo <= span.y) { *lo -= span.z; *hi += span.z; }
+#endif
+}
+
+/* Top and bottom of each stored photon's layer at its own column (layer_slab), once per pass
+ * instead of once per (piece, candidate): the beam gather's layer-conforming depth reads it. */
+__kernel void photon_slabs(__constant const Params* P, __constant const float4* iface,
+                           __global const float* heights, __global const float4* spos_w,
+                           __global const float4* sdir_b, const uint n, __global float2* sslab)
+{
+    const uint j = get_global_id(0);
+    if (j >= n) return;
+#ifdef FLAT
+    sslab[j] = (float2)(0.0f);
+#else
+    sslab[j] = layer_slab(P, iface, heights, spos_w[j].xyz, (int)sdir_b[j].w >> 8);
+#endif
+}
+
+/* The grid's depth key of each photon.  The beam gather measures a photon's depth in its
+ * layer's own coordinates (its fraction phi of the layer at its column, placed at the same
+ * fraction at the eye ray's column), so a piece of a layer-conforming layer L accepts photons
+ * whose phi lies in a narrow range, while their z spans the waves of L's interfaces (tens of
+ * um against a piece a few um deep).  Photons of such a layer ("virtual" in vlay[L].z) are
+ * filed at the depth key  zr_top - phi (zr_top - zr_bot)  (vlay[L].xy: the mean heights of
+ * L's interfaces), every other photon at its z.  phi = (top - z) / max(top - bottom, 1e-3) as
+ * in gather_beam, from the same subtraction, clamped to [-1/2, 3/2] (the query clamps alike). */
+
+__kernel void photon_keys(__constant const Params* P, __constant const float4* iface,
+                          __global const float* heights, __constant const float4* vlay,
+                          __global const float4* pos_w, __global const float4* dir_b,
+                          const uint n, __global float4* kpos)
+{
+    const uint j = get_global_id(0);
+    if (j >= n) return;
+    const float4 p = pos_w[j];
+    float z = p.z;
+#ifndef FLAT
+    const int L = clamp((int)dir_b[j].w >> 8, 0, NL - 1);
+    const float4 vz = vlay[L];
+    if (vz.z != 0.0f) {
+        const float2 tb = layer_slab(P, iface, heights, p.xyz, L);
+        z = phi_key(vz, (tb.x - p.z) / fmax(tb.x - tb.y, 1e-3f));
+    }
+#endif
+    kpos[j] = (float4)(p.x, p.y, z, (float)((((int)dir_b[j].w) & 255) % GCLASS));
+}
+
 __kernel void gather_beam(const GridParams gp,
                           __constant const Params* P,       /* the volume: columns, sides */
                           __constant const float4* iface,
@@ -300,6 +386,8 @@ __kernel void gather_beam(const GridParams gp,
                           __global const uint* cell_start,
                           __global const float4* spos_w,
                           __global const float4* sdir_b,
+                          __global const float2* sslab,     /* photon_slabs: its layer at its column */
+                          __constant const float4* vlay,    /* [NL+1] depth keys (photon_keys) */
                           __global const float* sextra,     /* HERO_C-1 band weights per photon */
                           __global const float4* hgtab,     /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
                           __global const float4* optics,    /* [NL*NB]: ..., mut (um^-1) in .w */
@@ -309,23 +397,23 @@ __kernel void gather_beam(const GridParams gp,
                           __global const float4* geo,       /* per piece: (start, len), (dir, layer) */
                           __global float* pt_R,
                           __global float* pt_N,
-                          __global uint* pt_M,
+                          volatile __global uint* pt_M,     /* zeroed; photons found, all classes */
                           __global double* pix_acc,
-                          __global ulong* pix_pairs,
                           const int npix, const int spp,
-                          const float alpha, const int global_radius, const float radius_scale,
+                          const int global_radius, const float radius_scale,
                           const double pass_scale)
 {
     const int pix = get_global_id(0);
+    const int g = get_global_id(1);                 /* the band class: bands g + GCLASS k */
     if (pix >= npix) return;
-    float accp[NB];
-    for (int b = 0; b < NB; ++b) accp[b] = 0.0f;
-    ulong pairs = 0;
+    const uint cls0 = grid_cells_xyz(gp) * (uint)g; /* the class's grid */
+    float accp[NBC];
+    for (int k = 0; k < NBC; ++k) accp[k] = 0.0f;
     for (int s = 0; s < spp; ++s) {
         const uint r = (uint)pix * (uint)spp + (uint)s;
         const uint i0 = ray_start[r], i1 = ray_start[r + 1];
-        float od[NB];                   /* optical depth from the entry to the piece's start */
-        for (int b = 0; b < NB; ++b) od[b] = 0.0f;
+        float od[NBC];                  /* optical depth from the entry to the piece's start */
+        for (int k = 0; k < NBC; ++k) od[k] = 0.0f;
         for (uint i = i0; i < i1; ++i) {
             const float4 pp = pt_pos[i];
             const float R = global_radius ? pt_R[i] * radius_scale : pt_R[i];
@@ -334,8 +422,8 @@ __kernel void gather_beam(const GridParams gp,
              * depth: the ray drifts sideways with depth (outwards at the sides, ~0.1 per unit
              * depth), so a window placed at the sample point would reach past the side */
             const float Rwin = window_reach(R);
-            long acc[NB];
-            for (int b = 0; b < NB; ++b) acc[b] = 0;
+            long acc[NBC];
+            for (int k = 0; k < NBC; ++k) acc[k] = 0;
             uint M = 0;
             const uint k0 = pt_piece[i], k1 = pt_piece[i + 1];
             for (uint k = k0; k < k1; ++k) {
@@ -361,14 +449,20 @@ __kernel void gather_beam(const GridParams gp,
                     const float3 e = s0 + len * d;
                     const float Rp = R * (1.0f + GRID_R_PAD);
                     const float zp = vert ? 1e-3f + 1e-6f * fabs(s0.z) + zpad : Rp;
-                    const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, fmin(s0.z, e.z) - zp);
-                    const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, fmax(s0.z, e.z) + zp);
+                    float zlo = fmin(s0.z, e.z) - zp, zhi = fmax(s0.z, e.z) + zp;
+                    query_depth_keys(vlay, conform ? Lk : -1, tb_r, s0.z, e.z, &zlo, &zhi);
+                    const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, zlo);
+                    const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, zhi);
                     const int4 c0 = grid_coords(gp, lo), c1 = grid_coords(gp, hi);
                     __global const float4* mut_k = optics + Lk * NB;
                     for (int iz = c0.z; iz <= c1.z; ++iz)
                     for (int iy = c0.y; iy <= c1.y; ++iy) {
-                        const uint row = grid_cell_index(gp, c0.x, iy, iz);
+                        const uint row = grid_cell_index(gp, c0.x, iy, iz) + cls0;
                         const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
+#ifdef COUNT_CANDIDATES         /* bench/gather.py: the photons tested, in place of the pairs */
+                        M += je - jb;
+                        continue;
+#endif
                         for (uint j = jb; j < je; ++j) {
                             const float4 p = spos_w[j];
                             const float4 dd = sdir_b[j];
@@ -377,7 +471,7 @@ __kernel void gather_beam(const GridParams gp,
 #ifndef FLAT
                             if (conform) {
                                 if ((bl >> 8) != Lk) continue;
-                                const float2 tb_p = layer_slab(P, iface, heights, p.xyz, Lk);
+                                const float2 tb_p = sslab[j];
                                 if (tb_p.y > -1e29f && tb_r.y > -1e29f) {
                                     wl = (tb_r.x - tb_r.y) / fmax(tb_p.x - tb_p.y, 1e-3f);
                                     pz = tb_r.x - (tb_p.x - p.z) * wl;
@@ -411,38 +505,62 @@ __kernel void gather_beam(const GridParams gp,
                             const float cw = dot(dd.xyz, d);                   /* w_eye = -d */
                             const float wk = p.w * wax * wl * wwin;
                             __global const float4* hg = hgtab + (bl >> 8) * NB;
+#if HERO_C == NBC                       /* the photon carries every band of the class */
+                            const int kh = (bl & 255) / GCLASS;         /* its hero's place */
+                            for (int k = 0; k < NBC; ++k) {
+                                const int c = k >= kh ? k - kh : k - kh + NBC;
+                                const int b = g + GCLASS * k;
+#else
                             for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
                                 const int b = sw_band(bl & 255, c);
+                                const int k = b / GCLASS;
+#endif
                                 const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin;
                                 const float4 h = hg[b];
                                 const float q = h.x + h.y * cw;
                                 const float rq = native_rsqrt(q);
-                                const float T = exp_neg(od[b] + mut_k[b].w * ts);
-                                acc[b] = add_sat(acc[b], (long)fmin(h.z * rq * rq * rq * w * T * FIX, 9.0e18f));
+                                const float T = exp_neg(od[k] + mut_k[b].w * ts);
+                                acc[k] = add_sat(acc[k], (long)fmin(h.z * rq * rq * rq * w * T * FIX, 9.0e18f));
                             }
                             ++M;
                         }
                     }
                 }
-                for (int b = 0; b < NB; ++b) od[b] += optics[Lk * NB + b].w * len;
+                for (int k = 0; k < NBC; ++k) od[k] += optics[Lk * NB + g + GCLASS * k].w * len;
             }
             if (R > 0.0f) {
                 const float f = pp.w / (PI_F * R2) * INV_FIX;
-                for (int b = 0; b < NB; ++b)
-                    if (acc[b] != 0) accp[b] += f * (float)acc[b];
+                for (int k = 0; k < NBC; ++k)
+                    if (acc[k] != 0) accp[k] += f * (float)acc[k];
             }
-            /* progressive radius update, in 2-D: the disc's area shrinks as N grows */
-            if (!global_radius && M > 0u) {
-                const float N = pt_N[i];
-                const float Nn = N + alpha * (float)M;
-                pt_N[i] = Nn;
-                pt_R[i] = R * sqrt(Nn / (N + (float)M));
-            }
-            pt_M[i] = M;
-            pairs += M;
+            if (M > 0u) atomic_add(&pt_M[i], M);    /* integers: the classes' order is immaterial */
         }
     }
-    __global double* out = pix_acc + (size_t)pix * NB;
-    for (int b = 0; b < NB; ++b) out[b] += (double)accp[b] * pass_scale;
+    __global double* out = pix_acc + (size_t)pix * NB + g;
+    for (int k = 0; k < NBC; ++k) out[GCLASS * k] += (double)accp[k] * pass_scale;
+}
+
+/* After gather_beam: each point's photons found (all classes), its progressive radius update
+ * (in 2-D: the disc's area shrinks as N grows) and the pixel's pair count. */
+__kernel void gather_beam_points(__global const uint* ray_start, __global float* pt_R,
+                                 __global float* pt_N, __global const uint* pt_M,
+                                 __global ulong* pix_pairs, const int npix, const int spp,
+                                 const float alpha, const int global_radius)
+{
+    const int pix = get_global_id(0);
+    if (pix >= npix) return;
+    ulong pairs = 0;
+    const uint i0 = ray_start[(uint)pix * (uint)spp], i1 = ray_start[(uint)(pix + 1) * (uint)spp];
+    for (uint i = i0; i < i1; ++i) {
+        const uint M = pt_M[i];
+        if (!global_radius && M > 0u) {
+            const float R = pt_R[i];
+            const float N = pt_N[i];
+            const float Nn = N + alpha * (float)M;
+            pt_N[i] = Nn;
+            pt_R[i] = R * sqrt(Nn / (N + (float)M));
+        }
+        pairs += M;
+    }
     pix_pairs[pix] += pairs;
 }

@@ -1,7 +1,9 @@
 /* grid.h -- the device photon lookup grid (uniform grid, cells x-fastest).
  *
  * Built every pass by clppm/hashgrid.py (kernels in hashgrid.cl): a uniform
- * grid over the box [lo, lo + h*(nx,ny,nz)) with cubic cells of edge h (µm).
+ * grid over the box [lo, lo + (h*nx, h*ny, hz*nz)) with cells of edge h (µm) laterally and
+ * depth hz (cubic, hz = h, unless the caller asks for flat cells: the beam estimator's discs
+ * have no depth, and its eye-ray pieces are a few um deep against R of hundreds).
  * Cell (ix, iy, iz) has the linear index  c = ix + nx*(iy + ny*iz)  (x fastest):
  * a collision-free spatial hash, so a query visits every photon at most once
  * and needs no per-candidate cell check.  Points outside the box are clamped
@@ -69,10 +71,11 @@
 typedef struct {
     float lo_x, lo_y, lo_z;   /* box corner (µm) */
     float h;                  /* cell edge (µm) */
-    float inv_h;              /* 1/h as float32, the factor every kernel uses */
+    float inv_h;              /* 1/h as float32, the factor every kernel uses (x and y) */
     int nx, ny, nz;           /* cells per axis */
     uint ncells;              /* nx*ny*nz */
-    uint pad0, pad1, pad2;    /* 48 bytes in all */
+    float hz, inv_hz;         /* cell depth (um; = h unless the caller asks for flat cells) */
+    uint nclass;              /* > 1: that many grids, photon class in the key's .w; 48 bytes in all */
 } GridParams;
 
 #ifndef GRID_R_PAD
@@ -92,7 +95,7 @@ inline int4 grid_coords(const GridParams gp, const float3 p)
 {
     return (int4)(grid_axis(p.x, gp.lo_x, gp.inv_h, gp.nx),
                   grid_axis(p.y, gp.lo_y, gp.inv_h, gp.ny),
-                  grid_axis(p.z, gp.lo_z, gp.inv_h, gp.nz), 0);
+                  grid_axis(p.z, gp.lo_z, gp.inv_hz, gp.nz), 0);
 }
 
 inline uint grid_cell_index(const GridParams gp, const int ix, const int iy, const int iz)
@@ -104,6 +107,21 @@ inline uint grid_cell_of(const GridParams gp, const float3 p)
 {
     const int4 c = grid_coords(gp, p);
     return grid_cell_index(gp, c.x, c.y, c.z);
+}
+
+/* nx*ny*nz: the cells of one class */
+inline uint grid_cells_xyz(const GridParams gp)
+{
+    return (uint)gp.nx * (uint)gp.ny * (uint)gp.nz;
+}
+
+/* The sort key of a photon whose key position is p: its cell, and with classes (nclass > 1)
+ * its class p.w (a small integer as float) times the cells of a class, so that each class
+ * is a grid of its own in one cell_start. */
+inline uint grid_key_of(const GridParams gp, const float4 p)
+{
+    const uint c = grid_cell_of(gp, p.xyz);
+    return gp.nclass > 1u ? c + grid_cells_xyz(gp) * min((uint)p.w, gp.nclass - 1u) : c;
 }
 
 inline void grid_query_range(const GridParams gp, const float3 x, const float R,

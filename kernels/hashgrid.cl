@@ -34,7 +34,7 @@ __kernel void grid_count(const GridParams gp, const uint n,
 {
     const uint i = get_global_id(0);
     if (i >= n) return;
-    const uint c = grid_cell_of(gp, pos_w[i].xyz);
+    const uint c = grid_key_of(gp, pos_w[i]);
     rank[i] = atomic_inc(&counts[c]);
 }
 
@@ -49,7 +49,7 @@ __kernel void grid_scatter(const GridParams gp, const uint n,
 {
     const uint i = get_global_id(0);
     if (i >= n) return;
-    const uint c = grid_cell_of(gp, pos_w[i].xyz);  /* same function, same input: same cell */
+    const uint c = grid_key_of(gp, pos_w[i]);  /* same function, same input: same cell */
     perm[cell_start[c] + rank[i]] = (int)i;
 }
 
@@ -59,7 +59,7 @@ __kernel void grid_keys(const GridParams gp, const uint n,
 {
     const uint i = get_global_id(0);
     if (i >= n) return;
-    keys[i] = grid_cell_of(gp, pos_w[i].xyz);
+    keys[i] = grid_key_of(gp, pos_w[i]);
     idx[i] = (int)i;
 }
 

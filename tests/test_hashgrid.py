@@ -32,7 +32,8 @@ def host_cells(params, xyz):
     xyz = np.asarray(xyz, np.float32)
     lo = np.array([params["lo_x"], params["lo_y"], params["lo_z"]], np.float32)
     n = np.array([params["nx"], params["ny"], params["nz"]])
-    t = np.floor((xyz - lo) * np.float32(params["inv_h"]))
+    inv = np.array([params["inv_h"], params["inv_h"], params["inv_hz"]], np.float32)
+    t = np.floor((xyz - lo) * inv)
     c = np.clip(t, 0, n - 1).astype(np.int64)
     return c[:, 0] + n[0] * (c[:, 1] + n[1] * c[:, 2])
 
@@ -69,10 +70,10 @@ def check_gather(dev, grid, pos, dirb, qx, r):
     return g
 
 
-def run_case(dev, bufs, rng, xyz, qx, r, lo, hi, h, method, max_cells=hg.DEFAULT_MAX_CELLS):
+def run_case(dev, bufs, rng, xyz, qx, r, lo, hi, h, method, max_cells=hg.DEFAULT_MAX_CELLS, hz=None):
     pos, dirb = photons(rng, np.asarray(xyz, np.float32))
     grid = hg.build(dev, pos, dirb, pos.shape[0], lo, hi, h, method=method,
-                    max_cells=max_cells, buffers=bufs)
+                    max_cells=max_cells, buffers=bufs, hz=hz)
     check_grid(grid, pos, dirb)
     return check_gather(dev, grid, pos, dirb, np.asarray(qx, np.float32),
                         np.asarray(r, np.float32))
@@ -86,6 +87,20 @@ def test_random_in_box(dev, bufs, method):
     r = rng.uniform(1, 12, 2000)
     g = run_case(dev, bufs, rng, xyz, qx, r, [0, 0, 0], [100, 100, 100], 4.0, method)
     assert g.count.sum() > 50000  # the test is not vacuous
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_flat_cells(dev, bufs, method):
+    """Cells 0.7 um deep under 6 um wide (the beam's grid): the same photons as brute force,
+    and fewer candidates than cubic cells for the same queries."""
+    rng = np.random.default_rng(11)
+    xyz = rng.uniform(0, 60, (20000, 3))
+    qx = rng.uniform(0, 60, (2000, 3))
+    r = rng.uniform(1, 8, 2000)
+    g = run_case(dev, bufs, rng, xyz, qx, r, [0, 0, 0], [60, 60, 60], 6.0, method, hz=0.7)
+    assert g.count.sum() > 20000
+    c = run_case(dev, bufs, np.random.default_rng(11), xyz, qx, r, [0, 0, 0], [60, 60, 60], 6.0, method)
+    assert g.ncand.sum() < 0.8 * c.ncand.sum()
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -178,6 +193,16 @@ def test_device_resident_inputs(dev, bufs):
     check_grid(grid, pos, dirb)
     check_gather(dev, grid, pos, dirb, rng.uniform(0, 50, (300, 3)).astype(np.float32),
                  rng.uniform(1, 8, 300).astype(np.float32))
+
+
+def test_flat_cell_params():
+    p = hg.grid_params([0, 0, 0], [100, 50, 10], 4.0, hz=0.5)
+    assert (p["nx"], p["ny"], p["nz"]) == (25, 13, 20) and p["hz"] == np.float32(0.5)
+    capped = hg.grid_params([0, 0, 0], [100, 100, 100], 1.0, max_cells=10000, hz=0.25)
+    assert capped["ncells"] <= 10000
+    assert capped["hz"] == pytest.approx(capped["h"] / 4, rel=1e-6)     # grown by one factor
+    with pytest.raises(ValueError):
+        hg.grid_params([0, 0, 0], [1, 1, 1], 1.0, hz=0.0)
 
 
 def test_grid_params_and_cell_size():
