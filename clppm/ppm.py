@@ -185,6 +185,11 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     return sc
 
 
+def _local(sc, name: str, q) -> tuple[int]:
+    from .params import local
+    return local(sc.kernels[name], q, 64)
+
+
 def _round(n: int, wg: int = 64) -> int:
     return max(wg, (n + wg - 1) // wg * wg)
 
@@ -227,7 +232,7 @@ def calibrate(sc: Scene) -> Calibration:
     rmax = 4.0 * r_guess
     R = cla.zeros(q, npts, np.float32)
     grid = build_grid(sc, n, r_guess, rmax)
-    sc.kernels["init_radius"](q, (_round(npts),), (64,), grid.params, grid.cell_start.data,
+    sc.kernels["init_radius"](q, (_round(npts),), _local(sc, "init_radius", q), grid.params, grid.cell_start.data,
                               sc.eye.pt_pos.data, R.data, np.uint32(npts), np.float32(K),
                               np.float32(r_guess), np.float32(rmax), np.int32(4))
     stride = max(1, npts // 20000)
@@ -237,7 +242,7 @@ def calibrate(sc: Scene) -> Calibration:
     for _ in range(3):
         radii = R.get()
         grid = build_grid(sc, n, float(np.median(radii)), float(radii.max()))
-        sc.kernels["count_within"](q, (_round(ns),), (64,), grid.params, grid.cell_start.data,
+        sc.kernels["count_within"](q, (_round(ns),), _local(sc, "count_within", q), grid.params, grid.cell_start.data,
                                    grid.spos_w.data, grid.sdir_b.data, sc.eye.pt_pos.data,
                                    sc.eye.pt_dir.data, R.data, sc.layer_z, np.uint32(npts),
                                    np.uint32(stride), cnt.data)
@@ -303,12 +308,12 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
             np.float64(pass_scale))
     extra = grid.sextra.data if grid.sextra is not None else sc.pp.extra
     if sc.beam:
-        sc.kernels["gather_beam"](q, (_round(sc.npix),), (64,), grid.params, sc.pp.pbuf, sc.vbuf.iface,
+        sc.kernels["gather_beam"](q, (_round(sc.npix),), _local(sc, "gather_beam", q), grid.params, sc.pp.pbuf, sc.vbuf.iface,
                                   sc.vbuf.heights, grid.cell_start.data,
                                   grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
                                   e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, *tail)
     else:
-        sc.kernels["gather"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,
+        sc.kernels["gather"](q, (_round(sc.npix),), _local(sc, "gather", q), grid.params, grid.cell_start.data,
                              grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
                              e.ray_start.data, e.pt_pos.data, e.pt_dir.data, e.pt_piece.data,
                              e.pieces.data, e.pt_slab.data, sc.layer_z, *tail)

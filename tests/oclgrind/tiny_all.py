@@ -1,0 +1,18 @@
+"""The tiny scene through every kernel family on the first device (under oclgrind: its own)."""
+import sys
+import time
+
+from clppm import device, tiny
+
+t0 = time.perf_counter()
+dev = device.open_device(None)
+print(f"device: {dev.name} ({device.implementation(dev.device)})", flush=True)
+secs = tiny.run_all(dev, photons=int(sys.argv[1]) if len(sys.argv) > 1 else 2000)
+for k, v in secs.items():
+    print(f"  {v:7.1f} s  {k}", flush=True)
+ran = {r["kernel"] for r in device.launched(dev.device)}
+print("kernels launched: " + ", ".join(sorted(ran)))
+print(f"total {time.perf_counter() - t0:.1f} s")
+missing = set(tiny.KERNELS) - ran
+if missing:
+    sys.exit(f"the tiny scene did not launch {sorted(missing)}")
