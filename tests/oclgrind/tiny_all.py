@@ -1,4 +1,7 @@
-"""The tiny scene through every kernel family on the first device (under oclgrind: its own)."""
+"""The tiny scene through every kernel family on the first device (under oclgrind: its own).
+
+    python tests/oclgrind/tiny_all.py [PHOTONS [WxH]]
+"""
 import sys
 import time
 
@@ -7,7 +10,9 @@ from clppm import device, tiny
 t0 = time.perf_counter()
 dev = device.open_device(None)
 print(f"device: {dev.name} ({device.implementation(dev.device)})", flush=True)
-secs = tiny.run_all(dev, photons=int(sys.argv[1]) if len(sys.argv) > 1 else 2000)
+photons = int(sys.argv[1]) if len(sys.argv) > 1 else 2000
+res = tuple(int(v) for v in (sys.argv[2] if len(sys.argv) > 2 else "8x6").split("x"))
+secs = tiny.run_all(dev, photons=photons, resolution=res)
 for k, v in secs.items():
     print(f"  {v:7.1f} s  {k}", flush=True)
 ran = {r["kernel"] for r in device.launched(dev.device)}
