@@ -15,8 +15,10 @@ res = tuple(int(v) for v in (sys.argv[2] if len(sys.argv) > 2 else "8x6").split(
 secs = tiny.run_all(dev, photons=photons, resolution=res)
 for k, v in secs.items():
     print(f"  {v:7.1f} s  {k}", flush=True)
-ran = {r["kernel"] for r in device.launched(dev.device)}
-print("kernels launched: " + ", ".join(sorted(ran)))
+rows = device.launched(dev.device)
+ran = {r["kernel"] for r in rows}
+print("kernels launched (local size / work-group limit): "
+      + ", ".join(f"{r['kernel']} {r['local_size']}/{r['work_group_size']}" for r in rows))
 print(f"total {time.perf_counter() - t0:.1f} s")
 missing = set(tiny.KERNELS) - ran
 if missing:
