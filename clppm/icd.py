@@ -31,6 +31,9 @@ SYSTEM_VENDORS = "/etc/OpenCL/vendors"
 
 def intel_cpu_library() -> str | None:
     """Path of the pip-installed ``libintelocl.so`` in this environment, or None."""
+    p = os.path.join(sys.prefix, "lib", "libintelocl.so")    # where pip puts it: no metadata scan
+    if os.path.isfile(p):
+        return os.path.realpath(p)
     try:
         from importlib import metadata
         files = metadata.files("intel-opencl-rt") or []
@@ -41,8 +44,7 @@ def intel_cpu_library() -> str | None:
             p = os.path.realpath(f.locate())
             if os.path.isfile(p):
                 return p
-    p = os.path.join(sys.prefix, "lib", "libintelocl.so")
-    return os.path.realpath(p) if os.path.isfile(p) else None
+    return None
 
 
 def _icd_entries(folder: str) -> dict[str, str]:
