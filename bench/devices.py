@@ -1,19 +1,24 @@
-"""Run bench/render.py on every OpenCL device found; one JSON per device, one markdown table.
+"""Throughput of clppm's kernels on every OpenCL device found, in one run; one markdown table.
 
-Each device runs in its own process (its own peak-memory figure, no shared program caches).
+Per device (each in its own process, best of N after a warm-up): the photon pass (photons/s on
+the MCML slab and on the forearm), the grid build (photons sorted per second), the grid gather
+(pairs/s and candidates tested per pair, random photons), the renderer's gather (pairs/s in a
+render), the path tracer (paths/s) and a fixed small forearm render's seconds per pass.
 
-    python bench/devices.py [--quick] [--out out/bench] [--only SUBSTRING] [-- extra render.py args]
+    python bench/devices.py [--out out/bench] [--only SUBSTRING] [--repeat 3]
+    python bench/devices.py --render [...]     # the former mode: bench/render.py on every device
 
-Writes ``OUT/render-<device>.json`` (by bench/render.py) and ``OUT/render.md`` (all devices),
-and prints the table.  ``--list`` only lists the devices.
+Writes ``OUT/devices.json`` and ``OUT/devices.md`` and prints the table.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
+import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
@@ -21,7 +26,8 @@ sys.path.insert(0, HERE)
 import render as bench_render  # noqa: E402  (bench/render.py)
 
 
-def main(argv=None) -> int:
+def render_bench(argv=None) -> int:
+    """The former main: bench/render.py on every device (``--render``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = []
     if "--" in argv:
@@ -79,6 +85,148 @@ def main(argv=None) -> int:
             f.write(md)
         print("\n" + md)
         print(f"wrote {path}")
+    return rc
+
+
+
+
+
+SLAB = "mua=10,mus=90,g=0.75,n=1.4,d=0.02"
+COLS = [("photons/s slab", "photon_slab", "{:.3g}"), ("photons/s forearm", "photon_forearm", "{:.3g}"),
+        ("grid build photons/s", "grid_build", "{:.3g}"), ("grid gather pairs/s", "grid_pairs_s", "{:.3g}"),
+        ("candidates/pair", "grid_cand_per_pair", "{:.2f}"), ("render gather pairs/s", "render_pairs_s", "{:.3g}"),
+        ("PT paths/s", "pt_paths_s", "{:.3g}"), ("render s/pass", "render_s_per_pass", "{:.2f}")]
+
+
+def _best(fn, repeat: int) -> float:
+    fn()                                                  # warm-up: builds, caches, allocations
+    ts = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return min(ts)
+
+
+def measure(spec: str, repeat: int = 3) -> dict:
+    """The figures for one device (run in a worker process)."""
+    import numpy as np
+    from clppm import config, device, hashgrid, pathtracer, progressive, tiny, transport, volume
+    dev = device.open_device(spec)
+    out = {"device": device.describe(dev.device)}
+    for key, cfg, n in (("photon_slab", config.slab_config(SLAB), 200_000),
+                        ("photon_forearm", tiny.tiny_config(size_mm=10.0, resolution=(80, 60),
+                                                            step_nm=5.0), 100_000)):
+        pp = transport.PhotonPass(dev, volume.build(cfg), cfg)
+        out[key] = n / _best(lambda: pp.trace(n), repeat)
+    rng = np.random.default_rng(1)
+    n, m, h = 1_000_000, 20_000, 0.02
+    pos = np.zeros((n, 4), np.float32)
+    pos[:, :3] = rng.random((n, 3), np.float32)
+    pos[:, 3] = 1.0
+    dirb = np.zeros((n, 4), np.float32)
+    dirb[:, 2] = -1.0
+    import pyopencl.array as cla
+    pos_d, dir_d = cla.to_device(dev.queue, pos), cla.to_device(dev.queue, dirb)
+    bufs = hashgrid.default_buffers(dev)
+
+    def build():
+        g = hashgrid.build(dev, pos_d, dir_d, n, np.zeros(3), np.ones(3), h, buffers=bufs)
+        dev.queue.finish()
+        return g
+    out["grid_build"] = n / _best(build, repeat)
+    g = build()
+    qs = rng.random((m, 3)).astype(np.float32)
+    rs = np.full(m, h, np.float32)
+    res = {}
+
+    def gather():
+        res["r"] = hashgrid.gather_counts(dev, g, qs, rs)
+    t = _best(gather, repeat)
+    pairs = int(res["r"].count.sum())
+    out["grid_pairs_s"] = pairs / t
+    out["grid_cand_per_pair"] = float(res["r"].ncand.sum()) / max(pairs, 1)
+    cfg = tiny.tiny_config(size_mm=10.0, resolution=(80, 60), step_nm=5.0, photons=100_000)
+    cfg = config.override(cfg, "render", "passes", 4)
+    progressive.render(config.override(cfg, "render", "passes", 1), dev=dev)     # warm-up
+    r = progressive.render(cfg, dev=dev).report
+    out["render_s_per_pass"] = sum(r["seconds_per_pass"].values())
+    out["render_seconds_per_pass"] = r["seconds_per_pass"]
+    out["render_pairs_s"] = r["gather_pairs"] / max(r["seconds"]["gather"], 1e-9)
+    flat = tiny.tiny_config("forearm_flat.toml", size_mm=10.0, resolution=(80, 60), step_nm=5.0)
+    pathtracer.render_pt(flat, passes=1, dev=dev)                                 # warm-up
+    out["pt_paths_s"] = pathtracer.render_pt(flat, passes=2, dev=dev).report["paths_per_second"]
+    out["kernels"] = device.launched(dev.device)
+    return out
+
+
+def table(rows: list[dict]) -> str:
+    head = "| device | implementation | version | " + " | ".join(c[0] for c in COLS) + " |"
+    lines = [head, "|" + "---|" * (3 + len(COLS))]
+    for r in rows:
+        d = r["device"]
+        m = re.search(r"PoCL (\S+)", d["platform_version"])
+        ver = f"PoCL {m.group(1)}" if m else d["driver_version"]
+        lines.append(f"| {d['name']} | {d['implementation']} | {ver} | "
+                     + " | ".join(f.format(r[k]) for _, k, f in COLS) + " |")
+    return "\n".join(lines)
+
+
+def kernel_table(rows: list[dict]) -> str:
+    lines = ["| kernel | " + " | ".join(f"{r['device']['implementation']}: private B / WG limit / local"
+                                          for r in rows) + " |", "|" + "---|" * (1 + len(rows))]
+    names = sorted({k["kernel"] for r in rows for k in r["kernels"]})
+    for n in names:
+        cells = []
+        for r in rows:
+            k = next((k for k in r["kernels"] if k["kernel"] == n), None)
+            cells.append(f"{k['private_mem_bytes']} / {k['work_group_size']} / {k['local_size']}" if k else "-")
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if "--render" in argv:
+        argv.remove("--render")
+        return render_bench(argv)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default=os.path.join("out", "bench"))
+    ap.add_argument("--only", help="only devices whose implementation or name contains this")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--worker-out", help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.worker:
+        with open(a.worker_out, "w") as f:
+            json.dump(measure(a.worker, a.repeat), f)
+        return 0
+    from clppm.device import compiler_problem, implementation, list_devices
+    rows, rc = [], 0
+    for ip, idev, _, d in list_devices():
+        tag = f"{implementation(d)} {d.name.strip()}"
+        if (a.only and a.only.lower() not in tag.lower()) or compiler_problem(d) is not None:
+            continue
+        print(f"=== {ip}:{idev} {tag}", flush=True)
+        os.makedirs(a.out, exist_ok=True)
+        wout = os.path.join(a.out, f"devices-{ip}-{idev}.json")
+        r = subprocess.run([sys.executable, __file__, "--worker", f"{ip}:{idev}", "--repeat", str(a.repeat),
+                            "--worker-out", wout], capture_output=True, text=True)
+        if r.returncode != 0:
+            print(f"failed on {tag}:\n{r.stderr[-2000:]}", file=sys.stderr)
+            rc = 1
+            continue
+        with open(wout) as f:
+            rows.append(json.load(f))
+    if not rows:
+        return rc or 3
+    os.makedirs(a.out, exist_ok=True)
+    md = table(rows) + "\n\n" + kernel_table(rows) + "\n"
+    with open(os.path.join(a.out, "devices.json"), "w") as f:
+        json.dump(rows, f, indent=1)
+    with open(os.path.join(a.out, "devices.md"), "w") as f:
+        f.write(md)
+    print(md)
     return rc
 
 

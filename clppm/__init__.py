@@ -1,6 +1,11 @@
 """clppm: spectral progressive photon mapping of a layered voxel skin model in OpenCL."""
 __version__ = "0.1.0"
 
+# Before anything queries OpenCL platforms: let the ICD loader see pip-installed drivers.
+from . import icd as _icd  # noqa: E402
+
+_icd.register()
+
 
 def render(config, integrator="ppm", **kwargs):
     """Render a config (a path, a shipped config's name, or a validated dict); returns a

@@ -59,8 +59,9 @@ class _Parser(argparse.ArgumentParser):
 def _add_device(p):
     """--device, -q and -v: every command has them (commands in other modules call this too)."""
     p.add_argument("--device", default=None,
-                   help="OpenCL device: 'P:D' as `clppm devices` lists, or part of its name "
-                        "(default: $PYOPENCL_CTX, else the first GPU, else the first device)")
+                   help="OpenCL device: 'P:D' as `clppm devices` lists, an implementation (pocl, "
+                        "intel, nvidia, ...) or part of its platform or device name (default: "
+                        "$PYOPENCL_CTX, else the first GPU, else the preferred CPU implementation)")
     if "-q" not in p._option_string_actions:
         p.add_argument("-q", "--quiet", action="store_true", help="no progress or status lines")
     p.add_argument("-v", "--verbose", action="store_true",
@@ -95,12 +96,15 @@ def cmd_devices(a) -> int:
         return 3
     for ip, idev, plat, dev in devs:
         d = describe(dev)
-        print(f"{ip}:{idev}  {d['name']}  [{d['platform']}; {d['type']}; {d['compute_units']} CUs; "
+        print(f"{ip}:{idev}  {d['name']}  [{d['implementation']}: {d['platform']} {d['platform_version']}; "
+              f"{d['type']}; {d['compute_units']} CUs; "
               f"{d['global_mem_bytes'] / 2**30:.1f} GiB, max alloc {d['max_alloc_bytes'] / 2**30:.1f} GiB; "
               f"fp64 {'yes' if d['fp64'] else 'no'}; int64 atomics {'yes' if d['int64_atomics'] else 'no'}]")
         why = compiler_problem(dev)
-        if why:
-            print(f"      not usable: {why}")
+        print(f"      not usable: {why}" if why else "      compiler check: builds kernels")
+        if a.kernels and not why:
+            from .tiny import print_kernel_report
+            print_kernel_report(f"{ip}:{idev}")
     return 0
 
 
@@ -442,6 +446,8 @@ def _parser_render(sub) -> None:
 def _parser_simple(sub) -> None:
     p = sub.add_parser("devices", help="list OpenCL platforms and devices (P:D for --device)")
     _add_device(p)
+    p.add_argument("--kernels", action="store_true", help="run a tiny scene through every kernel "
+                   "on each usable device; print each kernel's private memory, work-group limit and local size")
     p.set_defaults(func=cmd_devices)
 
     p = sub.add_parser("config", help="print the defaults, a config as clppm reads it, a shipped "

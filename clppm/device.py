@@ -62,6 +62,9 @@ def describe(device) -> dict:
         "name": device.name.strip(),
         "platform": device.platform.name.strip(),
         "version": device.version.strip(),
+        "implementation": implementation(device),
+        "platform_version": device.platform.version.strip(),
+        "driver_version": device.driver_version.strip(),
         "type": cl.device_type.to_string(device.type),
         "compute_units": int(device.max_compute_units),
         "global_mem_bytes": int(device.global_mem_size),
@@ -71,13 +74,63 @@ def describe(device) -> dict:
     }
 
 
+# Implementations by the short names ``--device`` takes: a (platform name, platform version)
+# substring identifies each.  Users see these names in ``clppm devices``.
+IMPLEMENTATIONS = (("pocl", ("portable computing language", "pocl")),
+                   ("intel", ("intel(r) opencl", "intel")),
+                   ("nvidia", ("nvidia",)), ("amd", ("amd accelerated", "amd")),
+                   ("rusticl", ("rusticl",)), ("oclgrind", ("oclgrind",)))
+
+# Default choice among devices that compile: GPUs first, then CPU implementations in this order.
+# It follows docs/devices.md's measured throughput of clppm's kernels (bench/devices.py) and is
+# meant to be revisited whenever a kernel's speed on one implementation changes.
+CPU_PREFERENCE = ("pocl", "intel")
+
+
+def implementation(device) -> str:
+    """Short name of ``device``'s OpenCL implementation ("pocl", "intel", ...), else its platform."""
+    plat = f"{device.platform.name} {device.platform.version}".lower()
+    for short, keys in IMPLEMENTATIONS:
+        if any(k in plat for k in keys):
+            return short
+    return device.platform.name.strip().lower()
+
+
+def _rank(entry) -> tuple:
+    cl = _cl()
+    dev = entry[3]
+    impl = implementation(dev)
+    pref = CPU_PREFERENCE.index(impl) if impl in CPU_PREFERENCE else len(CPU_PREFERENCE)
+    return (0 if dev.type & cl.device_type.GPU else 1, pref, entry[0], entry[1])
+
+
+def _first_compiling(cands: list, what: str):
+    cands = sorted(cands, key=_rank)
+    for cand in cands:
+        if compiler_problem(cand[3]) is None:
+            return cand[3]
+    dev = cands[0][3]
+    raise DeviceError(f"no OpenCL device {what}can compile kernels; device '{dev.name.strip()}': "
+                      f"{compiler_problem(dev)}")
+
+
+def _by_name(devs: list, spec: str) -> list:
+    """Devices of implementation/platform ``spec``, else those whose device name contains it."""
+    s = spec.lower()
+    impl = [d for d in devs if implementation(d[3]) == s or s in d[3].platform.name.lower()]
+    return impl or [d for d in devs if s in d[3].name.lower()]
+
+
 def select_device(spec: str | None = None):
     """Pick a device.
 
     ``spec`` is ``"P:D"`` (platform and device index, as ``clppm devices``
-    prints), ``"P"``, or a case-insensitive substring of the device name.
-    Without ``spec``, ``PYOPENCL_CTX`` is honoured, else the first GPU, else
-    the first device.
+    prints), ``"P"``, an implementation or platform name (``pocl``, ``intel``,
+    ``nvidia``: case-insensitive substring of the platform name), or a
+    substring of the device name.  Without ``spec``, ``PYOPENCL_CTX`` (same
+    forms) is honoured, else the first device that compiles kernels, GPUs first
+    and then CPU implementations in :data:`CPU_PREFERENCE` order.  Among several
+    devices a name matches, the same order decides.
     """
     devs = list_devices()
     if not devs:
@@ -85,15 +138,7 @@ def select_device(spec: str | None = None):
     if spec is None:
         spec = os.environ.get("PYOPENCL_CTX") or None
     if spec is None:
-        cl = _cl()
-        gpus = [d for d in devs if d[3].type & cl.device_type.GPU]
-        others = [d for d in devs if not d[3].type & cl.device_type.GPU]
-        for cand in gpus + others:
-            if compiler_problem(cand[3]) is None:
-                return cand[3]
-        dev = (gpus or devs)[0][3]
-        raise DeviceError(f"no OpenCL device can compile kernels; device '{dev.name.strip()}': "
-                          f"{compiler_problem(dev)}")
+        return _first_compiling(devs, "")
     spec = str(spec).strip()
     parts = spec.split(":")
     if all(p.isdigit() for p in parts if p != "") and parts[0] != "":
@@ -104,10 +149,13 @@ def select_device(spec: str | None = None):
                 return dev
         raise DeviceError(f"device '{spec}' not found; `clppm devices` lists "
                           + ", ".join(f"{a}:{b}" for a, b, _, _ in devs))
-    for _, _, _, dev in devs:
-        if spec.lower() in dev.name.lower():
-            return dev
-    raise DeviceError(f"no device name contains '{spec}'; `clppm devices` lists them")
+    cands = _by_name(devs, spec)
+    if not cands:
+        raise DeviceError(f"no device name contains '{spec}'; `clppm devices` lists them")
+    try:
+        return _first_compiling(cands, f"matching '{spec}' ")
+    except DeviceError:
+        return sorted(cands, key=_rank)[0][3]        # its build error names the device later
 
 
 _PROBE_SRC = "__kernel void clppm_probe(__global float* a) { a[get_global_id(0)] = 1.0f; }"
@@ -147,6 +195,55 @@ def compiler_problem(dev) -> str | None:
     if key not in _PROBED:
         _PROBED[key] = _probe(dev)
     return _PROBED[key]
+
+
+# Launches record here, per (device, kernel), what clppm asked of the device: the local size it
+# used and the kernel's limits (clppm devices --kernels prints them).
+LAUNCHED: dict[tuple, dict] = {}
+
+
+def kernel_limits(kernel, device) -> dict:
+    """The kernel's work-group size limit, preferred multiple and private bytes per work item."""
+    cl = _cl()
+    kwi = cl.kernel_work_group_info
+
+    def q(what):
+        try:
+            return int(kernel.get_work_group_info(what, device))
+        except cl.Error:                       # not reported (e.g. an OpenCL 1.0 driver)
+            return None
+    return {"work_group_size": q(kwi.WORK_GROUP_SIZE),
+            "preferred_multiple": q(kwi.PREFERRED_WORK_GROUP_SIZE_MULTIPLE),
+            "private_mem_bytes": q(kwi.PRIVATE_MEM_SIZE),
+            "local_mem_bytes": q(kwi.LOCAL_MEM_SIZE)}
+
+
+def local_size(kernel, device, want: int = 64) -> int:
+    """The local size to launch ``kernel`` with: ``want`` (a power of two; global sizes are
+    rounded up to it), halved until the kernel's queried work-group limit and the device's first
+    work-item dimension admit it.  Cached per kernel object."""
+    key = (_device_key(device), kernel.function_name, kernel.int_ptr)
+    hit = LAUNCHED.get(key)
+    if hit is not None and hit["asked"] == want:
+        return hit["local_size"]
+    lim = kernel_limits(kernel, device)
+    cap = min(lim["work_group_size"] or want, int(device.max_work_item_sizes[0]),
+              int(device.max_work_group_size))
+    ls = int(want)
+    while ls > max(1, cap):
+        ls //= 2
+    LAUNCHED[key] = {**lim, "asked": int(want), "local_size": ls}
+    return ls
+
+
+def launched(device) -> list[dict]:
+    """What :func:`local_size` recorded on ``device``, one row per kernel name."""
+    k = _device_key(device)
+    rows = {}
+    for (dk, name, _), v in LAUNCHED.items():
+        if dk == k:
+            rows[name] = {"kernel": name, **v}
+    return [rows[n] for n in sorted(rows)]
 
 
 @dataclass

@@ -180,7 +180,7 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     common = [pbuf, *vbuf.args(), ebuf, rbuf]
     if geometry is None:
         geometry = rc["estimator"] == "beam"
-    knl(q, (P_.global_size(nrays),), (P_.WG,), *common, np.int32(0), npts_a.data, npcs_a.data,
+    knl(q, (P_.global_size(nrays),), P_.local(knl, q), *common, np.int32(0), npts_a.data, npcs_a.data,
         npts_a.data, npcs_a.data, dummy4, dummy4, dummy4, dummy4, dummyf, dummyf, dummyf, dummy4)
     counts = npts_a.get()[:nrays].copy()
     npoints = int(counts.astype(np.int64).sum())
@@ -201,7 +201,7 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     ray_hit = cla.empty(q, nrays, np.float32)
     pt_slab = cla.empty(q, max(npoints, 1), cltypes.float2)
     geo = cla.empty(q, 2 * max(npieces, 1), cltypes.float4) if geometry else None
-    knl(q, (P_.global_size(nrays),), (P_.WG,), *common, np.int32(2 if geometry else 1), npts_a.data,
+    knl(q, (P_.global_size(nrays),), P_.local(knl, q), *common, np.int32(2 if geometry else 1), npts_a.data,
         npcs_a.data, npts_a.data, npcs_a.data, pt_pos.data, pt_dir.data, pt_piece.data, pieces.data,
         ray_spec.data, ray_hit.data, pt_slab.data, geo.data if geometry else dummy4)
     cl.enqueue_copy(q, pt_piece.data, np.array([npieces], np.uint32), dst_offset=4 * npoints)

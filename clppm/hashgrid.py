@@ -65,6 +65,11 @@ def _gsize(n: int) -> tuple[int]:
     return (max(1, -(-int(n) // _WG)) * _WG,)
 
 
+def _local(kernel, q) -> tuple[int]:
+    from .params import local
+    return local(kernel, q, _WG)
+
+
 # --------------------------------------------------------------------------- params
 
 def _cells_for(extent: np.ndarray, h: float) -> np.ndarray:
@@ -341,32 +346,32 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
         rank = bufs.get("rank", n, np.uint32)
         cell_start.fill(0)
         stage("clear")
-        k["grid_count"](q, _gsize(n), (_WG,), params, un, kpos, cell_start.data, rank.data)
+        k["grid_count"](q, _gsize(n), _local(k["grid_count"], q), params, un, kpos, cell_start.data, rank.data)
         stage("count")
         # in place: counts -> exclusive prefix sums, cell_start[ncells] == n
         _scan(dev)(cell_start, allocator=bufs.pool)
         stage("scan")
         perm = bufs.get("idx", n, np.int32)
-        k["grid_scatter"](q, _gsize(n), (_WG,), params, un, kpos,
+        k["grid_scatter"](q, _gsize(n), _local(k["grid_scatter"], q), params, un, kpos,
                           cell_start.data, rank.data, perm.data)
         stage("scatter")
-        k["grid_permute"](q, _gsize(n), (_WG,), un, perm.data, pos, dirb,
+        k["grid_permute"](q, _gsize(n), _local(k["grid_permute"], q), un, perm.data, pos, dirb,
                           spos.data, sdir.data)
         stage("permute")
         sorted_idx = perm
     elif method == "radix":
         keys = bufs.get("keys", n, np.uint32)
         idx = bufs.get("idx", n, np.int32)
-        k["grid_keys"](q, _gsize(n), (_WG,), params, un, kpos, keys.data, idx.data)
+        k["grid_keys"](q, _gsize(n), _local(k["grid_keys"], q), params, un, kpos, keys.data, idx.data)
         stage("keys")
         key_bits = max(1, (ncells - 1).bit_length())
         (skeys, sidx), _ = _radix(dev)(keys, idx, key_bits=key_bits, queue=q,
                                        allocator=bufs.pool)
         stage("sort")
-        k["grid_permute"](q, _gsize(n), (_WG,), un, sidx.data, pos, dirb,
+        k["grid_permute"](q, _gsize(n), _local(k["grid_permute"], q), un, sidx.data, pos, dirb,
                           spos.data, sdir.data)
         stage("permute")
-        k["grid_starts_from_keys"](q, _gsize(n + 1), (_WG,), un, np.uint32(ncells),
+        k["grid_starts_from_keys"](q, _gsize(n + 1), _local(k["grid_starts_from_keys"], q), un, np.uint32(ncells),
                                    skeys.data, cell_start.data)
         stage("starts")
         sorted_idx = sidx
@@ -376,7 +381,7 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     if extra is not None and extra_stride > 0:
         sextra = bufs.get("sextra", max(n, 1) * extra_stride, np.float32)
         if n:
-            k["grid_permute_extra"](q, _gsize(n), (_WG,), un, np.uint32(extra_stride), sorted_idx.data,
+            k["grid_permute_extra"](q, _gsize(n), _local(k["grid_permute_extra"], q), un, np.uint32(extra_stride), sorted_idx.data,
                                     extra, sextra.data)
     return Grid(params=params, n=n, cell_start=cell_start, spos_w=spos, sdir_b=sdir,
                 method=method, sextra=sextra)
@@ -421,7 +426,8 @@ def _gather(dev: Device, which: str, head_args: list, queries, radii, nb: int,
     if with_cand:
         ncand = cla.empty(q, m, np.uint32)
         args.append(ncand.data)
-    _kernels(dev, nb)[which](q, _gsize(m), (_WG,), *args)
+    knl = _kernels(dev, nb)[which]
+    knl(q, _gsize(m), _local(knl, q), *args)
     res = GatherResult(count.get(), wsum.get(), band.get().reshape(m, nb),
                        ncand.get() if with_cand else None)
     return res

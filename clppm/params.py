@@ -12,6 +12,12 @@ WG = 64   # fixed work-group size: PoCL compiles a kernel once per work-group si
 def global_size(n: int, wg: int = WG) -> int:
     return max(wg, (int(n) + wg - 1) // wg * wg)
 
+
+def local(kernel, queue, wg: int = WG) -> tuple[int]:
+    """Local size for ``kernel``: ``wg``, or the largest power of two below the queried limit."""
+    from .device import local_size
+    return (local_size(kernel, queue.device, wg),)
+
 _FIELDS = [
     ("x0", "f4"), ("y0", "f4"), ("dx", "f4"), ("dy", "f4"),
     ("xw", "f4"), ("yw", "f4"),

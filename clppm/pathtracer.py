@@ -208,7 +208,7 @@ class PathTracer:
             self.e["pix_offset"], self.e["count"] = done, n
             cl.enqueue_copy(q, self.ebuf, self.e)
             t0 = time.perf_counter()
-            self.kernel(q, (P_.global_size(n),), (P_.WG,), self.pbuf, *self.vbuf.args(), self.ebuf,
+            self.kernel(q, (P_.global_size(n),), P_.local(self.kernel, q), self.pbuf, *self.vbuf.args(), self.ebuf,
                         self.chain, self.pix_sum.data, self.pix_sq.data, self.pix_stats.data,
                         self.pix_bins.data, self.smooth, self.pix_mnee.data)
             q.finish()
@@ -474,7 +474,8 @@ def connect_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, 
     obuf = cl.Buffer(dev.ctx, mf.READ_WRITE, out.nbytes)
     qbuf = cl.Buffer(dev.ctx, mf.READ_WRITE, pts.nbytes)
     light = np.array([*light_um, 0.0], np.float32).view(cltypes.float4)[0]
-    cl.Kernel(prg, "t_connect")(dev.queue, (P_.global_size(n),), (P_.WG,), pbuf, *vb.args(), chain,
+    knl = cl.Kernel(prg, "t_connect")
+    knl(dev.queue, (P_.global_size(n),), P_.local(knl, dev.queue), pbuf, *vb.args(), chain,
                                 light, np.int32(mode), np.uint32(n), vbuf, obuf, qbuf)
     cl.enqueue_copy(dev.queue, out, obuf)
     cl.enqueue_copy(dev.queue, pts, qbuf)

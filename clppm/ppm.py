@@ -192,6 +192,11 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     return sc
 
 
+def _local(sc, name: str, q) -> tuple[int]:
+    from .params import local
+    return local(sc.kernels[name], q, 64)
+
+
 def _round(n: int, wg: int = 64) -> int:
     return max(wg, (n + wg - 1) // wg * wg)
 
@@ -226,7 +231,7 @@ def photon_keys(sc: Scene, n: int):
     import pyopencl.cltypes as cltypes
     k = sc.gbufs.get("kpos", max(n, 1), cltypes.float4)
     if n:
-        sc.kernels["photon_keys"](sc.dev.queue, (_round(n),), (64,), sc.pp.pbuf, sc.vbuf.iface,
+        sc.kernels["photon_keys"](sc.dev.queue, (_round(n),), _local(sc, "photon_keys", sc.dev.queue), sc.pp.pbuf, sc.vbuf.iface,
                                   sc.vbuf.heights, sc.vlay, sc.pp.pos_w, sc.pp.dir_b,
                                   np.uint32(n), k.data)
     return k
@@ -268,7 +273,7 @@ def photon_slabs(sc: Scene, grid: hashgrid.Grid):
     import pyopencl.cltypes as cltypes
     sl = sc.gbufs.get("sslab", max(grid.n, 1), cltypes.float2)
     if grid.n:
-        sc.kernels["photon_slabs"](sc.dev.queue, (_round(grid.n),), (64,), sc.pp.pbuf, sc.vbuf.iface,
+        sc.kernels["photon_slabs"](sc.dev.queue, (_round(grid.n),), _local(sc, "photon_slabs", sc.dev.queue), sc.pp.pbuf, sc.vbuf.iface,
                                    sc.vbuf.heights, grid.spos_w.data, grid.sdir_b.data,
                                    np.uint32(grid.n), sl.data)
     return sl
@@ -301,7 +306,7 @@ def calibrate(sc: Scene) -> Calibration:
     rmax = 4.0 * r_guess
     R = cla.zeros(q, npts, np.float32)
     grid = build_grid(sc, n, r_guess, rmax)
-    sc.kernels["init_radius"](q, (_round(npts),), (64,), grid.params, grid.cell_start.data,
+    sc.kernels["init_radius"](q, (_round(npts),), _local(sc, "init_radius", q), grid.params, grid.cell_start.data,
                               sc.eye.pt_pos.data, R.data, np.uint32(npts), np.float32(K),
                               np.float32(r_guess), np.float32(rmax), np.int32(4))
     stride = max(1, npts // 20000)
@@ -311,7 +316,7 @@ def calibrate(sc: Scene) -> Calibration:
     for _ in range(3):
         radii = R.get()
         grid = build_grid(sc, n, float(np.median(radii)), float(radii.max()))
-        sc.kernels["count_within"](q, (_round(ns),), (64,), grid.params, grid.cell_start.data,
+        sc.kernels["count_within"](q, (_round(ns),), _local(sc, "count_within", q), grid.params, grid.cell_start.data,
                                    grid.spos_w.data, grid.sdir_b.data, sc.eye.pt_pos.data,
                                    sc.eye.pt_dir.data, R.data, sc.layer_z, np.uint32(npts),
                                    np.uint32(stride), cnt.data)
@@ -381,7 +386,7 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
     if sc.beam:
         gather_beam(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
     else:
-        sc.kernels["gather"](q, (_round(sc.npix),), (64,), grid.params, grid.cell_start.data,
+        sc.kernels["gather"](q, (_round(sc.npix),), _local(sc, "gather", q), grid.params, grid.cell_start.data,
                              grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
                              e.ray_start.data, e.pt_pos.data, e.pt_dir.data, e.pt_piece.data,
                              e.pieces.data, e.pt_slab.data, sc.layer_z, *tail)
@@ -397,13 +402,13 @@ def gather_beam(sc: Scene, grid: hashgrid.Grid, sslab, extra, st: PointState, ac
     point's count, radius update and the pixels' pair counts (gather_beam_points)."""
     q, e = sc.dev.queue, sc.eye
     st.M.fill(0)
-    sc.kernels["gather_beam"](q, (_round(sc.npix), sc.gclass), (64, 1), grid.params, sc.pp.pbuf,
+    sc.kernels["gather_beam"](q, (_round(sc.npix), sc.gclass), _local(sc, "gather_beam", q) + (1,), grid.params, sc.pp.pbuf,
                               sc.vbuf.iface, sc.vbuf.heights, grid.cell_start.data, grid.spos_w.data,
                               grid.sdir_b.data, sslab.data, sc.vlay, extra, sc.hgtab, sc.vbuf.optics,
                               e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, st.R.data,
                               st.N.data, st.M.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp),
                               np.int32(sc.global_radius), np.float32(scale), np.float64(pass_scale))
-    sc.kernels["gather_beam_points"](q, (_round(sc.npix),), (64,), e.ray_start.data, st.R.data,
+    sc.kernels["gather_beam_points"](q, (_round(sc.npix),), _local(sc, "gather_beam_points", q), e.ray_start.data, st.R.data,
                                      st.N.data, st.M.data, acc.pairs.data, np.int32(sc.npix),
                                      np.int32(e.camera.spp), np.float32(alpha),
                                      np.int32(sc.global_radius))

@@ -283,7 +283,7 @@ class PhotonPass:
             self.p["qmc_s0"], self.p["qmc_s1"], self.p["qmc_s2"] = qmc_shift(self.seed, pass_index)
         self.p["count"] = n
         cl.enqueue_copy(q, self.pbuf, self.p)
-        self.kernel(q, (P_.global_size(n),), (P_.WG,), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
+        self.kernel(q, (P_.global_size(n),), P_.local(self.kernel, q), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
                     self.band_spi, self.logmu, self.pos_w, self.dir_b, self.extra, self.count_buf, self.tally_buf)
 
     def _flush(self, emitted: int, into: Tallies | None = None) -> np.ndarray:

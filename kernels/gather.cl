@@ -75,13 +75,19 @@ inline float estimator_volume(float z, float R, float2 slab) {
  * where photons of the point's layer can be (a thin layer's query then skips the 2R of depth
  * its sphere spans in the layers around it).  Padded by 1 um: photons of layer L lie in
  * [lowest point of its bottom interface, highest point of its top interface]. */
-inline void query_cells(const GridParams gp, float3 x, float R, int L,
-                        __constant const float2* layer_z, int4* c0, int4* c1) {
-    grid_query_range(gp, x, R, c0, c1);
+inline int query_z0(const GridParams gp, int z0, int L, __constant const float2* layer_z) {
 #if ESTIMATOR == 2
-    const float2 lz = layer_z[L];
-    c0->z = max(c0->z, grid_axis(lz.x - 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
-    c1->z = min(c1->z, grid_axis(lz.y + 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
+    return max(z0, grid_axis(layer_z[L].x - 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
+#else
+    return z0;
+#endif
+}
+
+inline int query_z1(const GridParams gp, int z1, int L, __constant const float2* layer_z) {
+#if ESTIMATOR == 2
+    return min(z1, grid_axis(layer_z[L].y + 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
+#else
+    return z1;
 #endif
 }
 
@@ -89,8 +95,9 @@ inline void query_cells(const GridParams gp, float3 x, float R, int L,
  * contiguous range of cell-sorted photons. */
 #define FOR_EACH_QUERY_ROW(gp, cell_start, x, R, L, layer_z, jb, je)                          \
     int4 q_c0_, q_c1_;                                                                       \
-    query_cells((gp), (x), (R), (L), (layer_z), &q_c0_, &q_c1_);                             \
-    for (int q_iz_ = q_c0_.z; q_iz_ <= q_c1_.z; ++q_iz_)                                     \
+    grid_query_range((gp), (x), (R), &q_c0_, &q_c1_);                                        \
+    const int q_z1_ = query_z1((gp), q_c1_.z, (L), (layer_z));                               \
+    for (int q_iz_ = query_z0((gp), q_c0_.z, (L), (layer_z)); q_iz_ <= q_z1_; ++q_iz_)       \
     for (int q_iy_ = q_c0_.y; q_iy_ <= q_c1_.y; ++q_iy_)                                     \
     for (uint q_row_ = grid_cell_index((gp), q_c0_.x, q_iy_, q_iz_), jb = (cell_start)[q_row_], \
               je = (cell_start)[q_row_ + (uint)(q_c1_.x - q_c0_.x) + 1u], q_once_ = 1u;        \

@@ -217,9 +217,11 @@ inline real solve_p(const Chain* ch, real rt, real na, __constant const float* l
 
 /* The light's irradiance factor at the vertex along chain ch (per unit intensity and excluding
  * the phase function): T_F T_att (dOmega/dA_h) / cos theta_L / (selection probability).
- * lpos is the light (or its periodic image), shift the image offset (the footprint test uses
- * the footprint shifted back).  *dirL: the light's travel direction at the vertex. */
-inline float connect(const Chain* ch, float3 v, int Lv, float3 lpos, float2 shift, int b,
+ * v, lpos: the vertex's and the light's (or its periodic image's) horizontal position (float2,
+ * not float3: with float3 arguments Intel's CPU compiler 2026.2 gave the right light position
+ * only to every third of its vectorised lanes).  shift: the image offset (the footprint test
+ * uses the footprint shifted back).  *dirL: the light's travel direction at the vertex. */
+inline float connect(const Chain* ch, float2 v, int Lv, float2 lpos, float2 shift, int b,
                      __constant const Params* P, __constant const float* layer_n,
                      __global const float4* optics, float3* dirL, real* p_out, real* G_out) {
     const real dx = (real)lpos.x - (real)v.x, dy = (real)lpos.y - (real)v.y;
@@ -602,7 +604,7 @@ __kernel void pt_pass(VOLUME_ARGS,
                                     const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
                                     float3 dl;
                                     real pp, G;
-                                    const float f = connect(&ch, t.pos, t.L, lpos - (float3)(sh, 0.0f), sh, b,
+                                    const float f = connect(&ch, t.pos.xy, t.L, lpos.xy - sh, sh, b,
                                                             P, layer_n, optics, &dl, &pp, &G);
                                     if (f > 0.0f) c += f * hg_eval(op.y, -dot(dl, t.dir));
                                 }
@@ -694,7 +696,7 @@ __kernel void t_connect(VOLUME_ARGS, __constant const float* chain, const float4
     if (!ok) return;
     float3 dl;
     real p, G;
-    const float f = connect(&ch, v, Lv, light.xyz, (float2)(0.0f), 0, P, layer_n, optics, &dl, &p, &G);
+    const float f = connect(&ch, v.xy, Lv, light.xy, (float2)(0.0f), 0, P, layer_n, optics, &dl, &p, &G);
     const real nL = layer_n[Lv];
     o[0] = p; o[1] = G * sqrt(fmax((real)0, 1 - (p / nL) * (p / nL))); o[2] = f;
     o[3] = sqrt(fmax((real)0, 1 - (p / nL) * (p / nL))); o[4] = ch.wsel;

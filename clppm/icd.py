@@ -1,0 +1,126 @@
+"""Register OpenCL drivers installed from pip with the ICD loader, before it starts.
+
+pyopencl's wheel ships the ocl-icd loader, which reads its list of drivers once, at the first
+platform query: the ``.icd`` files in ``OCL_ICD_VENDORS`` (default ``/etc/OpenCL/vendors``) and,
+always, those in pyopencl's own ``.libs`` folder (``PYOPENCL_HOME``; that is how PoCL's pip
+package, bundled in pyopencl's wheel, is found). This loader does not honour
+``OCL_ICD_FILENAMES``.
+
+Intel's CPU runtime from pip (``intel-opencl-rt``, the ``clppm[intel]`` extra) puts
+``libintelocl.so`` into the environment's ``lib/``, but its packaged
+``etc/OpenCL/vendors/intel-cpu.icd`` names a build-machine placeholder
+(``/opt/anaconda1anaconda2anaconda3/lib/libintelocl.so``), so the loader finds nothing.
+:func:`register` writes a vendors folder holding an ``.icd`` with the real path plus links to
+every ``.icd`` of the folder the loader would otherwise read (so system drivers stay visible),
+and points ``OCL_ICD_VENDORS`` at it. No ``LD_LIBRARY_PATH`` is needed: ``libintelocl.so`` has
+``RUNPATH $ORIGIN`` and finds libimf, libsvml, libtbb and its kernel libraries beside itself.
+
+It runs when clppm is imported (``clppm/__init__.py``), which is before any clppm code queries
+platforms; a program that queries platforms through pyopencl before importing clppm sees the
+drivers the loader found then.  ``CLPPM_NO_ICD=1`` turns it off.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import sys
+import tempfile
+
+SYSTEM_VENDORS = "/etc/OpenCL/vendors"
+
+
+def intel_cpu_library() -> str | None:
+    """Path of the pip-installed ``libintelocl.so`` in this environment, or None."""
+    p = os.path.join(sys.prefix, "lib", "libintelocl.so")    # where pip puts it: no metadata scan
+    if os.path.isfile(p):
+        return os.path.realpath(p)
+    try:
+        from importlib import metadata
+        files = metadata.files("intel-opencl-rt") or []
+    except Exception:                 # not installed (PackageNotFoundError) or no RECORD
+        files = []
+    for f in files:
+        if f.name == "libintelocl.so":
+            p = os.path.realpath(f.locate())
+            if os.path.isfile(p):
+                return p
+    return None
+
+
+def _icd_entries(folder: str) -> dict[str, str]:
+    """``name -> library`` of the ``.icd`` files in ``folder`` (unreadable ones skipped)."""
+    out = {}
+    try:
+        names = sorted(os.listdir(folder))
+    except OSError:
+        return out
+    for n in names:
+        if n.endswith(".icd"):
+            try:
+                with open(os.path.join(folder, n), encoding="utf-8", errors="replace") as f:
+                    out[n] = f.read().strip()
+            except OSError:
+                pass
+    return out
+
+
+def _cache_dir(key: str) -> str:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    for root in (os.path.join(base, "clppm"), os.path.join(tempfile.gettempdir(), f"clppm-{os.getuid()}")):
+        d = os.path.join(root, "icd-" + key)
+        try:
+            os.makedirs(d, exist_ok=True)
+            return d
+        except OSError:
+            continue
+    raise OSError("no writable cache folder for the OpenCL vendors list")
+
+
+def _write_vendors(lib: str, previous: str, entries: dict[str, str]) -> str:
+    """A folder with ``clppm-intel-cpu.icd`` naming ``lib`` and links to ``previous``'s ``.icd``s."""
+    key = hashlib.sha1("\0".join([lib, previous, *sorted(entries)]).encode()).hexdigest()[:12]
+    d = _cache_dir(key)
+    want = {"clppm-intel-cpu.icd": None, **{n: os.path.join(previous, n) for n in entries}}
+    for n in os.listdir(d):                           # drop what an older run left behind
+        if n not in want:
+            os.remove(os.path.join(d, n))
+    for n, src in want.items():
+        p = os.path.join(d, n)
+        if src is None:
+            tmp = f"{p}.{os.getpid()}"
+            with open(tmp, "w", encoding="utf-8") as f:
+                f.write(lib + "\n")
+            os.replace(tmp, p)                         # atomic: parallel processes see a whole file
+        elif not os.path.islink(p) or os.readlink(p) != src:
+            tmp = f"{p}.{os.getpid()}"
+            os.symlink(src, tmp)
+            os.replace(tmp, p)
+    return d
+
+
+def register() -> str | None:
+    """Point the ICD loader at the pip-installed Intel CPU runtime; the vendors folder, or None.
+
+    Nothing is done when the runtime is not installed, when ``CLPPM_NO_ICD`` is set, or when the
+    folder the loader reads already lists a ``libintelocl.so`` (a system-wide install)."""
+    if os.environ.get("CLPPM_NO_ICD"):
+        return None
+    lib = intel_cpu_library()
+    if lib is None:
+        return None
+    previous = os.environ.get("OCL_ICD_VENDORS") or SYSTEM_VENDORS
+    if not os.path.isdir(previous):                  # ocl-icd also takes a single .icd file
+        return None if os.path.exists(previous) else _point(lib, previous, {})
+    entries = _icd_entries(previous)
+    if any(os.path.basename(v) == "libintelocl.so" for v in entries.values()):
+        return None
+    return _point(lib, previous, entries)
+
+
+def _point(lib: str, previous: str, entries: dict[str, str]) -> str | None:
+    try:
+        d = _write_vendors(lib, previous, entries)
+    except OSError:
+        return None                                   # read-only home and /tmp: PoCL still works
+    os.environ["OCL_ICD_VENDORS"] = d
+    return d

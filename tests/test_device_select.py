@@ -1,0 +1,51 @@
+"""Device selection by implementation, local sizes from queried limits, the ICD registration."""
+import os
+
+import pytest
+
+from clppm import device as D
+from clppm import icd
+
+
+def test_select_by_implementation_name(dev):
+    impl = D.implementation(dev.device)
+    got = D.select_device(impl)
+    assert D.implementation(got) == impl
+    assert D.select_device(impl.upper()) == got              # case-insensitive
+
+
+def test_local_size_halves_below_the_queried_limit(dev, monkeypatch):
+    import pyopencl as cl
+    prg = cl.Program(dev.ctx, "__kernel void k(__global int* a) { a[get_global_id(0)] = 1; }").build()
+    knl = cl.Kernel(prg, "k")
+    assert D.local_size(knl, dev.device, 64) == 64 or D.kernel_limits(knl, dev.device)["work_group_size"] < 64
+    monkeypatch.setattr(D, "kernel_limits", lambda k, d: {"work_group_size": 40, "preferred_multiple": 8,
+                                                          "private_mem_bytes": 0, "local_mem_bytes": 0})
+    knl2 = cl.Kernel(prg, "k")                                # a new kernel object: queried afresh
+    assert D.local_size(knl2, dev.device, 128) == 32
+    row = next(r for r in D.launched(dev.device) if r["kernel"] == "k")
+    assert row["local_size"] in (32, 64)
+
+
+def test_icd_register_writes_real_path_and_keeps_previous(tmp_path, monkeypatch):
+    lib = tmp_path / "lib" / "libintelocl.so"
+    lib.parent.mkdir()
+    lib.write_bytes(b"")
+    prev = tmp_path / "vendors"
+    prev.mkdir()
+    (prev / "other.icd").write_text("/usr/lib/libother.so\n")
+    monkeypatch.setenv("OCL_ICD_VENDORS", str(prev))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.delenv("CLPPM_NO_ICD", raising=False)
+    monkeypatch.setattr(icd, "intel_cpu_library", lambda: str(lib))
+    d = icd.register()
+    assert d is not None and os.environ["OCL_ICD_VENDORS"] == d
+    assert open(os.path.join(d, "clppm-intel-cpu.icd")).read().strip() == str(lib)
+    assert os.path.realpath(os.path.join(d, "other.icd")) == str(prev / "other.icd")
+    assert icd.register() is None                            # already listed: nothing to do
+    assert os.environ["OCL_ICD_VENDORS"] == d
+
+
+def test_icd_register_off_switch(monkeypatch):
+    monkeypatch.setenv("CLPPM_NO_ICD", "1")
+    assert icd.register() is None
