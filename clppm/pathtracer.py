@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -450,36 +449,54 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
 
 
 # ----------------------------------------------------------------------------- test entry point
+class _Probe:
+    """The test kernels' set-up (t_connect, t_mnee): the volume, the chain tables, n vertices,
+    a light, and (n, nout) results plus (n, points, ncol) chain points in the device's real."""
+
+    def __init__(self, dev: Device, vol: volume.Volume, verts, light_um, nout: int, ncol: int):
+        import pyopencl as cl
+        import pyopencl.cltypes as cltypes
+        self.dev, self.prg = dev, build(dev, vol)
+        self.real = np.float64 if fp64(dev) else np.float32
+        self.vb = transport.upload_volume(dev, vol)
+        p = P_.new_params()
+        transport.volume_params(p, vol)
+        self.pbuf, self.chain = self.buffer(p), self.buffer(chain_tables(vol))
+        v = np.ascontiguousarray(verts, np.float32)
+        self.n = len(v)
+        self.out = np.zeros((self.n, nout), self.real)
+        self.pts = np.zeros((self.n, 4 * vol.nl + 10, ncol), self.real)
+        self.vbuf = self.buffer(v)
+        self.obuf = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE, self.out.nbytes)
+        self.qbuf = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE, self.pts.nbytes)
+        self.light = np.array([*light_um, 0.0], np.float32).view(cltypes.float4)[0]
+
+    def buffer(self, a):
+        import pyopencl as cl
+        return cl.Buffer(self.dev.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+
+    def run(self, name: str, *args, smooth_first: bool = False):
+        """Launch ``name`` (P, volume, chain[, smooth], light, *rest) and read both outputs back."""
+        import pyopencl as cl
+        q = self.dev.queue
+        knl = cl.Kernel(self.prg, name)
+        head = (self.pbuf, *self.vb.args(), self.chain)
+        rest = ((args[0], self.light) + args[1:]) if smooth_first else ((self.light,) + args)
+        knl(q, (P_.global_size(self.n),), P_.local(knl, q), *head, *rest)
+        cl.enqueue_copy(q, self.out, self.obuf)
+        cl.enqueue_copy(q, self.pts, self.qbuf)
+        q.finish()
+        return self.out, self.pts
+
+
 def connect_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mode: int = 0) -> dict:
     """Run the kernel's connection for vertices ``verts`` (n, 4: x, y, z um, layer) to the light
     at ``light_um``: mode 0 the direct chain, j > 0 reflected once at interface j, -1 sampled.
     Returns p, dOmega/dA_h, the connection factor (band 0), cos theta_L, the selection
     probability, ok, and the chain's points (vertex first, light last)."""
-    import pyopencl as cl
-    import pyopencl.cltypes as cltypes
-    prg = build(dev, vol)
-    real = np.float64 if fp64(dev) else np.float32
-    vb = transport.upload_volume(dev, vol)
-    p = P_.new_params()
-    transport.volume_params(p, vol)
-    mf = cl.mem_flags
-    pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-    chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
-    v = np.ascontiguousarray(verts, np.float32)
-    n = len(v)
-    maxp = 4 * vol.nl + 10
-    out = np.zeros((n, 8), real)
-    pts = np.zeros((n, maxp, 4), real)
-    vbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=v)
-    obuf = cl.Buffer(dev.ctx, mf.READ_WRITE, out.nbytes)
-    qbuf = cl.Buffer(dev.ctx, mf.READ_WRITE, pts.nbytes)
-    light = np.array([*light_um, 0.0], np.float32).view(cltypes.float4)[0]
-    knl = cl.Kernel(prg, "t_connect")
-    knl(dev.queue, (P_.global_size(n),), P_.local(knl, dev.queue), pbuf, *vb.args(), chain,
-                                light, np.int32(mode), np.uint32(n), vbuf, obuf, qbuf)
-    cl.enqueue_copy(dev.queue, out, obuf)
-    cl.enqueue_copy(dev.queue, pts, qbuf)
-    dev.queue.finish()
+    pr = _Probe(dev, vol, verts, light_um, 8, 4)
+    out, pts = pr.run("t_connect", np.int32(mode), np.uint32(pr.n), pr.vbuf, pr.obuf, pr.qbuf)
+    n = pr.n
     npts = out[:, 6].astype(int)
     return {"p": out[:, 0], "domega_dA": out[:, 1], "factor": out[:, 2], "cos_L": out[:, 3],
             "wsel": out[:, 4], "ok": out[:, 5] > 0,
@@ -496,35 +513,13 @@ def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mod
     on the surfaces from these momenta instead of the flat seed (no continuation).  Without
     seeds also ``all_factor`` and ``solutions``: the render's connection, every distinct solution
     of the flat seed and the MNEE_SEEDS more summed (band 0, isotropic phase function x 4 pi)."""
-    import pyopencl as cl
-    import pyopencl.cltypes as cltypes
     assert not vol.flat
-    prg = build(dev, vol)
-    real = np.float64 if fp64(dev) else np.float32
-    vb = transport.upload_volume(dev, vol)
-    p = P_.new_params()
-    transport.volume_params(p, vol)
-    mf = cl.mem_flags
-    pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-    chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
-    sm = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=vol.smooth.reshape(-1))
-    v = np.ascontiguousarray(verts, np.float32)
-    n = len(v)
-    maxp = 4 * vol.nl + 10
-    out = np.zeros((n, 20), real)
-    pts = np.zeros((n, maxp, 8), real)
-    vbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=v)
-    obuf = cl.Buffer(dev.ctx, mf.READ_WRITE, out.nbytes)
-    qbuf = cl.Buffer(dev.ctx, mf.READ_WRITE, pts.nbytes)
-    light = np.array([*light_um, 0.0], np.float32).view(cltypes.float4)[0]
-    sd = np.ascontiguousarray(seeds if seeds is not None else np.zeros((n, 2)), real)
-    sbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=sd)
-    cl.Kernel(prg, "t_mnee")(dev.queue, (P_.global_size(n),), (P_.WG,), pbuf, *vb.args(), chain, sm,
-                             light, np.int32(mode), np.uint32(n), vbuf, obuf, qbuf,
-                             np.int32(seeds is not None), sbuf, np.int32(MNEE_SEEDS))
-    cl.enqueue_copy(dev.queue, out, obuf)
-    cl.enqueue_copy(dev.queue, pts, qbuf)
-    dev.queue.finish()
+    pr = _Probe(dev, vol, verts, light_um, 20, 8)
+    n = pr.n
+    sd = np.ascontiguousarray(seeds if seeds is not None else np.zeros((n, 2)), pr.real)
+    out, pts = pr.run("t_mnee", pr.buffer(vol.smooth.reshape(-1)), np.int32(mode), np.uint32(n),
+                      pr.vbuf, pr.obuf, pr.qbuf, np.int32(seeds is not None), pr.buffer(sd),
+                      np.int32(MNEE_SEEDS), smooth_first=True)
     npts = out[:, 12].astype(int)
     keys = ["ok", "iters", "halvings", "G", "factor", "F", "cos_v", "cos_a", "ux", "uy", "wsel",
             "layer", "npts", "err", "built", "why", "all_factor", "solutions"]
