@@ -35,6 +35,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "bench"))
 
 from clppm import config as C, ppm, progressive, transport  # noqa: E402
+from clppm.bands import Bands                                # noqa: E402
 from clppm.reference import cached_volumes, skin_mask     # noqa: E402
 from noise import two_seed_noise                          # noqa: E402
 
@@ -57,13 +58,12 @@ ROWS = [
 
 
 def render_one(cfg: dict, seed: int, eye_seed: int, passes: int, iso_phase: bool, dev):
-    """progressive.render's loop, with the eye pass's seed and the gather's phase controllable."""
+    """The in-process PPM run stepped by hand, with the eye pass's seed and the gather's phase controllable."""
     import pyopencl as cl
     c = C.override(cfg, "render", "seed", eye_seed)
     sc = ppm.setup(c, dev)
-    hero = C.bands_per_path(c)
-    sc.pp = transport.PhotonPass(dev, sc.vol, c, capacity=sc.capacity, vbuf=sc.vbuf, hero=hero,
-                                 band_sampling=c["render"]["band_sampling"], seed=seed)
+    sc.pp = transport.PhotonPass(dev, sc.vol, c, capacity=sc.capacity, vbuf=sc.vbuf,
+                                 bands=Bands.from_config(c), seed=seed)
     rc = c["render"]
     sc.pp.set_storage(rc["storage"], sc.eye.cone_deg, rc["store_scale"], rc["store_min"])
     sc.pp.set_emission(rc["emission"])
@@ -72,13 +72,10 @@ def render_one(cfg: dict, seed: int, eye_seed: int, passes: int, iso_phase: bool
         t[:, 0], t[:, 1], t[:, 2] = 1.0, 0.0, 1.0 / (4 * math.pi)
         sc.hgtab = cl.Buffer(dev.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=t)
     t0 = time.perf_counter()
-    run = progressive.RunState.start(sc, progressive.run_identity(c, dev, sc.eye), None)
-    for p in range(passes):
-        info = ppm.run_pass(sc, run.cal, run.points, p, run.chunk, run.tallies)
-        run.emitted.append(info["emitted"])
-        run.stored += min(info["stored"], sc.capacity)
-        run.p = p + 1
-    res = progressive.image_of(run, t0, interrupted=False)
+    run = progressive.PPMRun.start(sc, progressive.run_identity(c, dev, sc.eye), None, t0)
+    for _ in range(passes):
+        run.step()
+    res = run.image(interrupted=False)
     return res, time.perf_counter() - t0, sum(run.emitted)
 
 

@@ -25,6 +25,8 @@ VERSION = 2
 #: the arrays of a PPM checkpoint
 ARRAYS = ("pt_R", "pt_N", "R0", "pix_acc", "chunk_acc", "pix_pairs")
 HELD = ("held_pix", "held_pairs")      # optional: chunk sums not yet reduced (distributed runs)
+#: the arrays of a path-tracer checkpoint
+PT_ARRAYS = ("pix_sum", "pix_sq", "pix_stats", "pix_bins")
 
 
 class CheckpointError(ValueError):
@@ -46,8 +48,13 @@ def pass_index(path: str) -> int | None:
         return None
 
 
-def save(path: str, meta: dict, state: dict, **arrays) -> None:
-    """A PPM checkpoint: ``state`` (JSON-able) and the named arrays (:data:`ARRAYS`)."""
+def save(path: str, meta: dict, state: dict, arrays: dict, integrator: str = "ppm") -> None:
+    """A checkpoint: ``state`` (JSON-able) and the named arrays; PPM's are :data:`ARRAYS` (and
+    :data:`HELD` when ``state["held"]`` lists chunks), the path tracer's :data:`PT_ARRAYS`."""
+    if integrator == "pt":
+        header = {"version": VERSION, "integrator": "pt", "meta": meta, "state": state}
+        _write(path, header, {k: np.asarray(arrays[k]) for k in PT_ARRAYS})
+        return
     header = {"version": VERSION, "meta": meta,
               "state": {k: state[k] for k in ("pass_index", "emitted_total", "store_zmin",
                                               "tallies_emitted", "stats", "timing")}}
@@ -58,12 +65,6 @@ def save(path: str, meta: dict, state: dict, **arrays) -> None:
         held = {k: np.asarray(arrays[k]) for k in HELD}
     tallies = np.array([[str(v) for v in row] for row in state["tallies"]])   # exact big ints
     _write(path, header, {**{k: np.asarray(arrays[k]) for k in ARRAYS}, "tallies": tallies, **held})
-
-
-def save_pt(path: str, meta: dict, state: dict, arrays: dict) -> None:
-    """A path-tracer checkpoint: the header names the integrator, the arrays are its sums."""
-    header = {"version": VERSION, "integrator": "pt", "meta": meta, "state": state}
-    _write(path, header, {k: np.asarray(v) for k, v in arrays.items()})
 
 
 def _write(path: str, header: dict, arrays: dict) -> None:
@@ -100,7 +101,7 @@ def _fsync_dir(d: str) -> None:
         os.close(fd)
 
 
-def _read(path: str, names: tuple[str, ...]) -> tuple[dict, dict, callable]:
+def _read(path: str, names: tuple[str, ...], want: str) -> tuple[dict, dict, callable]:
     """Header and arrays of a checkpoint file, or a one-line CheckpointError."""
     name = os.path.basename(path)
     if not os.path.isfile(path):
@@ -118,7 +119,6 @@ def _read(path: str, names: tuple[str, ...]) -> tuple[dict, dict, callable]:
         with z:
             header = json.loads(str(z["header"]))
             kind = header.get("integrator", "ppm") if isinstance(header, dict) else "ppm"
-            want = "pt" if "pix_sum" in names else "ppm"
             if kind != want:
                 raise CheckpointError(f"checkpoint {name} was made by the {kind} integrator; "
                                       f"resume it with --integrator {kind}")
@@ -135,9 +135,12 @@ def _read(path: str, names: tuple[str, ...]) -> tuple[dict, dict, callable]:
     return header, arrays, corrupt
 
 
-def load(path: str, meta: dict | None = None) -> dict:
+def load(path: str, meta: dict | None = None, integrator: str = "ppm") -> dict:
+    """A checkpoint's state and arrays, checked: the integrator that made it, its version, the
+    render it belongs to (``meta``: everything but the pass count) and its arrays' shapes."""
     name = os.path.basename(path)
-    header, arrays, corrupt = _read(path, ARRAYS + ("tallies",))
+    header, arrays, corrupt = _read(path, PT_ARRAYS if integrator == "pt" else ARRAYS + ("tallies",),
+                                    integrator)
     if not isinstance(header, dict):
         raise corrupt("header is not a table")
     if header.get("version") != VERSION:
@@ -151,6 +154,8 @@ def load(path: str, meta: dict | None = None) -> dict:
         raise CheckpointError(f"checkpoint {name} was made with different parameters: "
                               + "; ".join(diffs[:8]) + more)
     st = dict(header["state"])
+    if integrator == "pt":
+        return _pt_state(name, st, arrays, meta, corrupt)
     missing = [k for k in ("pass_index", "emitted_total", "store_zmin", "tallies_emitted", "stats",
                            "timing") if k not in st]
     if missing:
@@ -225,25 +230,8 @@ def _diff(a, b, path="") -> list[str]:
     return [] if a == b else [f"{path}: checkpoint {a!r}, now {b!r}"]
 
 
-PT_ARRAYS = ("pix_sum", "pix_sq", "pix_stats", "pix_bins")
-
-
-def load_pt(path: str, meta: dict | None = None) -> dict:
-    """A path-tracer checkpoint: pass index, timing and the per-pixel sums (checked as load())."""
-    name = os.path.basename(path)
-    header, arrays, corrupt = _read(path, PT_ARRAYS)
-    if not isinstance(header, dict) or not isinstance(header.get("meta"), dict) \
-            or not isinstance(header.get("state"), dict):
-        raise corrupt("header without meta or state")
-    if header.get("version") != VERSION:
-        raise CheckpointError(f"checkpoint {name} has version {header.get('version')!r}, "
-                              f"expected {VERSION}")
-    if meta is not None and header["meta"] != meta:
-        diffs = _diff(header["meta"], meta)
-        more = f"; and {len(diffs) - 8} more" if len(diffs) > 8 else ""
-        raise CheckpointError(f"checkpoint {name} was made with different parameters: "
-                              + "; ".join(diffs[:8]) + more)
-    st = dict(header["state"])
+def _pt_state(name: str, st: dict, arrays: dict, meta: dict | None, corrupt) -> dict:
+    """A path-tracer checkpoint: pass index, timing and the per-pixel sums."""
     if not isinstance(st.get("pass_index"), int) or st["pass_index"] < 1:
         raise corrupt(f"pass index {st.get('pass_index')!r}")
     st.update(arrays)

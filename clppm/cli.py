@@ -203,7 +203,7 @@ def _render_config(a) -> dict:
 def _check_render_paths(a, cfg) -> None:
     """-o, its sidecars, --resume and --passes against the checkpoint: before any work."""
     from . import paths
-    from .progressive import check_resume_passes
+    from .driver import check_resume_passes
     paths.check_render_output(a.output)
     passes = a.passes if a.passes is not None else cfg["render"]["passes"]
     check_resume_passes(a.resume, passes, "--passes" if a.passes is not None else "render.passes")
@@ -211,7 +211,7 @@ def _check_render_paths(a, cfg) -> None:
 
 def cmd_render(a) -> int:
     from . import paths
-    from . import progressive as render
+    from .driver import interrupt_signal
     cfg = _render_config(a)
     _check_render_paths(a, cfg)
     with paths.OutputLock(a.output):
@@ -229,7 +229,7 @@ def cmd_render(a) -> int:
             f"{r['sample_points']} sample points")
     print(f"wrote {a.output} (+ {side}): {what}, {r['seconds']['total']:.1f} s on {r['device']['name']}")
     if r["interrupted"]:
-        sig = render.interrupt_signal() or signal.SIGINT
+        sig = interrupt_signal() or signal.SIGINT
         again = " ".join(["clppm render", a.config, "-o", a.output] + (["--integrator pt"] if a.integrator == "pt" else [])
                          + ["--resume", files["checkpoint"]])
         print(f"interrupted by {signal.Signals(sig).name} after pass {r['passes_done']} of "
@@ -259,14 +259,14 @@ def _render_ppm(a, cfg):
 
 
 def _render_pt(a, cfg):
-    from . import progressive
+    from .driver import say
     from .pathtracer import render_pt
     for flag, v in (("--method", a.method), ("--spacing", a.spacing), ("--photons", a.photons),
                     ("--paper", a.paper or None), ("--estimator", a.estimator), ("--storage", a.storage),
                     ("--bands-per-path", a.bands_per_path), ("--radius", a.radius)):
         if v is not None:
             raise ConfigError("command line", flag, v, "applies to --integrator ppm only")
-    progressive.say(not a.quiet, "path tracer: building the volume...")
+    say(not a.quiet, "path tracer: building the volume...")
     return render_pt(cfg, passes=a.passes, resolution=a.resolution, seed=a.seed, device=a.device,
                      out=a.output, progress=not a.quiet, resume=a.resume,
                      source=os.path.basename(a.config))

@@ -80,10 +80,6 @@ STANDARD = {
 BLOCK = 10
 
 
-class _Stop(Exception):
-    pass
-
-
 def render_seconds(report: dict) -> float:
     s = report["seconds"]
     return float(sum(s.get(k, 0.0) for k in STAGES))
@@ -141,15 +137,11 @@ def run_method(cfg: dict, method: str, ref, *, budget: float, max_passes: int, m
                 "photons_emitted": r["photons_emitted"], "photons_stored": r["photons_stored"],
                 "gather_pairs": r["gather_pairs"]}))
         last["res"] = res
-        if t >= budget:
-            raise _Stop
+        return t >= budget                  # the time budget: the driver stops the run
 
     t0 = time.perf_counter()
-    try:
-        render(c, method=method, spacing=spacing, passes=max_passes, photons=photons, resolution=(w, h),
-               seed=seed, dev=dev, snapshot_every=1, on_snapshot=on_snapshot, on_pass=on_pass)
-    except _Stop:
-        pass
+    render(c, method=method, spacing=spacing, passes=max_passes, photons=photons, resolution=(w, h),
+           seed=seed, dev=dev, snapshot_every=1, on_snapshot=on_snapshot, on_pass=on_pass)
     res = last["res"]
     r = res.report
     f = snaps[-1]
@@ -187,15 +179,11 @@ def run_pt(cfg: dict, ref, *, budget: float, seed: int | None = None, dev=None, 
         if (p in sched and p * samples_per_pass >= nb) or t >= budget:
             snaps.append(_snapshot(p, t, wall, res, ref, {"paths": res.report.get("paths_traced")}))
         last["res"] = res
-        if t >= budget:
-            raise _Stop
+        return t >= budget                  # the time budget: the driver stops the run
 
     t0 = time.perf_counter()
-    try:
-        render_pt(c, passes=10**6, resolution=(w, h), seed=seed, dev=dev, snapshot_every=1,
-                  on_snapshot=on_snapshot)
-    except _Stop:
-        pass
+    render_pt(c, passes=10**6, resolution=(w, h), seed=seed, dev=dev, snapshot_every=1,
+              on_snapshot=on_snapshot)
     res = last["res"]
     f = snaps[-1]
     log(f"  path tracer: {f['pass']} passes ({f['paths']:,} paths), {f['seconds']:.1f} s "

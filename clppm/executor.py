@@ -16,7 +16,7 @@ function of (config, calibration, passes), the rerun gives the same bits, and ea
 added once, by its first pass.  Checkpoints hold the reduced sums, the held chunks and which
 passes they cover (:mod:`clppm.checkpoint`); they are in-process checkpoints too, and an
 in-process checkpoint taken inside a chunk resumes here by continuing that chunk from its sums
-(:func:`continue_chunk`).
+(:func:`clppm.ppm.run_chunk` from those sums).
 
 Worker (:class:`ClppmWorker`, a ``WorkerPlugin``): the device is the one the worker process
 was started with (``PYOPENCL_CTX``, else clppm's default choice); the scene (volume, eye pass,
@@ -44,7 +44,7 @@ import numpy as np
 from distributed import WorkerPlugin
 
 from . import checkpoint as ckpt
-from . import image, paths, ppm, progressive, transport
+from . import driver, film, paths, ppm, progressive, transport
 from . import config as C
 from .config import ConfigError
 from .device import DeviceError
@@ -182,30 +182,8 @@ def chunk_task(cfg: dict, key: str, cal: ppm.Calibration, cal_key: str, passes: 
         t0 = time.perf_counter()
         ld = plug.scene(cfg, key, source).calibrated(cal, cal_key)
         chunk = passes[0] // int(cfg["render"]["chunk_passes"])
-        if start is None:
-            res = ppm.run_chunk(ld.sc, cal, ld.points, chunk, passes, ld.acc)
-        else:
-            res = continue_chunk(ld.sc, cal, ld.points, chunk, passes, ld.acc, start)
+        res = ppm.run_chunk(ld.sc, cal, ld.points, chunk, passes, ld.acc, start)
         return ChunkDone(result=res, worker=get_worker().address, wall=time.perf_counter() - t0)
-
-
-def continue_chunk(sc: ppm.Scene, cal: ppm.Calibration, st: ppm.PointState, chunk: int, passes,
-                   acc: ppm.Accumulators, start: np.ndarray) -> ppm.ChunkResult:
-    """The rest of a chunk whose first passes an in-process run summed (its checkpoint's open
-    chunk): the passes add onto those sums on the device, as they would have in that run."""
-    acc.clear()
-    acc.pix.set(np.ascontiguousarray(start, np.float64))
-    tallies = transport.Tallies(sc.vol.nb, sc.vol.nl)
-    before = dict(sc.timing)
-    emitted, stored = [], 0
-    for p in passes:
-        info = ppm.run_pass(sc, cal, st, p, acc, tallies)
-        emitted.append(info["emitted"])
-        stored += min(info["stored"], sc.capacity)
-    pix, pairs = acc.host()
-    return ppm.ChunkResult(chunk=chunk, passes=list(passes), pix=pix, pairs=pairs, tallies=tallies.counts,
-                           emitted=emitted, stored=stored,
-                           seconds={k: sc.timing[k] - before.get(k, 0.0) for k in ppm.STAGES})
 
 
 @_worker_errors
@@ -217,10 +195,8 @@ def finish_task(cfg: dict, key: str, cal: ppm.Calibration, cal_key: str, pix: np
     plug = _plugin()
     with plug.lock:
         ld = plug.scene(cfg, key, source).calibrated(cal, cal_key)
-        sc = ld.sc
-        return progressive.finish(cfg, sc.vol, sc.eye, sc.pp, pix, pairs, emitted_total, passes_done,
-                                  timing, stats, sc.dev, time.perf_counter() - elapsed,
-                                  interrupted=interrupted)
+        return progressive.finish(ld.sc, pix, pairs, emitted_total, passes_done, timing, stats,
+                                  time.perf_counter() - elapsed, interrupted)
 
 
 def _value(x):
@@ -412,10 +388,10 @@ class Reduction:
                             "tallies": r.tallies, "seconds": r.seconds} for r in held])
         zero = np.zeros_like(cal.R0)
         open_pix = self.open_pix if self.open_pix is not None else np.zeros(self.pix.size)
-        ckpt.save(path, meta, state, pt_R=cal.R0, pt_N=zero, R0=cal.R0, pix_acc=self.pix.reshape(-1, nb),
-                  chunk_acc=open_pix.reshape(-1, nb), pix_pairs=self.pairs,
-                  held_pix=np.stack([r.pix for r in held]) if held else None,
-                  held_pairs=np.stack([r.pairs for r in held]) if held else None)
+        ckpt.save(path, meta, state, dict(pt_R=cal.R0, pt_N=zero, R0=cal.R0, pix_acc=self.pix.reshape(-1, nb),
+                                          chunk_acc=open_pix.reshape(-1, nb), pix_pairs=self.pairs,
+                                          held_pix=np.stack([r.pix for r in held]) if held else None,
+                                          held_pairs=np.stack([r.pairs for r in held]) if held else None))
 
     @classmethod
     def load(cls, st: dict, name: str, k: int, n_passes: int) -> "Reduction":
@@ -440,7 +416,7 @@ def render_distributed(cfg: dict, *, scheduler: str | None = None, devices=None,
                        spacing=None, spp=None, out: str | None = None, progress: bool = False,
                        resume: str | None = None, checkpoint_path: str | None = None,
                        source: str = "<config>", stop_after: int | None = None, on_chunk=None,
-                       scheduler_flag: str = "--scheduler") -> progressive.RenderResult:
+                       scheduler_flag: str = "--scheduler") -> film.RenderResult:
     """Render ``cfg`` on a Dask cluster; the same bytes as :func:`progressive.render`.
 
     ``scheduler``: address of a running scheduler; ``devices``: ``P:D`` strings (or ``"all"``)
@@ -460,25 +436,10 @@ def render_distributed(cfg: dict, *, scheduler: str | None = None, devices=None,
     with connect(scheduler, devices, client, scheduler_flag) as c:
         workers = check_workers(c, f"scheduler {scheduler}" if scheduler else "the cluster")
         job = _Job.start(c, cfg, source, resume, t_start, workers)
-        red = job.reduction(resume)
-        log = {"chunks": [], "bytes": 0}
-        t0 = time.perf_counter()
-        interrupted = _collect(job, red, ckpath, progress, stop_after, on_chunk, out, log)
-        passes_wall = time.perf_counter() - t0
-        job.save(red, ckpath)
-        t0 = time.perf_counter()
-        res = job.image(red, interrupted)
-    res.report["executor"] = {
-        "engine": "dask.distributed", "where": where, "chunk_passes": job.k,
-        "workers": {a: {kk: w[kk] for kk in ("device", "type")} for a, w in workers.items()},
-        "chunks": log["chunks"], "bytes_moved": log["bytes"], "held_passes": sorted(red.held),
-        "passes_wall_s": passes_wall}
-    if out:
-        progressive.write_outputs(out, res)
-    res.report["seconds"]["output"] = time.perf_counter() - t0
-    if out:
-        progressive._write_report(out, res.report)
-    return res
+        run = DaskRun(job, job.reduction(resume), ckpath, on_chunk, where, workers)
+        cad = driver.Cadence.of(cfg["render"], out, ckpath, stop_after=stop_after, progress=progress)
+        with c.as_current():
+            return driver.drive(run, cad, t_start, resumed=bool(resume))
 
 
 @dataclass
@@ -551,7 +512,7 @@ class _Job:
         if path:
             red.save(path, self.meta, self.cal, self.first["nb"], self.timing)
 
-    def image(self, red: Reduction, interrupted: bool) -> progressive.RenderResult:
+    def image(self, red: Reduction, interrupted: bool) -> film.RenderResult:
         """The image of the reduced passes (finished on a worker, which holds the scene)."""
         c = self.client
         pix_f = c.scatter(red.pix, hash=False)
@@ -562,46 +523,55 @@ class _Job:
         return f.result()
 
 
-def _collect(job: _Job, red: Reduction, ckpath, progress, stop_after, on_chunk, out, log) -> bool:
-    """Submit the chunks not yet done and reduce them as they finish, until all are in, a signal,
-    or ``stop_after`` passes; checkpoints and previews on the way.  Returns: stopped by a signal."""
-    from distributed import wait
-    rc = job.cfg["render"]
-    cp_every, preview = int(rc["checkpoint_every"]), int(rc["preview_every"])
-    futs = {job.submit_chunk(q, red): q for q in pieces(red.next_pass, job.n_passes, job.k) if not red.covers(q)}
-    bar = progressive._progress(job.n_passes, min(red.finished, job.n_passes), progress)
-    last_cp = red.finished
-    with progressive._Interrupt() as intr, job.client.as_current():
+class DaskRun:
+    """A render on a cluster, as :func:`clppm.driver.drive` steps it: every chunk not yet done
+    is submitted at once; a step waits (at most half a second, so a signal is seen) for chunks
+    to finish and reduces them in pass order."""
+
+    resume_flags = "--resume"
+
+    def __init__(self, job: "_Job", red: Reduction, ckpath: str | None, on_chunk, where: str,
+                 workers: dict):
+        self.job, self.red, self.ckpath, self.on_chunk = job, red, ckpath, on_chunk
+        self.n_passes, self.device_name = job.n_passes, job.meta["device"]
+        self.report = {"engine": "dask.distributed", "where": where, "chunk_passes": job.k,
+                       "workers": {a: {kk: w[kk] for kk in ("device", "type")} for a, w in workers.items()},
+                       "chunks": [], "bytes_moved": 0}
+        self.futs = {job.submit_chunk(q, red): q for q in pieces(red.next_pass, job.n_passes, job.k)
+                     if not red.covers(q)}
+        self.t0 = time.perf_counter()
+
+    @property
+    def passes_done(self) -> int:
+        return min(self.red.finished, self.n_passes)
+
+    def step(self) -> None:
+        from distributed import wait
         try:
-            while futs and not intr.flag and (stop_after is None or red.finished < stop_after):
-                try:                          # wake up now and then to see a signal
-                    done, _ = wait(list(futs), timeout=0.5, return_when="FIRST_COMPLETED")
-                except TimeoutError:
-                    continue
-                for f in done:
-                    q = futs.pop(f)
-                    d = _result(f, q, ckpath)
-                    before, reduced = red.finished, red.next_pass
-                    red.add(d.result)
-                    log["bytes"] += d.result.pix.nbytes + d.result.pairs.nbytes
-                    log["chunks"].append({"passes": [q[0], q[-1]], "worker": d.worker, "seconds": d.wall})
-                    if bar is not None:
-                        bar.update(red.finished - before)
-                    if on_chunk is not None:
-                        on_chunk(d)
-                    if cp_every and red.finished // cp_every > last_cp // cp_every:
-                        job.save(red, ckpath)
-                        last_cp = red.finished
-                    if (preview and out and 0 < red.next_pass < job.n_passes
-                            and red.next_pass // preview > reduced // preview):
-                        res = job.image(red, False)
-                        image.write_png(progressive._sibling(out, ".preview.png"), res.rgb, res.exposure)
-        finally:
-            for f in futs:
-                f.cancel()
-            if bar is not None:
-                bar.close()
-    return intr.flag
+            done, _ = wait(list(self.futs), timeout=0.5, return_when="FIRST_COMPLETED")
+        except TimeoutError:
+            return
+        for f in done:
+            q = self.futs.pop(f)
+            d = _result(f, q, self.ckpath)
+            self.red.add(d.result)
+            self.report["bytes_moved"] += d.result.pix.nbytes + d.result.pairs.nbytes
+            self.report["chunks"].append({"passes": [q[0], q[-1]], "worker": d.worker, "seconds": d.wall})
+            if self.on_chunk is not None:
+                self.on_chunk(d)
+
+    def save(self, path: str) -> None:
+        self.job.save(self.red, path)
+
+    def image(self, interrupted: bool) -> film.RenderResult:
+        res = self.job.image(self.red, interrupted)
+        res.report["executor"] = dict(self.report, held_passes=sorted(self.red.held),
+                                      passes_wall_s=time.perf_counter() - self.t0)
+        return res
+
+    def close(self) -> None:
+        for f in self.futs:
+            f.cancel()
 
 
 def _result(f, passes, ckpath) -> ChunkDone:

@@ -33,8 +33,9 @@ import time
 import numpy as np
 
 from . import checkpoint as ckpt
-from . import image, paths, progressive, transport, volume
+from . import driver, film, image, paths, progressive, transport, volume
 from . import params as P_
+from .bands import band_width, source_spectrum
 from .camera import from_config
 from . import config as C
 from .config import ConfigError
@@ -191,7 +192,7 @@ class PathTracer:
         self.smooth = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
                                 hostbuf=np.ascontiguousarray(sm, np.float32).reshape(-1))
         self.launch = min(self.npix, max(P_.WG, 16384 // self.nspp))   # ~16k paths, then timed
-        self.spectrum = transport.source_spectrum(cfg, vol.wl)
+        self.spectrum = source_spectrum(cfg, vol.wl)
         self.offsets = band_offsets(self.npix, nb)
 
     def run_pass(self, p: int) -> int:
@@ -251,7 +252,7 @@ def run_identity(cfg: dict, dev: Device, tracer: PathTracer) -> dict:
 def band_scale(cfg: dict, wl: np.ndarray, spectrum: np.ndarray) -> np.ndarray:
     """Per band: kernel value (um^-2 per unit intensity) -> W m^-2 sr^-1 nm^-1.
     I_b = P s_b / 4 pi (W/sr), 1e12 um^2/m^2, per nm of the band (the PPM units)."""
-    dl = float(wl[1] - wl[0]) if len(wl) > 1 else 1.0
+    dl = band_width(wl)
     return cfg["light"]["power_w"] * spectrum / (4 * math.pi) * 1e12 / dl
 
 
@@ -266,7 +267,7 @@ def noise(sums, sq, counts, scale, wl) -> dict:
     """Per-pixel standard error of the luminance Y from the per-band sample variances
     (bands are independent estimates: Var Y = sum_b (ybar_b dl s_b)^2 Var(mean_b)); pixels
     where a band has fewer than 2 samples get none."""
-    dl = float(wl[1] - wl[0]) if len(wl) > 1 else 1.0
+    dl = band_width(wl)
     ybar = image.cmfs(wl)[:, 1] * dl * scale
     c = np.maximum(counts, 1).astype(float)
     mean = sums / c
@@ -286,40 +287,23 @@ def noise(sums, sq, counts, scale, wl) -> dict:
     return out
 
 
-def _finish(cfg, tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_start,
-            interrupted) -> progressive.RenderResult:
-    vol, cam = tracer.vol, tracer.cam
-    H, W, nb, wl = cam.height, cam.width, vol.nb, vol.wl
-    rc = cfg["render"]
+def _finish(tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_start,
+            interrupted) -> film.RenderResult:
+    """The path tracer's sums -> radiance (the film does the rest) and the run report."""
+    cfg, vol = tracer.cfg, tracer.vol
+    wl = vol.wl
     samples = passes_done * tracer.nspp
-    counts = band_counts(tracer.offsets, nb, samples)
+    counts = band_counts(tracer.offsets, vol.nb, samples)
     scale = band_scale(cfg, wl, tracer.spectrum)
-    L = radiance(arrays["pix_sum"], counts, scale)
-    nonfinite = int(np.size(L) - np.count_nonzero(np.isfinite(L)))
-    L = np.nan_to_num(L, nan=0.0, posinf=0.0, neginf=0.0).reshape(H, W, nb)
-    if nb > 1:
-        xyz = image.spectral_to_xyz(L, wl)
-    else:
-        xyz = L * image.cmfs(wl)[None, None, 0, :]
-    rgb = image.xyz_to_linear_srgb(xyz)
-    white = progressive.white_reference(cfg, cam, wl, tracer.spectrum)
-    dl = float(wl[1] - wl[0]) if nb > 1 else 1.0
-    Yw = float(image.spectral_to_xyz(white[None, :], wl)[0, 1]) if nb > 1 \
-        else float((white * image.cmfs(wl)[:, 1] * dl).sum())
-    exposure = rc["exposure"] if rc["exposure"] is not None else (1.0 / Yw if Yw > 0 else 1.0)
-    st = [int(v) for v in arrays["pix_stats"].sum(0)]
-    stats = dict(zip(STATS, st))
+    res = film.develop(radiance(arrays["pix_sum"], counts, scale), cfg, tracer.cam, wl, tracer.spectrum)
+    stats = dict(zip(STATS, (int(v) for v in arrays["pix_stats"].sum(0))))
     paths = tracer.npix * samples
     bins = arrays["pix_bins"].sum(0)
     btot = float(bins.sum())
-    total = time.perf_counter() - t_start
     trace_s = timing.get("trace", 0.0)
-    report = {
-        "clppm": __import__("clppm").__version__,
-        "config": json.loads(json.dumps(cfg, default=str)),
-        "integrator": "pt", "method": "pt", "scheme": SCHEME if vol.flat else SCHEME_RELIEF,
-        "device": dev.info(),
-        "passes_done": passes_done, "passes_requested": rc["passes"], "interrupted": interrupted,
+    res.report = {
+        **film.common_report(cfg, "pt", dev, passes_done, interrupted),
+        "method": "pt", "scheme": SCHEME if vol.flat else SCHEME_RELIEF,
         "samples_per_pass": tracer.nspp, "samples_per_pixel": samples,
         "samples_per_pixel_per_band": [int(counts.min()), int(counts.max())] if counts.size else [0, 0],
         "paths_traced": paths, "photons_emitted": 0,
@@ -334,16 +318,13 @@ def _finish(cfg, tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_s
                                       for k, v in zip(BIN_LABELS, bins)},
         "manifold_nee": None if vol.flat else mnee_report(tracer.mnee_totals()),
         "noise": noise(arrays["pix_sum"], arrays["pix_sq"], counts, scale, wl),
-        "seconds": dict(timing, total=total),
-        "exposure": exposure, "white_reference_Y": Yw,
+        "seconds": dict(timing, total=time.perf_counter() - t_start),
+        **res.report,
         "volume": vol.info,
         "accumulation": "per pixel and band: float64 sums of path values in a fixed order",
-        "nonfinite_values_zeroed": nonfinite,
-        "units": "spectral radiance W m^-2 sr^-1 nm^-1 (EXR spectral channels); RGB linear sRGB; "
-                 "pixel = average over the pixel footprint",
+        "units": film.UNITS + "; pixel = average over the pixel footprint",
     }
-    return progressive.RenderResult(spectral=L, xyz=xyz, rgb=rgb, wl=wl, report=report,
-                                    exposure=exposure)
+    return res
 
 
 def mnee_report(tot: list[int]) -> dict:
@@ -367,10 +348,10 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
               dev: Device | None = None, out: str | None = None, progress: bool = False,
               resume: str | None = None, checkpoint_path: str | None = None,
               source: str = "<config>", stop_after: int | None = None, snapshot_every: int = 0,
-              on_snapshot=None) -> progressive.RenderResult:
-    """Path-trace ``cfg`` (flat scene, point light); the image and report as ``render``
-    (``on_snapshot(passes, wall seconds, result)`` every ``snapshot_every`` passes, as there)."""
-    import pyopencl as cl
+              on_snapshot=None) -> film.RenderResult:
+    """Path-trace ``cfg`` (point light); the image and report as ``render``, stepped by
+    :func:`clppm.driver.drive` (``on_snapshot(passes, wall seconds, result)`` every
+    ``snapshot_every`` passes, True to stop)."""
     t_start = time.perf_counter()
     cfg = progressive.apply_overrides(cfg, passes=passes, resolution=resolution, seed=seed)
     check_scene(cfg, source)
@@ -383,69 +364,63 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
     ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
     paths.check_outputs(out=out, checkpoint=ckpath)
     dev = dev or open_device(device)
-    timing = {"volume": 0.0, "trace": 0.0, "output": 0.0}
     t0 = time.perf_counter()
     vol = volume.build(cfg, source)
-    timing["volume"] = time.perf_counter() - t0
-    npix, nb = w * h, vol.nb
-    check_alloc(dev, {"pixel sums": npix * nb * 8, "pixel sums of squares": npix * nb * 8,
-                      "pixel statistics": npix * 64, "value by vertex index": npix * NBIN * 8,
+    timing = {"volume": time.perf_counter() - t0, "trace": 0.0, "output": 0.0}
+    check_alloc(dev, {"pixel sums": w * h * vol.nb * 8, "pixel sums of squares": w * h * vol.nb * 8,
+                      "pixel statistics": w * h * 64, "value by vertex index": w * h * NBIN * 8,
                       "smooth heights": 0 if vol.smooth is None else int(vol.smooth.nbytes),
                       **vol.device_bytes()})
     if resume:
-        ckpt.load_pt(resume)                    # fail fast on a missing or corrupt file
-    tracer = PathTracer(dev, vol, cfg)
-    meta = run_identity(cfg, dev, tracer)
-    start = 0
+        ckpt.load(resume, integrator="pt")      # fail fast on a missing or corrupt file
+    run = PTRun(PathTracer(dev, vol, cfg), timing, t_start)
     if resume:
-        st = ckpt.load_pt(resume, meta)
-        tracer.set_state(st)
-        start = st["pass_index"]
-        timing.update({k: v for k, v in st.get("timing", {}).items() if k == "trace"})
-    n_passes = int(rc["passes"])
-    cp_every = int(rc["checkpoint_every"])
-    bar = progressive._progress(n_passes, start, progress)
-    p, interrupted, last_ckpt = start, False, (start if resume else None)
-    with progressive._Interrupt() as intr:
-        try:
-            while p < n_passes:
-                t0 = time.perf_counter()
-                tracer.run_pass(p)
-                timing["trace"] += time.perf_counter() - t0
-                p += 1
-                if bar is not None:
-                    bar.update(1)
-                stop = intr.flag or (stop_after is not None and p >= stop_after)
-                if ckpath and ((cp_every and p % cp_every == 0) or stop or p == n_passes):
-                    ckpt.save_pt(ckpath, meta, {"pass_index": p, "timing": timing,
-                                                "mnee": tracer.mnee_totals()},
-                                 tracer.state_arrays())
-                    last_ckpt = p
-                if snapshot_every and on_snapshot and (p % snapshot_every == 0 or p == n_passes or stop):
-                    on_snapshot(p, time.perf_counter() - t_start,
-                                _finish(cfg, tracer, tracer.state_arrays(), p, timing, dev, t_start, False))
-                if rc["preview_every"] and out and p % rc["preview_every"] == 0 and p < n_passes:
-                    res = _finish(cfg, tracer, tracer.state_arrays(), p, timing, dev, t_start, False)
-                    image.write_png(progressive._sibling(out, ".preview.png"), res.rgb, res.exposure)
-                if stop:
-                    interrupted = intr.flag and p < n_passes
-                    break
-        except cl.Error as e:
-            msg = " ".join(str(e).split())
-            keep = (f"checkpoint {ckpath} (pass {last_ckpt}) is kept: resume with --integrator pt "
-                    f"--resume {ckpath}" if last_ckpt else "no checkpoint was written yet")
-            raise DeviceError(f"device '{dev.name}' failed in pass {p + 1} of {n_passes} ({msg}); "
-                              f"{keep}") from None
-    if bar is not None:
-        bar.close()
-    t0 = time.perf_counter()
-    res = _finish(cfg, tracer, tracer.state_arrays(), p, timing, dev, t_start, interrupted)
-    if out:
-        progressive.write_outputs(out, res)
-    res.report["seconds"]["output"] = time.perf_counter() - t0
-    if out:
-        progressive._write_report(out, res.report)
-    return res
+        run.restore(resume)
+    cad = driver.Cadence.of(rc, out, ckpath, snapshot_every=snapshot_every, on_snapshot=on_snapshot,
+                            stop_after=stop_after, progress=progress)
+    return driver.drive(run, cad, t_start, resumed=bool(resume))
+
+
+class PTRun:
+    """A path-traced render in progress, as :func:`clppm.driver.drive` steps it: a step is a
+    pass of N paths per pixel."""
+
+    resume_flags = "--integrator pt --resume"
+
+    def __init__(self, tracer: PathTracer, timing: dict, t_start: float):
+        self.tracer, self.timing, self.t_start = tracer, timing, t_start
+        self.meta = run_identity(tracer.cfg, tracer.dev, tracer)
+        self.p = 0
+        self.n_passes = int(tracer.cfg["render"]["passes"])
+        self.device_name = tracer.dev.name
+
+    @property
+    def passes_done(self) -> int:
+        return self.p
+
+    def restore(self, path: str) -> None:
+        st = ckpt.load(path, self.meta, integrator="pt")
+        self.tracer.set_state(st)
+        self.p = st["pass_index"]
+        self.timing.update({k: v for k, v in st.get("timing", {}).items() if k == "trace"})
+
+    def step(self) -> None:
+        t0 = time.perf_counter()
+        self.tracer.run_pass(self.p)
+        self.timing["trace"] += time.perf_counter() - t0
+        self.p += 1
+
+    def save(self, path: str) -> None:
+        ckpt.save(path, self.meta, {"pass_index": self.p, "timing": self.timing,
+                                    "mnee": self.tracer.mnee_totals()},
+                  self.tracer.state_arrays(), integrator="pt")
+
+    def image(self, interrupted: bool) -> film.RenderResult:
+        return _finish(self.tracer, self.tracer.state_arrays(), self.p, self.timing, self.tracer.dev,
+                       self.t_start, interrupted)
+
+    def close(self) -> None:
+        pass
 
 
 # ----------------------------------------------------------------------------- test entry point

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import eyepass, hashgrid, transport, volume
+from .bands import Bands
 from .device import Device, check_alloc
 
 #: pass index of the calibration photon pass (its photons set R0 and are then dropped)
@@ -167,10 +168,7 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height))
     target = int(rc["photons"])
     capacity = int(target * 1.2) + 4096
-    from .config import bands_per_path
-    hero = bands_per_path(cfg)
-    pp = transport.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf, hero=hero,
-                              band_sampling=rc["band_sampling"])
+    pp = transport.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf, bands=Bands.from_config(cfg))
     pp.set_storage(rc["storage"], eye.cone_deg, rc["store_scale"], rc["store_min"])
     pp.set_emission(rc["emission"])
     gclass = band_classes(vol.nb, pp.hero)
@@ -421,6 +419,13 @@ def band_classes(nb: int, hero: int) -> int:
     return max(d for d in range(1, 10) if step % d == 0)
 
 
+def run_passes(sc: Scene, cal: Calibration, st: PointState, passes, acc: Accumulators,
+               tallies: transport.Tallies) -> list[dict]:
+    """Passes ``passes`` added into ``acc`` (not cleared): the step of the in-process run (one
+    pass) and of a Dask chunk (its passes) alike.  Returns each pass's counts."""
+    return [run_pass(sc, cal, st, p, acc, tallies) for p in passes]
+
+
 @dataclass
 class ChunkResult:
     """A chunk of passes: its sums (host arrays, for a distributed reduction) and counts."""
@@ -435,22 +440,23 @@ class ChunkResult:
     seconds: dict
 
 
-def run_chunk(sc: Scene, cal: Calibration, st: PointState, chunk: int, passes, acc: Accumulators
-              ) -> ChunkResult:
-    """Passes of one chunk from zeroed accumulators; the sums come back to the host."""
+def run_chunk(sc: Scene, cal: Calibration, st: PointState, chunk: int, passes, acc: Accumulators,
+              start: np.ndarray | None = None) -> ChunkResult:
+    """Passes of one chunk from zeroed accumulators, or from ``start`` (the sums of the chunk's
+    earlier passes that an in-process run's checkpoint holds); the sums come back to the host."""
     acc.clear()
+    if start is not None:
+        acc.pix.set(np.ascontiguousarray(start, np.float64))
     tallies = transport.Tallies(sc.vol.nb, sc.vol.nl)
     before = dict(sc.timing)
-    emitted, stored = [], 0
-    for p in passes:
-        info = run_pass(sc, cal, st, p, acc, tallies)
-        emitted.append(info["emitted"])
-        stored += min(info["stored"], sc.capacity)
+    infos = run_passes(sc, cal, st, passes, acc, tallies)
     pix, pairs = acc.host()
     return ChunkResult(chunk=chunk, passes=list(passes), pix=pix, pairs=pairs, tallies=tallies.counts,
-                       emitted=emitted, stored=stored,
+                       emitted=[i["emitted"] for i in infos],
+                       stored=sum(min(i["stored"], sc.capacity) for i in infos),
                        seconds={k: sc.timing[k] - before.get(k, 0.0) for k in STAGES})
 
 
 def chunk_passes(chunk: int, k: int, n_passes: int) -> range:
+    """The passes of chunk ``chunk`` (``k`` passes each, the last one shorter)."""
     return range(chunk * k, min((chunk + 1) * k, n_passes))

@@ -24,7 +24,7 @@ reflectance Rd; excluded (SCE) R = Rd.  Geometry:
 Reflectance from rendered images (:func:`method_reflectance`): render with each sampling
 scheme a-f under the configured light and camera, divide the spectral radiance of an image
 region by the radiance of a white Lambertian plane under the same light
-(:func:`clppm.progressive.white_reference`, evaluated per pixel), per band, and set it next to
+(:func:`clppm.film.white_reference`, evaluated per pixel), per band, and set it next to
 the photon-pass value at the same angle of incidence.
 """
 from __future__ import annotations
@@ -257,7 +257,7 @@ def default_region(width: int, height: int, frac: float = 0.5) -> tuple[int, int
 
 def white_region(cfg: dict, cam, wl, spectrum, region) -> np.ndarray:
     """White Lambertian reference radiance per pixel of ``region``: (h, w, NB)."""
-    from .progressive import white_reference
+    from .film import white_reference
     x0, y0, x1, y1 = region
     out = np.empty((y1 - y0, x1 - x0, len(wl)))
     for j in range(y0, y1):

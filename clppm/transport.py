@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import params as P_
-from .config import wavelengths
+from .bands import Bands
 from .device import Device
 from .volume import Volume
 
@@ -29,39 +29,6 @@ CATEGORIES = ["specular", "diffuse", "transmitted", "lost", "rr_gain", "rr_loss"
 NA = len(CATEGORIES)        # index of the first per-layer absorption tally
 BALANCE = [i for i, c in enumerate(CATEGORIES) if c != "diffuse_cone"]
 MAX_LAUNCH = 1 << 20          # photons per launch: tallies stay far below 2^63
-
-
-def source_spectrum(cfg: dict, wl: np.ndarray) -> np.ndarray:
-    """Relative spectral power of the light per band (sums to 1)."""
-    if cfg["light"]["spectrum"] == "D65":
-        from .spectra import d65
-        s = np.asarray(d65(wl), float)
-    else:
-        s = np.ones(len(wl))
-    return s / s.sum()
-
-
-def hero_pdf(cfg: dict, wl: np.ndarray, spectrum: np.ndarray, how: str) -> np.ndarray:
-    """The hero band's selection probability per band (sums to 1).
-
-    "power": the light's spectrum (the paper: a photon's band is drawn from D65).  "visual":
-    the light's power times the sum of the CIE 1931 colour matching functions, plus a floor of
-    10 % of that product's mean so that no band goes unsampled: bands the eye barely sees
-    (380-400 and 700-780 nm) then get fewer paths, each weighted s/pi (spectral.h)."""
-    s = np.asarray(spectrum, float)
-    if how == "power" or len(wl) == 1:
-        return s / s.sum()
-    from .image import cmfs
-    v = s * cmfs(wl).sum(axis=1)
-    v = v + 0.1 * v.mean()
-    return v / v.sum()
-
-
-def fixed_band(cfg: dict, wl: np.ndarray) -> int:
-    b = cfg["light"]["band_nm"]
-    if b is None:
-        return 0 if len(wl) == 1 else -1
-    return int(np.argmin(np.abs(wl - b)))
 
 
 def source_params(p: np.ndarray, cfg: dict, vol: Volume) -> float:
@@ -207,27 +174,25 @@ class PhotonPass:
     """Device state for photon passes of one scene."""
 
     def __init__(self, dev: Device, vol: Volume, cfg: dict, capacity: int = 0,
-                 vbuf: VolumeBuffers | None = None, seed: int | None = None, hero: int = 1,
-                 band_sampling: str = "power"):
-        """``hero``: bands carried per path (spectral.h); ``band_sampling``: the hero's pdf
-        (:func:`hero_pdf`).  The tallies follow the hero band alone, so neither changes them."""
+                 vbuf: VolumeBuffers | None = None, seed: int | None = None, bands: Bands | None = None):
+        """``bands``: the spectral sampling (default: one band per path, the hero drawn from the
+        light's spectrum).  The tallies follow the hero band alone, so it does not change them."""
         import pyopencl as cl
         self.dev, self.vol, self.cfg = dev, vol, cfg
-        self.hero = int(hero) if fixed_band(cfg, vol.wl) < 0 else 1   # one fixed band: nothing to carry
+        self.bands = bands or Bands.from_config(cfg, hero=1, sampling="power")
+        self.hero = self.bands.hero
         self.prg = dev.build("photon.cl", defines(vol, self.hero))
-        import pyopencl as _cl
-        self.kernel = _cl.Kernel(self.prg, "photon_pass")
+        self.kernel = cl.Kernel(self.prg, "photon_pass")
         self.vbuf = vbuf or upload_volume(dev, vol)
-        wl = vol.wl
-        self.spectrum = source_spectrum(cfg, wl)
-        self.band = fixed_band(cfg, wl)
-        self.pi = hero_pdf(cfg, wl, self.spectrum, band_sampling)
+        self.spectrum = self.bands.spectrum
+        self.band = self.bands.fixed
+        self.pi = self.bands.pdf
         cdf = np.cumsum(self.pi).astype(np.float32)
         cdf[-1] = 1.0
         mf = cl.mem_flags
         self.cdf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cdf)
         spi = np.ascontiguousarray(np.stack([self.spectrum, self.pi], -1), np.float32)
-        if fixed_band(cfg, wl) >= 0:
+        if self.band >= 0:
             spi[:] = 1.0                    # every photon is of the one band: weight 1
         self.band_spi = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spi)
         with np.errstate(divide="ignore"):
@@ -364,8 +329,6 @@ class PhotonPass:
                 self.tally_host[:] = 0
                 import pyopencl as cl
                 cl.enqueue_copy(self.dev.queue, self.tally_buf, self.tally_host)
-                if n == 1:
-                    raise RuntimeError("one photon overflowed the photon buffer; raise capacity")
                 n = max(1, n // 2)
             self._flush(n, tallies)
             emitted += n

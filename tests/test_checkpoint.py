@@ -254,14 +254,14 @@ def test_save_is_atomic_on_failure(tmp_path, monkeypatch):
     z = np.zeros(4, np.float32)
     arrays = dict(pt_R=z, pt_N=z, R0=z, pix_acc=np.zeros((2, 3)), chunk_acc=np.zeros((2, 3)),
                   pix_pairs=np.zeros(2, np.uint64))
-    ckpt.save(path, {"m": 1}, state, **arrays)
+    ckpt.save(path, {"m": 1}, state, arrays)
     before = open(path, "rb").read()
 
     def boom(*a, **k):
         raise OSError(28, "No space left on device")
     monkeypatch.setattr(np, "savez", boom)
     with pytest.raises(OSError):
-        ckpt.save(path, {"m": 1}, dict(state, pass_index=2), **arrays)
+        ckpt.save(path, {"m": 1}, dict(state, pass_index=2), arrays)
     assert open(path, "rb").read() == before
     assert os.listdir(tmp_path) == ["a.ckpt.npz"]
     monkeypatch.undo()

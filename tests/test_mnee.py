@@ -356,7 +356,7 @@ def test_relief_same_seed_same_bytes_and_resume_is_byte_identical(dev, tmp_path)
     part = tmp_path / "part.exr"
     pt.render_pt(_relief_small(), dev=dev, out=str(part), stop_after=1)
     ck = ckpt.default_path(str(part))
-    assert ckpt.load_pt(ck)["pass_index"] == 1
+    assert ckpt.load(ck, integrator="pt")["pass_index"] == 1
     pt.render_pt(_relief_small(), dev=dev, out=str(part), resume=ck)
     assert part.read_bytes() == outs[0]
     full = json.loads((tmp_path / "a.json").read_text())["manifold_nee"]

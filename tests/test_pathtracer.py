@@ -346,7 +346,7 @@ def test_interrupted_and_resumed_is_byte_identical(dev, tmp_path):
     r1 = pt.render_pt(_small(passes=4), dev=dev, out=str(part), stop_after=2)
     assert r1.report["passes_done"] == 2
     ck = ckpt.default_path(str(part))
-    assert ckpt.load_pt(ck)["pass_index"] == 2
+    assert ckpt.load(ck, integrator="pt")["pass_index"] == 2
     r2 = pt.render_pt(_small(passes=4), dev=dev, out=str(part), resume=ck)
     assert r2.report["passes_done"] == 4
     assert part.read_bytes() == full.read_bytes()
@@ -377,7 +377,7 @@ def test_sigint_then_resume_is_byte_identical(dev, tmp_path):
         t_end = time.monotonic() + 60
         while time.monotonic() < t_end and proc.poll() is None:
             try:
-                if ckpt.load_pt(ck)["pass_index"] >= 1:
+                if ckpt.load(ck, integrator="pt")["pass_index"] >= 1:
                     break
             except (ckpt.CheckpointError, OSError):
                 pass
@@ -391,7 +391,7 @@ def test_sigint_then_resume_is_byte_identical(dev, tmp_path):
     assert proc.returncode == (130 if rep["interrupted"] else 0), se
     if not rep["interrupted"]:                          # pragma: no cover - a much faster device
         pytest.skip("the render finished before the signal")
-    assert "--integrator pt --resume" in so and ckpt.load_pt(ck)["pass_index"] == rep["passes_done"] < 40
+    assert "--integrator pt --resume" in so and ckpt.load(ck, integrator="pt")["pass_index"] == rep["passes_done"] < 40
     assert cli.main(["render", str(tmp_path / "s.toml"), "--integrator", "pt", "-q", "-o", str(part),
                      "--resume", ck]) == 0
     assert part.read_bytes() == full.read_bytes()

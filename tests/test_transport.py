@@ -16,7 +16,7 @@ import pytest
 cl = pytest.importorskip("pyopencl")
 from scipy import stats  # noqa: E402
 
-from clppm import config, transport, volume  # noqa: E402
+from clppm import bands, config, transport, volume  # noqa: E402
 from clppm.transport import CATEGORIES, W0  # noqa: E402
 
 try:                                   # categories that make up a photon's weight
@@ -315,7 +315,7 @@ def test_forearm_photon_pass(dev, forearm):
         assert all(math.isfinite(v) for v in row.values()), b
         assert 0 <= row["Rd"] <= 1 and 0 <= row["A"] <= 1
     # band sampling follows the D65 source spectrum
-    p = transport.source_spectrum(cfg, vol.wl)
+    p = bands.source_spectrum(cfg, vol.wl)
     assert stats.chisquare(per_band_photons, p * n).pvalue > 1e-3
     # spectral shape: haemoglobin and melanin absorb blue, so red comes back more
     wl = vol.wl

@@ -1,0 +1,129 @@
+"""The film: spectral radiance per pixel and band -> XYZ -> linear sRGB, the white reference
+and exposure, the run report's common fields, and the files a render writes (EXR, PNG, JSON).
+
+Both integrators hand the film their radiance (W m^-2 sr^-1 nm^-1, one value per pixel and
+band); the film never sees how it was estimated.  XYZ is the rectangle rule over the bands,
+XYZ = sum L(l) xyz-bar(l) dl (without the 683 lm/W factor).  The exposure makes a white
+Lambertian plane at the image centre, lit by the same light, come out white (Y = 1) unless
+``render.exposure`` sets it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import image, paths
+from .bands import band_width
+
+UNITS = "spectral radiance W m^-2 sr^-1 nm^-1 (EXR spectral channels); RGB linear sRGB"
+
+
+@dataclass
+class RenderResult:
+    spectral: np.ndarray          # (H, W, NB) spectral radiance W m^-2 sr^-1 nm^-1
+    xyz: np.ndarray               # (H, W, 3)
+    rgb: np.ndarray               # (H, W, 3) linear sRGB
+    wl: np.ndarray
+    report: dict
+    exposure: float = 1.0
+
+
+def white_reference(cfg: dict, cam, wl, spectrum) -> np.ndarray:
+    """Spectral radiance of a white Lambertian plane z=0 at the image centre (W m^-2 sr^-1 nm^-1)."""
+    L = cfg["light"]
+    d = cam.ray(cam.width / 2, cam.height / 2)
+    t = -cam.position[2] / d[2] if d[2] != 0 else 0.0
+    x = cam.position + t * d
+    Pb = L["power_w"] * spectrum / band_width(wl)
+    if L["kind"] == "point":
+        lp = np.asarray(L["position_mm"], float) * 1000.0 - x
+        d2 = float(lp @ lp)
+        if d2 <= 0:
+            return Pb * 0.0
+        cos = max(lp[2] / math.sqrt(d2), 0.0)
+        E = Pb / (4 * math.pi) * cos / d2 * 1e12
+    elif L["kind"] == "wide":
+        w = np.asarray(L["width_mm"], float) * 1e-3
+        E = Pb / (w[0] * w[1])
+    else:
+        E = Pb * 0.0
+    return E / math.pi
+
+
+def tristimulus(L: np.ndarray, wl) -> np.ndarray:
+    """XYZ of spectral radiance ``L`` (..., NB): the rectangle rule over the bands."""
+    if len(wl) > 1:
+        return image.spectral_to_xyz(L, wl)
+    return L * image.cmfs(wl)[0] * band_width(wl)
+
+
+def develop(L: np.ndarray, cfg: dict, cam, wl, spectrum) -> RenderResult:
+    """Radiance (npix, NB) -> the image; its report holds the exposure, the white reference
+    and the count of non-finite values (set to 0)."""
+    nonfinite = int(np.size(L) - np.count_nonzero(np.isfinite(L)))
+    L = np.nan_to_num(L, nan=0.0, posinf=0.0, neginf=0.0).reshape(cam.height, cam.width, len(wl))
+    xyz = tristimulus(L, wl)
+    rgb = image.xyz_to_linear_srgb(xyz)
+    Yw = float(tristimulus(white_reference(cfg, cam, wl, spectrum)[None, :], wl)[0, 1])
+    rc = cfg["render"]
+    exposure = rc["exposure"] if rc["exposure"] is not None else (1.0 / Yw if Yw > 0 else 1.0)
+    report = {"exposure": exposure, "white_reference_Y": Yw, "nonfinite_values_zeroed": nonfinite}
+    return RenderResult(spectral=L, xyz=xyz, rgb=rgb, wl=np.asarray(wl), report=report,
+                        exposure=exposure)
+
+
+def common_report(cfg: dict, integrator: str, dev, passes_done: int, interrupted: bool) -> dict:
+    """The report's fields that every integrator has, in the order they are written."""
+    return {"clppm": __import__("clppm").__version__,
+            "config": json.loads(json.dumps(cfg, default=str)),
+            "integrator": integrator, "device": dev.info(),
+            "passes_done": passes_done, "passes_requested": cfg["render"]["passes"],
+            "interrupted": interrupted}
+
+
+def sibling(out: str, suffix: str) -> str:
+    """``out`` with its extension replaced by ``suffix`` (``.preview.png``)."""
+    base, _ = os.path.splitext(out)
+    return base + suffix
+
+
+def write_image(out: str, res: RenderResult) -> None:
+    """The image at ``out``: ``.exr`` the spectral + RGB EXR and the PNG beside it; ``.png``
+    the PNG alone (:func:`clppm.paths.render_outputs`)."""
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    files = paths.render_outputs(out)
+    if "png" in files:
+        hdr = {"clppm_report": json.dumps({k: res.report[k] for k in ("method", "scheme", "passes_done",
+                                                                       "photons_emitted", "exposure")})}
+        tmp = out + ".tmp.exr"
+        image.write_exr(tmp, res.rgb.astype(np.float32), spectral=res.spectral.astype(np.float32),
+                        wl=res.wl, header=hdr)
+        os.replace(tmp, out)
+    image.write_png(files.get("png", out), res.rgb, res.exposure)
+
+
+def write_preview(out: str, res: RenderResult) -> None:
+    image.write_png(sibling(out, ".preview.png"), res.rgb, res.exposure)
+
+
+def write_report(out: str, report: dict) -> None:
+    path = paths.render_outputs(out)["report"]
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(report, f, indent=1, default=str)
+    os.replace(tmp, path)
+
+
+def write_outputs(out: str | None, res: RenderResult) -> None:
+    """The finished render's files: the image(s), then the report with the output seconds."""
+    t0 = time.perf_counter()
+    if out:
+        write_image(out, res)
+    res.report["seconds"]["output"] = time.perf_counter() - t0
+    if out:
+        write_report(out, res.report)
