@@ -6,6 +6,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: ``Camera`` in kernels/camera.h: the eye pass's and the path tracer's parameter structs hold it
+CAMERA_DTYPE = np.dtype([
+    ("cpx", "f4"), ("cpy", "f4"), ("cpz", "f4"),
+    ("fx", "f4"), ("fy", "f4"), ("fz", "f4"),
+    ("rx", "f4"), ("ry", "f4"), ("rz", "f4"),
+    ("ux", "f4"), ("uy", "f4"), ("uz", "f4"),
+    ("tan_half", "f4"), ("aspect", "f4"),
+    ("width", "i4"), ("height", "i4"),
+])
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -28,6 +38,17 @@ class Camera:
         sy = (1.0 - 2.0 * py / self.height) * self.tan_half
         d = self.forward + sx * self.right + sy * self.up
         return d / np.linalg.norm(d)
+
+    def struct(self) -> np.ndarray:
+        """The kernels' ``Camera`` (one CAMERA_DTYPE record)."""
+        c = np.zeros((), CAMERA_DTYPE)
+        c["cpx"], c["cpy"], c["cpz"] = self.position
+        c["fx"], c["fy"], c["fz"] = self.forward
+        c["rx"], c["ry"], c["rz"] = self.right
+        c["ux"], c["uy"], c["uz"] = self.up
+        c["tan_half"], c["aspect"] = self.tan_half, self.aspect
+        c["width"], c["height"] = self.width, self.height
+        return c
 
 
 def from_config(cam: dict) -> Camera:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import params as P_
-from .camera import Camera, from_config
+from .camera import CAMERA_DTYPE, Camera, from_config
 from .device import Device, DeviceError, check_alloc
 from .transport import VolumeBuffers, defines, volume_params
 from .volume import Volume
@@ -38,12 +38,7 @@ SPACING = {"a": 4.0, "b": 7.0, "c": 14.0}
 EXTINCTION_STAT = {"d": "max", "e": "mean", "f": "min"}
 
 EYE_DTYPE = np.dtype([
-    ("cpx", "f4"), ("cpy", "f4"), ("cpz", "f4"),
-    ("fx", "f4"), ("fy", "f4"), ("fz", "f4"),
-    ("rx", "f4"), ("ry", "f4"), ("rz", "f4"),
-    ("ux", "f4"), ("uy", "f4"), ("uz", "f4"),
-    ("tan_half", "f4"), ("aspect", "f4"),
-    ("width", "i4"), ("height", "i4"), ("spp", "i4"),
+    ("cam", CAMERA_DTYPE), ("spp", "i4"),
     ("scheme", "i4"), ("spacing", "f4"), ("od_cut", "f4"), ("merge", "i4"),
     ("vox_dx", "f4"), ("vox_dz", "f4"), ("max_points", "i4"), ("max_len", "f4"),
     ("light_kind", "i4"), ("lx", "f4"), ("ly", "f4"), ("lz", "f4"), ("alpha", "f4"),
@@ -115,13 +110,12 @@ class EyeData:
 
 def light_fields(e: np.ndarray, cfg: dict) -> None:
     L = cfg["light"]
+    e["light_kind"] = P_.SOURCE[L["kind"]]
     if L["kind"] == "point":
-        e["light_kind"] = 2
         e["lx"], e["ly"], e["lz"] = np.asarray(L["position_mm"], float) * 1000.0
     else:
         d = -np.asarray(L["direction"], float)
         d /= np.linalg.norm(d)
-        e["light_kind"] = 1 if L["kind"] == "wide" else 0
         e["lx"], e["ly"], e["lz"] = d
         c = np.asarray(L["center_mm"], float) * 1000.0
         w = np.asarray(L["width_mm"], float) * 1000.0
@@ -143,12 +137,7 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     cam = from_config(cfg["camera"])
     nrays = cam.width * cam.height * cam.spp
     e = np.zeros(1, EYE_DTYPE)
-    e["cpx"], e["cpy"], e["cpz"] = cam.position
-    e["fx"], e["fy"], e["fz"] = cam.forward
-    e["rx"], e["ry"], e["rz"] = cam.right
-    e["ux"], e["uy"], e["uz"] = cam.up
-    e["tan_half"], e["aspect"] = cam.tan_half, cam.aspect
-    e["width"], e["height"], e["spp"] = cam.width, cam.height, cam.spp
+    e["cam"], e["spp"] = cam.struct(), cam.spp
     e["scheme"] = 0 if sch.kind == "equal" else 1
     e["spacing"] = sch.spacing if sch.kind == "equal" else 1.0
     e["od_cut"] = -math.log(rc["threshold"]) if rc["threshold"] > 0 else 1e30

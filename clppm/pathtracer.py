@@ -36,7 +36,7 @@ from . import checkpoint as ckpt
 from . import driver, film, image, paths, progressive, transport, volume
 from . import params as P_
 from .bands import band_width, source_spectrum
-from .camera import from_config
+from .camera import CAMERA_DTYPE, from_config
 from . import config as C
 from .config import ConfigError
 from .device import Device, DeviceError, check_alloc, open_device
@@ -55,20 +55,14 @@ MNEE_SEEDS = 8
 FLAT_REF = "configs/forearm_flat.toml"
 
 PT_DTYPE = np.dtype([
-    ("cpx", "f4"), ("cpy", "f4"), ("cpz", "f4"),
-    ("fx", "f4"), ("fy", "f4"), ("fz", "f4"),
-    ("rx", "f4"), ("ry", "f4"), ("rz", "f4"),
-    ("ux", "f4"), ("uy", "f4"), ("uz", "f4"),
-    ("tan_half", "f4"), ("aspect", "f4"),
-    ("width", "i4"), ("height", "i4"),
-    ("nspp", "i4"), ("pass_", "u4"), ("band0", "u4"), ("pix_offset", "u4"), ("count", "u4"),
+    ("cam", CAMERA_DTYPE), ("nspp", "i4"), ("pass_", "u4"), ("band0", "u4"), ("pix_offset", "u4"), ("count", "u4"),
     ("seed_lo", "u4"), ("seed_hi", "u4"),
     ("lx", "f4"), ("ly", "f4"), ("lz", "f4"),
     ("alpha", "f4"), ("specular", "i4"),
     ("rr_threshold", "f4"), ("rr_m", "f4"), ("max_vertices", "i4"),
     ("nee_od", "f4"), ("nee_q_floor", "f4"), ("mnee_seeds", "i4"),
 ])
-assert PT_DTYPE.itemsize == 4 * len(PT_DTYPE.names)
+assert PT_DTYPE.itemsize == CAMERA_DTYPE.itemsize + 4 * (len(PT_DTYPE.names) - 1)
 
 RR_THRESHOLD = 1e-3      # roulette below this fraction of the weight after entering the skin
 RR_M = 10.0
@@ -142,15 +136,6 @@ def build(dev: Device, vol: volume.Volume):
     return dev.build("pt.cl", {**transport.defines(vol), "PT_FP64": fp64(dev)})
 
 
-def _camera_fields(e: np.ndarray, cam) -> None:
-    e["cpx"], e["cpy"], e["cpz"] = cam.position
-    e["fx"], e["fy"], e["fz"] = cam.forward
-    e["rx"], e["ry"], e["rz"] = cam.right
-    e["ux"], e["uy"], e["uz"] = cam.up
-    e["tan_half"], e["aspect"] = cam.tan_half, cam.aspect
-    e["width"], e["height"] = cam.width, cam.height
-
-
 class PathTracer:
     """Device state of one path-traced render: the volume, the parameters, the pixel sums."""
 
@@ -169,7 +154,7 @@ class PathTracer:
         self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
         self.chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
         e = np.zeros(1, PT_DTYPE)
-        _camera_fields(e, cam)
+        e["cam"] = cam.struct()
         rc, L = cfg["render"], cfg["light"]
         e["nspp"] = self.nspp
         e["seed_lo"], e["seed_hi"] = P_.split_seed(rc["seed"])

@@ -33,14 +33,11 @@
  * evaluates the integral per band exactly (no 81 floats per point).
  */
 #include "common.h"
+#include "camera.h"
 
 typedef struct {
-    float cpx, cpy, cpz;
-    float fx, fy, fz;
-    float rx, ry, rz;
-    float ux, uy, uz;
-    float tan_half, aspect;
-    int width, height, spp;
+    Camera cam;
+    int spp;
     int scheme;                 /* 0 equal spacing, 1 extinction-based */
     float spacing;
     float od_cut;               /* -ln(threshold) */
@@ -174,21 +171,18 @@ __kernel void eye_pass(VOLUME_ARGS,
                        __global float2* pt_slab, __global float4* geo)
 {
     const uint r = (uint)get_global_id(0);
-    const uint npix = (uint)(E->width * E->height);
+    const uint npix = (uint)(E->cam.width * E->cam.height);
     if (r >= npix * (uint)E->spp) return;
     const uint pix = r / (uint)E->spp;
-    const int px = (int)(pix % (uint)E->width), py = (int)(pix / (uint)E->width);
+    const int px = (int)(pix % (uint)E->cam.width), py = (int)(pix / (uint)E->cam.width);
     Rng rng;
     rng_init(&rng, r, 0u, 1u, E->seed_lo, E->seed_hi);
     float jx = 0.5f, jy = 0.5f;
     if (E->jitter) { jx = rng_u01(&rng); jy = rng_u01(&rng); }
-    float sx = (2.0f * ((float)px + jx) / (float)E->width - 1.0f) * E->tan_half * E->aspect;
-    float sy = (1.0f - 2.0f * ((float)py + jy) / (float)E->height) * E->tan_half;
-    float3 fwd = (float3)(E->fx, E->fy, E->fz), right = (float3)(E->rx, E->ry, E->rz), up = (float3)(E->ux, E->uy, E->uz);
 
     Track t;
-    t.pos = (float3)(E->cpx, E->cpy, E->cpz);
-    t.dir = normalize(fwd + sx * right + sy * up);
+    t.pos = camera_pos(&E->cam);
+    t.dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy);
     t.L = -1; t.ix = 0; t.iy = 0;
 
     Emit e;

@@ -47,6 +47,7 @@
  */
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable      /* the accumulators are double (as gather.cl) */
 #include "common.h"
+#include "camera.h"
 
 #ifdef PT_FP64
 typedef double real;
@@ -58,12 +59,7 @@ typedef float real;
 
 /* Mirrors clppm/pathtracer.py PT_DTYPE: 4-byte fields only, in this order. */
 typedef struct {
-    float cpx, cpy, cpz;
-    float fx, fy, fz;
-    float rx, ry, rz;
-    float ux, uy, uz;
-    float tan_half, aspect;
-    int width, height;
+    Camera cam;
     int nspp;                   /* samples per pixel in this pass */
     uint pass_;
     uint band0;                 /* (pass * nspp) mod NB */
@@ -497,10 +493,8 @@ __kernel void pt_pass(VOLUME_ARGS,
     const uint gid = (uint)get_global_id(0);
     if (gid >= E->count) return;
     const uint pix = E->pix_offset + gid;
-    const int px = (int)(pix % (uint)E->width), py = (int)(pix / (uint)E->width);
+    const int px = (int)(pix % (uint)E->cam.width), py = (int)(pix / (uint)E->cam.width);
     const uint hb = lowbias32(pix) % (uint)NB;
-    const float3 fwd = (float3)(E->fx, E->fy, E->fz), right = (float3)(E->rx, E->ry, E->rz);
-    const float3 upv = (float3)(E->ux, E->uy, E->uz);
     const float3 lpos = (float3)(E->lx, E->ly, E->lz);
     ulong nvert = 0, nmade = 0, nblock = 0, ncut = 0;
     ulong m_try = 0, m_ok = 0, m_it = 0, m_cont = 0, m_mis = 0, m_sol = 0;
@@ -513,11 +507,9 @@ __kernel void pt_pass(VOLUME_ARGS,
         Rng rng;
         rng_init(&rng, pix * (uint)E->nspp + (uint)s, E->pass_, 5u, E->seed_lo, E->seed_hi);
         const float jx = rng_u01(&rng), jy = rng_u01(&rng);
-        const float sx = (2.0f * ((float)px + jx) / (float)E->width - 1.0f) * E->tan_half * E->aspect;
-        const float sy = (1.0f - 2.0f * ((float)py + jy) / (float)E->height) * E->tan_half;
         Track t;
-        t.pos = (float3)(E->cpx, E->cpy, E->cpz);
-        t.dir = normalize(fwd + sx * right + sy * upv);
+        t.pos = camera_pos(&E->cam);
+        t.dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy);
         t.L = -1; t.ix = 0; t.iy = 0;
         float value = 0.0f;
         float3 gn;
