@@ -16,6 +16,7 @@ import pytest
 
 from clppm import checkpoint as ckpt
 from clppm import cli, config, pathtracer as pt, progressive, transport, volume
+from scenes import tiny_toml
 
 
 def lay(name, t, n, mua=10.0, mus=90.0, g=0.75):
@@ -364,7 +365,7 @@ def test_sigint_then_resume_is_byte_identical(dev, tmp_path):
     import subprocess
     import sys
     import time
-    text = FLAT_TOML.replace("passes = 1", "passes = 40\ncheckpoint_every = 1\npt_samples_per_pass = 64")
+    text = tiny_toml(passes=40, checkpoint_every=1, pt_samples_per_pass=16)
     (tmp_path / "s.toml").write_text(text)
     full, part = tmp_path / "full.exr", tmp_path / "part.exr"
     assert cli.main(["render", str(tmp_path / "s.toml"), "--integrator", "pt", "-q", "-o", str(full)]) == 0
@@ -408,28 +409,6 @@ def test_band_counts_are_exact():
 
 
 # ----------------------------------------------------------------------------- refusals
-FLAT_TOML = """
-[model]
-size_mm = [1.0, 1.0]
-[spectrum]
-start_nm = 500.0
-stop_nm = 600.0
-step_nm = 50.0
-[light]
-kind = "point"
-position_mm = [0.0, 1.0, 2.0]
-[camera]
-position_mm = [0.5, 0.5, 5.0]
-look_at_mm = [0.5, 0.5, 0.0]
-resolution = [8, 8]
-[render]
-passes = 1
-[[layer]]
-name = "skin"
-thickness_um = inf
-n = 1.4
-melanin = 0.05
-"""
 
 
 @pytest.mark.parametrize("edit,needles", [
@@ -440,7 +419,7 @@ melanin = 0.05
 def test_refuses_in_one_line(tmp_path, capsys, edit, needles):
     """Non-point lights, and relief without render.pt_relief (experimental: tests/test_mnee.py):
     exit code 2, one line naming the key and the value, no traceback, nothing written."""
-    text = FLAT_TOML + edit
+    text = tiny_toml(passes=1) + edit
     if not edit:
         text = text.replace('kind = "point"', 'kind = "wide"\ndirection = [0.0, 0.0, -1.0]')
     cfgp = tmp_path / "scene.toml"
