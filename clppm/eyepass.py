@@ -30,6 +30,7 @@ import numpy as np
 
 from . import params as P_
 from .camera import CAMERA_DTYPE, Camera, from_config
+from .light import Light
 from .device import Device, DeviceError, check_alloc
 from .transport import VolumeBuffers, defines, volume_params
 from .volume import Volume
@@ -108,19 +109,14 @@ class EyeData:
         return np.bincount(self.layers.astype(int), minlength=nl)[:nl] / hits
 
 
-def light_fields(e: np.ndarray, cfg: dict) -> None:
-    L = cfg["light"]
-    e["light_kind"] = P_.SOURCE[L["kind"]]
-    if L["kind"] == "point":
-        e["lx"], e["ly"], e["lz"] = np.asarray(L["position_mm"], float) * 1000.0
+def light_fields(e: np.ndarray, light: Light) -> None:
+    e["light_kind"] = light.code
+    if light.kind == "point":
+        e["lx"], e["ly"], e["lz"] = light.position
     else:
-        d = -np.asarray(L["direction"], float)
-        d /= np.linalg.norm(d)
-        e["lx"], e["ly"], e["lz"] = d
-        c = np.asarray(L["center_mm"], float) * 1000.0
-        w = np.asarray(L["width_mm"], float) * 1000.0
-        e["bx0"], e["by0"] = c - w / 2
-        e["bx1"], e["by1"] = c + w / 2
+        e["lx"], e["ly"], e["lz"] = -light.direction
+        e["bx0"], e["by0"] = light.center - light.width / 2
+        e["bx1"], e["by1"] = light.center + light.width / 2
 
 
 def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
@@ -149,7 +145,7 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     e["alpha"] = rc["roughness"]
     e["seed_lo"], e["seed_hi"] = P_.split_seed(rc["seed"])
     e["jitter"] = 1 if cam.spp > 1 else 0
-    light_fields(e, cfg)
+    light_fields(e, Light.from_config(cfg))
     rates = layer_rates(vol, sch.stat) if sch.kind == "extinction" else np.zeros(vol.nl, np.float32)
 
     p = P_.new_params()

@@ -19,6 +19,7 @@ import numpy as np
 
 from . import image, paths
 from .bands import band_width
+from .light import Light
 
 UNITS = "spectral radiance W m^-2 sr^-1 nm^-1 (EXR spectral channels); RGB linear sRGB"
 
@@ -33,22 +34,21 @@ class RenderResult:
     exposure: float = 1.0
 
 
-def white_reference(cfg: dict, cam, wl, spectrum) -> np.ndarray:
+def white_reference(light: Light, cam, wl, spectrum) -> np.ndarray:
     """Spectral radiance of a white Lambertian plane z=0 at the image centre (W m^-2 sr^-1 nm^-1)."""
-    L = cfg["light"]
     d = cam.ray(cam.width / 2, cam.height / 2)
     t = -cam.position[2] / d[2] if d[2] != 0 else 0.0
     x = cam.position + t * d
-    Pb = L["power_w"] * spectrum / band_width(wl)
-    if L["kind"] == "point":
-        lp = np.asarray(L["position_mm"], float) * 1000.0 - x
+    Pb = light.power_w * spectrum / band_width(wl)
+    if light.kind == "point":
+        lp = light.position - x
         d2 = float(lp @ lp)
         if d2 <= 0:
             return Pb * 0.0
         cos = max(lp[2] / math.sqrt(d2), 0.0)
         E = Pb / (4 * math.pi) * cos / d2 * 1e12
-    elif L["kind"] == "wide":
-        w = np.asarray(L["width_mm"], float) * 1e-3
+    elif light.kind == "wide":
+        w = light.width_m
         E = Pb / (w[0] * w[1])
     else:
         E = Pb * 0.0
@@ -69,7 +69,7 @@ def develop(L: np.ndarray, cfg: dict, cam, wl, spectrum) -> RenderResult:
     L = np.nan_to_num(L, nan=0.0, posinf=0.0, neginf=0.0).reshape(cam.height, cam.width, len(wl))
     xyz = tristimulus(L, wl)
     rgb = image.xyz_to_linear_srgb(xyz)
-    Yw = float(tristimulus(white_reference(cfg, cam, wl, spectrum)[None, :], wl)[0, 1])
+    Yw = float(tristimulus(white_reference(Light.from_config(cfg), cam, wl, spectrum)[None, :], wl)[0, 1])
     rc = cfg["render"]
     exposure = rc["exposure"] if rc["exposure"] is not None else (1.0 / Yw if Yw > 0 else 1.0)
     report = {"exposure": exposure, "white_reference_Y": Yw, "nonfinite_values_zeroed": nonfinite}

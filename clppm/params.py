@@ -47,7 +47,7 @@ PARAMS_DTYPE = np.dtype(_FIELDS)
 assert PARAMS_DTYPE.itemsize == 4 * len(_FIELDS)
 
 LATERAL = {"infinite": 0, "open": 1, "periodic": 2}
-SOURCE = {"pencil": 0, "wide": 1, "point": 2}
+from .light import SOURCE  # noqa: E402  (the kernels' light kinds; one encoding)
 
 
 def new_params() -> np.ndarray:

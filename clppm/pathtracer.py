@@ -35,8 +35,9 @@ import numpy as np
 from . import checkpoint as ckpt
 from . import driver, film, image, paths, progressive, transport, volume
 from . import params as P_
-from .bands import band_width, source_spectrum
+from .bands import Bands, band_width
 from .camera import CAMERA_DTYPE, from_config
+from .light import Light
 from . import config as C
 from .config import ConfigError
 from .device import Device, DeviceError, check_alloc, open_device
@@ -155,10 +156,10 @@ class PathTracer:
         self.chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
         e = np.zeros(1, PT_DTYPE)
         e["cam"] = cam.struct()
-        rc, L = cfg["render"], cfg["light"]
+        rc, self.light = cfg["render"], Light.from_config(cfg)
         e["nspp"] = self.nspp
         e["seed_lo"], e["seed_hi"] = P_.split_seed(rc["seed"])
-        e["lx"], e["ly"], e["lz"] = np.asarray(L["position_mm"], float) * 1000.0
+        e["lx"], e["ly"], e["lz"] = self.light.position
         e["alpha"] = rc["roughness"]
         e["specular"] = 1 if rc["specular"] else 0
         e["rr_threshold"], e["rr_m"], e["max_vertices"] = RR_THRESHOLD, RR_M, MAX_VERTICES
@@ -177,7 +178,8 @@ class PathTracer:
         self.smooth = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
                                 hostbuf=np.ascontiguousarray(sm, np.float32).reshape(-1))
         self.launch = min(self.npix, max(P_.WG, 16384 // self.nspp))   # ~16k paths, then timed
-        self.spectrum = source_spectrum(cfg, vol.wl)
+        self.bands = Bands.from_config(cfg, hero=1)
+        self.spectrum = self.bands.spectrum
         self.offsets = band_offsets(self.npix, nb)
 
     def run_pass(self, p: int) -> int:
@@ -234,11 +236,10 @@ def run_identity(cfg: dict, dev: Device, tracer: PathTracer) -> dict:
             "nb": tracer.vol.nb, "nbin": NBIN, **({} if tracer.vol.flat else {"mnee_seeds": MNEE_SEEDS})}
 
 
-def band_scale(cfg: dict, wl: np.ndarray, spectrum: np.ndarray) -> np.ndarray:
+def band_scale(light: Light, bands: Bands) -> np.ndarray:
     """Per band: kernel value (um^-2 per unit intensity) -> W m^-2 sr^-1 nm^-1.
     I_b = P s_b / 4 pi (W/sr), 1e12 um^2/m^2, per nm of the band (the PPM units)."""
-    dl = band_width(wl)
-    return cfg["light"]["power_w"] * spectrum / (4 * math.pi) * 1e12 / dl
+    return light.power_w * bands.spectrum / (4 * math.pi) * 1e12 / bands.dl
 
 
 def radiance(sums: np.ndarray, counts: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -279,7 +280,7 @@ def _finish(tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_start,
     wl = vol.wl
     samples = passes_done * tracer.nspp
     counts = band_counts(tracer.offsets, vol.nb, samples)
-    scale = band_scale(cfg, wl, tracer.spectrum)
+    scale = band_scale(tracer.light, tracer.bands)
     res = film.develop(radiance(arrays["pix_sum"], counts, scale), cfg, tracer.cam, wl, tracer.spectrum)
     stats = dict(zip(STATS, (int(v) for v in arrays["pix_stats"].sum(0))))
     paths = tracer.npix * samples

@@ -19,6 +19,7 @@ from . import config as C
 from . import driver, film, paths, ppm, transport
 from .device import Device, open_device
 from .film import RenderResult
+from .light import Light
 
 FIX_NOTE = "fixed point 2^32 per unit weight x phase; pixel sums in float64"
 
@@ -233,14 +234,6 @@ def specular_radiance(cfg: dict, eye, bands) -> np.ndarray:
     """(npix, NB) the light seen in the surface's mirror reflection (the eye pass's ray_spec)."""
     cam = eye.camera
     spec = eye.ray_spec.reshape(cam.height * cam.width, cam.spp).mean(1)
-    band_I = cfg["light"]["power_w"] * bands.spectrum / bands.dl
-    Lk = cfg["light"]["kind"]
-    if Lk == "point":
-        fac = band_I / (4 * np.pi) * 1e12
-    elif Lk == "wide":
-        w = np.asarray(cfg["light"]["width_mm"], float) * 1e-3
-        cosb = max(-cfg["light"]["direction"][2] / np.linalg.norm(cfg["light"]["direction"]), 1e-6)
-        fac = band_I / (w[0] * w[1] * cosb)
-    else:
-        fac = band_I * 0.0
+    light = Light.from_config(cfg)
+    fac = light.irradiance_factor(light.power_w * bands.spectrum / bands.dl)
     return spec[:, None] * fac[None, :]

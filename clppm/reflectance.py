@@ -258,11 +258,13 @@ def default_region(width: int, height: int, frac: float = 0.5) -> tuple[int, int
 def white_region(cfg: dict, cam, wl, spectrum, region) -> np.ndarray:
     """White Lambertian reference radiance per pixel of ``region``: (h, w, NB)."""
     from .film import white_reference
+    from .light import Light
+    light = Light.from_config(cfg)
     x0, y0, x1, y1 = region
     out = np.empty((y1 - y0, x1 - x0, len(wl)))
     for j in range(y0, y1):
         for i in range(x0, x1):
-            out[j - y0, i - x0] = white_reference(cfg, _PixelCam(cam, i + 0.5, j + 0.5), wl, spectrum)
+            out[j - y0, i - x0] = white_reference(light, _PixelCam(cam, i + 0.5, j + 0.5), wl, spectrum)
     return out
 
 

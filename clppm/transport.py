@@ -20,6 +20,7 @@ import numpy as np
 
 from . import params as P_
 from .bands import Bands
+from .light import Light
 from .device import Device
 from .volume import Volume
 
@@ -31,15 +32,12 @@ BALANCE = [i for i, c in enumerate(CATEGORIES) if c != "diffuse_cone"]
 MAX_LAUNCH = 1 << 20          # photons per launch: tallies stay far below 2^63
 
 
-def source_params(p: np.ndarray, cfg: dict, vol: Volume) -> float:
+def source_params(p: np.ndarray, light: Light, vol: Volume) -> float:
     """Fill the source fields; return the fraction of the light's power the sampling covers."""
-    L = cfg["light"]
-    p["src_kind"] = P_.SOURCE[L["kind"]]
-    d = np.asarray(L["direction"], float)
-    d /= np.linalg.norm(d)
-    p["sdx"], p["sdy"], p["sdz"] = d
-    if L["kind"] == "point":
-        pos = np.asarray(L["position_mm"], float) * 1000.0
+    p["src_kind"] = light.code
+    p["sdx"], p["sdy"], p["sdz"] = light.direction
+    if light.kind == "point":
+        pos = light.position
         p["sx"], p["sy"], p["sz"] = pos
         if pos[2] <= vol.z_top:                    # in or below the surface plane: all directions
             p["cone_omc"] = 2.0
@@ -62,10 +60,9 @@ def source_params(p: np.ndarray, cfg: dict, vol: Volume) -> float:
         p["cone_omc"] = omc
         p["cax"], p["cay"], p["caz"] = axis
         return omc / 2.0                                         # solid angle / 4 pi
-    c = np.asarray(L["center_mm"], float) * 1000.0
-    p["sx"], p["sy"] = c
-    if L["kind"] == "wide":
-        p["swx"], p["swy"] = np.asarray(L["width_mm"], float) * 1000.0
+    p["sx"], p["sy"] = light.center
+    if light.kind == "wide":
+        p["swx"], p["swy"] = light.width
     return 1.0
 
 
@@ -174,9 +171,11 @@ class PhotonPass:
     """Device state for photon passes of one scene."""
 
     def __init__(self, dev: Device, vol: Volume, cfg: dict, capacity: int = 0,
-                 vbuf: VolumeBuffers | None = None, seed: int | None = None, bands: Bands | None = None):
+                 vbuf: VolumeBuffers | None = None, seed: int | None = None, bands: Bands | None = None,
+                 light: Light | None = None):
         """``bands``: the spectral sampling (default: one band per path, the hero drawn from the
-        light's spectrum).  The tallies follow the hero band alone, so it does not change them."""
+        light's spectrum).  The tallies follow the hero band alone, so it does not change them.
+        ``light``: the config's light (default: read from ``cfg``)."""
         import pyopencl as cl
         self.dev, self.vol, self.cfg = dev, vol, cfg
         self.bands = bands or Bands.from_config(cfg, hero=1, sampling="power")
@@ -200,7 +199,8 @@ class PhotonPass:
         self.logmu = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(logmu))
         p = P_.new_params()
         volume_params(p, vol)
-        self.power_fraction = source_params(p, cfg, vol)
+        self.light = light or Light.from_config(cfg)
+        self.power_fraction = source_params(p, self.light, vol)
         s = cfg["render"]["seed"] if seed is None else seed
         self.seed = int(s)
         p["seed_lo"], p["seed_hi"] = P_.split_seed(s)

@@ -119,12 +119,13 @@ def test_method_reflectance_small(dev):
 
 def test_white_region_matches_white_reference_at_centre():
     from clppm import bands, camera, film
+    from clppm.light import Light
     cfg = _forearm(camera={"resolution": [4, 4]})
     cam = camera.from_config(cfg["camera"])
     wl = config.wavelengths(cfg)
     s = bands.source_spectrum(cfg, wl)
     w = reflectance.white_region(cfg, cam, wl, s, (1, 1, 3, 3))
-    centre = film.white_reference(cfg, cam, wl, s)
+    centre = film.white_reference(Light.from_config(cfg), cam, wl, s)
     assert w.shape == (2, 2, len(wl))
     assert np.allclose(w.mean((0, 1)), centre, rtol=0.02)    # the four pixels around the centre
     assert w[0, 0, 40] > w[1, 1, 40]                          # nearer the light at the upper left
