@@ -181,8 +181,8 @@ __kernel void eye_pass(VOLUME_ARGS,
     if (E->jitter) { jx = rng_u01(&rng); jy = rng_u01(&rng); }
 
     Track t;
-    t.pos = camera_pos(&E->cam);
-    t.dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy);
+    t.pos = camera_pos(&E->cam).xyz;
+    t.dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy).xyz;
     t.L = -1; t.ix = 0; t.iy = 0;
 
     Emit e;

@@ -508,8 +508,8 @@ __kernel void pt_pass(VOLUME_ARGS,
         rng_init(&rng, pix * (uint)E->nspp + (uint)s, E->pass_, 5u, E->seed_lo, E->seed_hi);
         const float jx = rng_u01(&rng), jy = rng_u01(&rng);
         Track t;
-        t.pos = camera_pos(&E->cam);
-        t.dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy);
+        t.pos = camera_pos(&E->cam).xyz;
+        t.dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy).xyz;
         t.L = -1; t.ix = 0; t.iy = 0;
         float value = 0.0f;
         float3 gn;
