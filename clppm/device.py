@@ -266,6 +266,33 @@ class Device:
         return _build(self.ctx, filename, tuple(sorted((defines or {}).items())))
 
 
+#: the gather's density estimators (kernels/gather.cl ESTIMATOR)
+ESTIMATORS = {"sphere": 0, "clip": 1, "layer": 2, "beam": 3}
+
+
+def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator: str | None = None,
+                   gclass: int | None = None, pt_fp64: bool | None = None) -> dict:
+    """Every ``-D`` switch of clppm's kernels, assembled in this one place (as MCX-CL does).
+
+    From the volume: NB bands, NL layers, FLAT (no relief or papillae: the flat code paths);
+    ``nb`` alone (no volume): the photon grid's kernels (hashgrid.cl).  HERO_C: bands a photon
+    path carries, when more than one (spectral.h).  FAST_MATH: the compiler's relaxed math,
+    when CLPPM_FAST_MATH=1.  A pass's own: ESTIMATOR (gather.cl: sphere, clip, layer, beam),
+    GCLASS (the beam gather's band classes), PT_FP64 (pt.cl: double-precision sums)."""
+    if vol is None:
+        return {"NB": int(nb)} if nb is not None else {}
+    d = {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
+    if hero > 1:
+        d["HERO_C"] = int(hero)
+    if estimator is not None:
+        d["ESTIMATOR"] = ESTIMATORS[estimator]
+    if gclass is not None:
+        d["GCLASS"] = int(gclass)
+    if pt_fp64 is not None:
+        d["PT_FP64"] = bool(pt_fp64)
+    return d
+
+
 @functools.lru_cache(maxsize=None)
 def _build(ctx, filename: str, defines: tuple):
     cl = _cl()

@@ -40,7 +40,7 @@ from .camera import CAMERA_DTYPE, from_config
 from .light import Light
 from . import config as C
 from .config import ConfigError
-from .device import Device, DeviceError, check_alloc, open_device
+from .device import Device, DeviceError, check_alloc, kernel_defines, open_device
 
 NBIN = 8
 BIN_LABELS = ["1", "2", "3", "4", "5-8", "9-16", "17-64", "65+"]
@@ -134,7 +134,7 @@ def fp64(dev: Device) -> bool:
 
 
 def build(dev: Device, vol: volume.Volume):
-    return dev.build("pt.cl", {**transport.defines(vol), "PT_FP64": fp64(dev)})
+    return dev.build("pt.cl", kernel_defines(vol, pt_fp64=fp64(dev)))
 
 
 class PathTracer:

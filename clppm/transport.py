@@ -21,7 +21,7 @@ import numpy as np
 from . import params as P_
 from .bands import Bands
 from .light import Light
-from .device import Device
+from .device import Device, kernel_defines
 from .volume import Volume
 
 W0 = 2 ** 38
@@ -75,11 +75,8 @@ def volume_params(p: np.ndarray, vol: Volume) -> None:
     p["z_top"] = vol.z_top
 
 
-def defines(vol: Volume, hero: int = 1) -> dict:
-    d = {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
-    if hero > 1:
-        d["HERO_C"] = int(hero)
-    return d
+def defines(vol: Volume, hero: int = 1) -> dict:   # TEMP until the helpers' branches merge
+    return kernel_defines(vol, hero=hero)
 
 
 @dataclass
@@ -180,7 +177,7 @@ class PhotonPass:
         self.dev, self.vol, self.cfg = dev, vol, cfg
         self.bands = bands or Bands.from_config(cfg, hero=1, sampling="power")
         self.hero = self.bands.hero
-        self.prg = dev.build("photon.cl", defines(vol, self.hero))
+        self.prg = dev.build("photon.cl", kernel_defines(vol, hero=self.hero))
         self.kernel = cl.Kernel(self.prg, "photon_pass")
         self.vbuf = vbuf or upload_volume(dev, vol)
         self.spectrum = self.bands.spectrum
