@@ -54,6 +54,8 @@ class F:
     inf_ok: bool = False
     none_ok: bool = False
     doc: str = ""
+    picture: str = "sums"           # what the key changes: "sums" (the accumulated picture),
+    #                                 "finish" (only the PNG), "none" (how long, how often to save)
 
 
 _RANGE_HELP = {(0, None, True): "> 0", (0, None, False): ">= 0"}
@@ -118,7 +120,7 @@ SCHEMA: dict[str, dict[str, F]] = {
         "merge": F("choice", "voxel", choices=("voxel", "none"), doc="voxel: one sample point per voxel along a ray"),
         "photons": F("int", 810_000, lo=1, hi=2**30, doc="stored photons per pass"),
         "initial_photons": F("int", 810, lo=1, hi=10**6, doc="photons in the first search"),
-        "passes": F("int", 200, lo=1, hi=10**7, doc="progressive passes"),
+        "passes": F("int", 200, lo=1, hi=10**7, doc="progressive passes", picture="none"),
         "alpha": F("float", 0.7, lo=0, hi=1, lo_open=True, hi_open=True, doc="progressive radius reduction"),
         "radius": F("choice", "global", choices=("global", "ppm"),
                     doc="global: Knaus & Zwicker's radius schedule (passes independent: distributable); "
@@ -126,13 +128,15 @@ SCHEMA: dict[str, dict[str, F]] = {
         "seed": F("int", 1, lo=0, hi=2**63 - 1, doc="random seed (same seed, same device: same bytes)"),
         "specular": F("bool", True, doc="add the surface's specular highlight (GGX)"),
         "roughness": F("float", 0.35, lo=0.01, hi=1.0, doc="GGX roughness of the highlight"),
-        "preview_every": F("int", 0, lo=0, hi=10**7, doc="write a preview PNG every K passes (0: never)"),
-        "checkpoint_every": F("int", 10, lo=0, hi=10**7, doc="checkpoint every K passes (0: only at the end or a signal)"),
+        "preview_every": F("int", 0, lo=0, hi=10**7, doc="write a preview PNG every K passes (0: never)",
+                           picture="none"),
+        "checkpoint_every": F("int", 10, lo=0, hi=10**7, doc="checkpoint every K passes (0: only at the end or a signal)",
+                              picture="none"),
         "chunk_passes": F("int", 4, lo=1, hi=10**6,
                           doc="passes summed per chunk before the chunk joins the total, here and "
                               "on distributed workers alike (part of the result's bits)"),
         "exposure": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e12,
-                      doc="PNG scale; default: a white diffuser at the image centre = 1"),
+                      doc="PNG scale; default: a white diffuser at the image centre = 1", picture="finish"),
         "estimator": F("choice", "beam", choices=("beam", "layer", "clip", "sphere"),
                        doc="beam: each photon integrated along its point's path cell, a horizontal "
                            "disc exact in depth; layer: own-layer photons over the sphere within the "
@@ -190,12 +194,12 @@ LAYER_SCHEMA: dict[str, F] = {
     "mus": F("float", None, none_ok=True, lo=0, hi=1e6, doc="homogeneous override, cm^-1"),
 }
 
-#: [render] keys that never change the accumulated picture: how long to run and how often to
-#: save.  A checkpoint resumes, a worker's scene is reused, and a cached reference is found
-#: whatever they are.
-NOT_PICTURE = ("passes", "preview_every", "checkpoint_every")
+#: [render] keys that never change the accumulated picture (``picture="none"`` in the schema):
+#: how long to run and how often to save.  A checkpoint resumes, a worker's scene is reused, and
+#: a cached reference is found whatever they are.
+NOT_PICTURE = tuple(k for k, f in SCHEMA["render"].items() if f.picture == "none")
 #: [render] keys that change only the finishing (the PNG), not the spectral sums.
-FINISHING = ("exposure",)
+FINISHING = tuple(k for k, f in SCHEMA["render"].items() if f.picture == "finish")
 
 MAX_LAYERS = 16
 
