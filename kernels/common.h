@@ -191,9 +191,12 @@ inline float specular_geo(float3 n, float3 v, float3 l, float alpha, float n1, f
  * the free path only need a uniform angle and -ln(u) for u in (0, 1], so both are done here
  * without library calls, accurate to a few float32 ulp (tests/test_optics_kernels.py). */
 
-/* unit vector, for vectors whose length is far from 0 and overflow (all directions here) */
+/* unit vector, for vectors whose length is far from 0 and overflow (all directions here).
+ * rsqrt, not native_rsqrt: native_'s precision is the implementation's (Intel's CPU runtime
+ * gives 1 - 2^-24 for 1, so a unit vector such as a pencil beam's (0, 0, -1) came out as
+ * -0.99999994); PoCL computes both the same way (same bytes). */
 inline float3 unit3(float3 v) {
-    return v * native_rsqrt(v.x * v.x + v.y * v.y + v.z * v.z);
+    return v * rsqrt(v.x * v.x + v.y * v.y + v.z * v.z);
 }
 
 /* -ln(u) for u in (0, 1] (never 0: rng_u01).  u = m 2^e with m in [sqrt(1/2), sqrt(2)),

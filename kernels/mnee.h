@@ -31,15 +31,24 @@
 #ifndef CLPPM_MNEE_H
 #define CLPPM_MNEE_H
 
+/* Points and directions are 4-vectors with w = 0, never 3-vectors.  Intel's OpenCL CPU
+ * compiler (2026.2) miscompiles a 3-vector that crosses the boundary of a function it does not
+ * inline (an argument by value or through a pointer, a field of a struct read through a
+ * pointer, a return value) when it vectorises the caller across work items: only the first lane
+ * of each vectorised group gets the right value (tests/test_mnee.py failed on Intel; reproduced
+ * with a 6-line kernel and a noinline function; 4-vectors, 2-vectors and scalars are right).
+ * The solver's functions are large and called from several places, so Intel keeps them as
+ * calls.  The w component costs nothing on PoCL: xyz is computed by the same operations. */
 #ifdef PT_FP64
-typedef double3 real3;
+typedef double4 real4;
 #define MN_TOL 1e-9             /* landing error, relative to the vertex-light distance */
 #define HF_TOL 1e-13            /* intersection step, relative to the coordinates' size */
 #else
-typedef float3 real3;
+typedef float4 real4;
 #define MN_TOL 2e-6f
 #define HF_TOL 1e-6f
 #endif
+#define R4(x, y, z) ((real4)((x), (y), (z), 0))
 #define MN_MAXIT 16             /* Newton iterations on the landing constraint */
 #define MN_HALF 6               /* step halvings per iteration */
 #define MN_BUDGET 160           /* traces per connection, all attempts together (then: failed) */
@@ -48,7 +57,7 @@ typedef float3 real3;
 #define MN_CONT 64              /* continuation steps */
 
 /* dot product written out (PoCL calls its library's dot out of line) */
-inline real rdot(real3 a, real3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+inline real rdot(real4 a, real4 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
 
 /* h and its derivatives up to second order at (x, y) */
 typedef struct { real h, hx, hy, hxx, hxy, hyy; } HF;
@@ -109,14 +118,14 @@ inline void hf_eval(__constant const Params* P, __constant const float4* iface,
 }
 
 /* Upward unit normal of the height field (and the unnormalised (-hx, -hy, 1)'s length) */
-inline real3 hf_normal(const HF* f, real* len) {
-    const real3 N = (real3)(-f->hx, -f->hy, 1);
+inline real4 hf_normal(const HF* f, real* len) {
+    const real4 N = R4(-f->hx, -f->hy, 1);
     *len = sqrt(rdot(N, N));
     return N / *len;
 }
 
 /* A ray (o, d) with its differentials (do_a, dd_a), a = 1, 2, with respect to u */
-typedef struct { real3 o, d, do1, do2, dd1, dd2; } Ray;
+typedef struct { real4 o, d, do1, do2, dd1, dd2; } Ray;
 
 /* Intersect the ray with interface k (Newton along the ray from the plane through h(o.xy));
  * on success the ray's origin and its differentials move to the hit, *f is h there, *t the
@@ -139,7 +148,7 @@ inline int hf_hit(__constant const Params* P, __constant const float4* iface,
     real t = (f->h - r->o.z) / r->d.z;
     int ok = 0;
     for (int it = 0; it < HF_MAXIT; ++it) {
-        const real3 p = r->o + t * r->d;
+        const real4 p = r->o + t * r->d;
         hf_eval_l(P, iface, smooth, k, p.x, p.y, lam, zr, f);
         const real g = p.z - f->h;
         const real gp = r->d.z - f->hx * r->d.x - f->hy * r->d.y;
@@ -151,29 +160,29 @@ inline int hf_hit(__constant const Params* P, __constant const float4* iface,
     }
     if (!ok || !(t > 0)) return 0;
     /* f is h at the last iterate, within the step's rounding-level dt of the hit */
-    const real3 p = r->o + t * r->d;
+    const real4 p = r->o + t * r->d;
     /* transfer: dt = -(do + t dd) . N / (d . N), N = (-hx, -hy, 1) */
-    const real3 N = (real3)(-f->hx, -f->hy, 1);
+    const real4 N = R4(-f->hx, -f->hy, 1);
     const real dn = rdot(r->d, N);
-    const real3 q1 = r->do1 + t * r->dd1, q2 = r->do2 + t * r->dd2;
+    const real4 q1 = r->do1 + t * r->dd1, q2 = r->do2 + t * r->dd2;
     r->do1 = q1 - (rdot(q1, N) / dn) * r->d;
     r->do2 = q2 - (rdot(q2, N) / dn) * r->d;
-    r->o = (real3)(p.x, p.y, f->h);
+    r->o = R4(p.x, p.y, f->h);
     *t_out = t;
     return 1;
 }
 
 /* Derivative of the unit upward normal along a surface displacement dp */
-inline real3 hf_dnormal(const HF* f, real3 n, real len, real3 dp) {
-    const real3 dN = (real3)(-(f->hxx * dp.x + f->hxy * dp.y), -(f->hxy * dp.x + f->hyy * dp.y), 0);
+inline real4 hf_dnormal(const HF* f, real4 n, real len, real4 dp) {
+    const real4 dN = R4(-(f->hxx * dp.x + f->hxy * dp.y), -(f->hxy * dp.x + f->hyy * dp.y), 0);
     return (dN - n * rdot(n, dN)) / len;
 }
 
 /* Refract (eta = n1 / n2) or reflect the ray at the hit with upward normal n; nf faces the
  * incoming ray.  Differentials by the product rule (Igehy 1999).  0 at total internal reflection. */
-inline int bend(Ray* r, real3 n, real3 dn1, real3 dn2, real eta, int refl, real* cos_i_out) {
+inline int bend(Ray* r, real4 n, real4 dn1, real4 dn2, real eta, int refl, real* cos_i_out) {
     const real s = rdot(r->d, n) > 0 ? -1 : 1;          /* nf = s n faces the ray */
-    const real3 nf = s * n, df1 = s * dn1, df2 = s * dn2;
+    const real4 nf = s * n, df1 = s * dn1, df2 = s * dn2;
     const real ci = -rdot(r->d, nf);
     *cos_i_out = ci;
     const real dci1 = -(rdot(r->dd1, nf) + rdot(r->d, df1));
@@ -201,8 +210,8 @@ typedef struct {
     real c[2], J[4];            /* J = (dc_x/du_1, dc_x/du_2, dc_y/du_1, dc_y/du_2) */
     real cos_v, cos_a;          /* |d_z| at the vertex, d_z in the air */
     real len[NL];               /* path length in each layer */
-    real3 s;                    /* the surface crossing (the last event's point) */
-    real3 d0;                   /* the direction leaving the vertex */
+    real4 s;                    /* the surface crossing (the last event's point) */
+    real4 d0;                   /* the direction leaving the vertex */
     float F;                    /* product of Fresnel R or T over the events */
     int why;                    /* where a failed trace stopped: 1 momentum, 2 heading, 3 hit, 4 TIR,
                                    5 side, 6 air (10 x event + code) */
@@ -211,7 +220,7 @@ typedef struct {
 /* Trace the chain's events from vertex v (layer k0) with momentum u to the light's height;
  * pts (tests, else 0): 8 numbers per point (position, layer of the segment ending there,
  * upward normal), the vertex first, the point at the light's height last. */
-inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 l, real lam,
+inline int mnee_trace(const Chain* ch, real4 v, int k0, real ux, real uy, real4 l, real lam,
                       __constant const Params* P, __constant const float4* iface,
                       __constant const float* layer_n, __global const float* smooth, Trace* T,
                       __global real* pts) {
@@ -224,10 +233,10 @@ inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 
     const real dz = ch->up ? cz : -cz;
     Ray r;
     r.o = v;
-    r.d = (real3)(sx, sy, dz);
-    r.do1 = r.do2 = (real3)(0);
-    r.dd1 = (real3)(1 / nv, 0, -sx / (nv * dz));
-    r.dd2 = (real3)(0, 1 / nv, -sy / (nv * dz));
+    r.d = R4(sx, sy, dz);
+    r.do1 = r.do2 = (real4)(0);
+    r.dd1 = R4(1 / nv, 0, -sx / (nv * dz));
+    r.dd2 = R4(0, 1 / nv, -sy / (nv * dz));
     T->d0 = r.d;
     T->cos_v = cz;
     if (pts) { pts[0] = v.x; pts[1] = v.y; pts[2] = v.z; pts[3] = k0; for (int j = 4; j < 8; ++j) pts[j] = 0; }
@@ -242,8 +251,8 @@ inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 
         if (!hf_hit(P, iface, smooth, i, lam, ch->zref[i], &r, &f, &t)) { T->why = 10 * e + 3; return 0; }
         T->len[k] += t;
         real len;
-        const real3 n = hf_normal(&f, &len);
-        const real3 dn1 = hf_dnormal(&f, n, len, r.do1), dn2 = hf_dnormal(&f, n, len, r.do2);
+        const real4 n = hf_normal(&f, &len);
+        const real4 dn1 = hf_dnormal(&f, n, len, r.do1), dn2 = hf_dnormal(&f, n, len, r.do2);
         if (pts) {
             __global real* q = pts + 8 * (e + 1);
             q[0] = r.o.x; q[1] = r.o.y; q[2] = r.o.z; q[3] = k; q[4] = n.x; q[5] = n.y; q[6] = n.z; q[7] = 0;
@@ -283,11 +292,11 @@ inline int mnee_trace(const Chain* ch, real3 v, int k0, real ux, real uy, real3 
 typedef struct { int ok, iters, halvings, cont, traces; } MneeStat;
 
 /* Newton on c(u) = 0 for the surfaces at homotopy lam, from u; 1 with the converged trace. */
-inline int mnee_newton(const Chain* ch, real3 v, int k0, real* ux, real* uy, real3 l, real lam,
+inline int mnee_newton(const Chain* ch, real4 v, int k0, real* ux, real* uy, real4 l, real lam,
                        __constant const Params* P, __constant const float4* iface,
                        __constant const float* layer_n, __global const float* smooth,
                        Trace* T, MneeStat* st) {
-    const real3 dv = l - v;
+    const real4 dv = l - v;
     const real tol = (real)MN_TOL * sqrt(rdot(dv, dv));
     if (st->traces >= MN_BUDGET) return 0;
     st->traces++;
@@ -324,7 +333,7 @@ inline int mnee_newton(const Chain* ch, real3 v, int k0, real* ux, real* uy, rea
  * fails (a fold of the map between the seed and the solution, or total internal reflection on
  * the way), continuation in lam from 0 to 1 with adaptive steps, each solved by Newton from
  * the last solution: it follows the solution branch the flat path deforms into. */
-inline int mnee_solve(const Chain* ch, real3 v, int k0, real* ux, real* uy, real3 l,
+inline int mnee_solve(const Chain* ch, real4 v, int k0, real* ux, real* uy, real4 l,
                       __constant const Params* P, __constant const float4* iface,
                       __constant const float* layer_n, __global const float* smooth,
                       Trace* T, MneeStat* st) {

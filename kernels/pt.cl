@@ -215,7 +215,8 @@ inline real solve_p(const Chain* ch, real rt, real na, __constant const float* l
  * the phase function): T_F T_att (dOmega/dA_h) / cos theta_L / (selection probability).
  * v, lpos: the vertex's and the light's (or its periodic image's) horizontal position (float2,
  * not float3: with float3 arguments Intel's CPU compiler 2026.2 gave the right light position
- * only to every third of its vectorised lanes).  shift: the image offset (the footprint test
+ * to some of its vectorised lanes only; no 3-vector crosses a call in the relief code either,
+ * mnee.h).  shift: the image offset (the footprint test
  * uses the footprint shifted back).  *dirL: the light's travel direction at the vertex. */
 inline float connect(const Chain* ch, float2 v, int Lv, float2 lpos, float2 shift, int b,
                      __constant const Params* P, __constant const float* layer_n,
@@ -269,7 +270,7 @@ inline float connect(const Chain* ch, float2 v, int Lv, float2 lpos, float2 shif
 /* The layer of height z at (x, y) among the smooth surfaces (mnee.h), starting from the voxel
  * model's layer L: the two differ within half a voxel of an interface.  -1: above the surface. */
 inline int smooth_layer(__constant const Params* P, __constant const float4* iface,
-                        __global const float* smooth, real3 v, int L) {
+                        __global const float* smooth, real4 v, int L) {
     HF f;
     for (int g = 0; g < 2 * NL + 2; ++g) {
         if (L >= 0) { hf_eval(P, iface, smooth, L, v.x, v.y, &f); if (v.z > f.h) { L--; continue; } }
@@ -281,7 +282,7 @@ inline int smooth_layer(__constant const Params* P, __constant const float4* ifa
 
 /* The chain's vertical runs H_k and the light's height above the surface on the planes through
  * the smooth surfaces' heights below the vertex: the flat problem whose solution seeds Newton. */
-inline void chain_local_H(Chain* ch, real3 v, real lz, __constant const Params* P,
+inline void chain_local_H(Chain* ch, real4 v, real lz, __constant const Params* P,
                           __constant const float4* iface, __global const float* smooth) {
     for (int k = 0; k < NL; ++k) ch->H[k] = 0;
     real z = v.z;
@@ -298,7 +299,7 @@ inline void chain_local_H(Chain* ch, real3 v, real lz, __constant const Params* 
 
 /* The flat seed: the momentum of the flat solution on the planes through the interfaces'
  * heights at the vertex (chain_local_H). */
-inline void mnee_seed(Chain* ch, real3 v, real3 l, __constant const Params* P,
+inline void mnee_seed(Chain* ch, real4 v, real4 l, __constant const Params* P,
                       __constant const float4* iface, __constant const float* layer_n,
                       __global const float* smooth, real* ux, real* uy) {
     chain_local_H(ch, v, l.z, P, iface, smooth);
@@ -313,7 +314,7 @@ inline void mnee_seed(Chain* ch, real3 v, real3 l, __constant const Params* P,
 /* The factor of a converged trace, as connect() gives it: G, Fresnel, attenuation, over the
  * chain's selection probability; 0 where the surface crossing is off the model. */
 inline float mnee_factor(const Trace* T, const Chain* ch, float2 shift, int b,
-                         __constant const Params* P, __global const float4* optics, float3* dirL) {
+                         __constant const Params* P, __global const float4* optics, float4* dirL) {
     if (P->lateral != 0) {
         const float sx = (float)T->s.x + shift.x, sy = (float)T->s.y + shift.y;
         if (sx < P->x0 || sx > P->x0 + P->xw || sy < P->y0 || sy > P->y0 + P->yw) return 0.0f;
@@ -322,18 +323,18 @@ inline float mnee_factor(const Trace* T, const Chain* ch, float2 shift, int b,
     real od = 0;
     for (int k = 0; k < NL; ++k)
         if (T->len[k] > 0) od += (real)optics[k * NB + b].w * T->len[k];
-    *dirL = (float3)((float)-T->d0.x, (float)-T->d0.y, (float)-T->d0.z);
+    *dirL = (float4)((float)-T->d0.x, (float)-T->d0.y, (float)-T->d0.z, 0.0f);
     if (!(G > 0) || !isfinite((float)G)) return 0.0f;
     return (float)G * T->F * exp(-(float)od) / ch->wsel;
 }
 
 /* The connection through the height fields (mnee.h) from the flat seed: as connect(), with the
  * solver's outcome in *st. */
-inline float connect_mnee(Chain* ch, real3 v, int Ls, float3 lpos, float2 shift, int b,
+inline float connect_mnee(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift, int b,
                           __constant const Params* P, __constant const float4* iface,
                           __constant const float* layer_n, __global const float4* optics,
-                          __global const float* smooth, float3* dirL, MneeStat* st, Trace* T) {
-    const real3 l = (real3)((real)lpos.x, (real)lpos.y, (real)lpos.z);
+                          __global const float* smooth, float4* dirL, MneeStat* st, Trace* T) {
+    const real4 l = R4((real)lpos.x, (real)lpos.y, (real)lpos.z);
     real ux, uy;
     mnee_seed(ch, v, l, P, iface, layer_n, smooth, &ux, &uy);
     if (!mnee_solve(ch, v, Ls, &ux, &uy, l, P, iface, layer_n, smooth, T, st)) return 0.0f;
@@ -346,24 +347,24 @@ inline float connect_mnee(Chain* ch, real3 v, int Ls, float3 lpos, float2 shift,
  * seeds around it find (Newton on the surfaces from each), distinct ones summed, each with its
  * own phase function value for the path direction wdir: the several-seeds estimator (bias: the
  * solutions no seed reaches; docs/relief.md).  *nsol: distinct solutions found. */
-inline float connect_mnee_all(Chain* ch, real3 v, int Ls, float3 lpos, float2 shift, int b,
-                              float g, float3 wdir, int nseeds,
+inline float connect_mnee_all(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift, int b,
+                              float g, float4 wdir, int nseeds,
                               __constant const Params* P, __constant const float4* iface,
                               __constant const float* layer_n, __global const float4* optics,
                               __global const float* smooth, MneeStat* st, int* nsol) {
-    const real3 l = (real3)((real)lpos.x, (real)lpos.y, (real)lpos.z);
+    const real4 l = R4((real)lpos.x, (real)lpos.y, (real)lpos.z);
     real u0x, u0y;
     mnee_seed(ch, v, l, P, iface, layer_n, smooth, &u0x, &u0y);
     real sx[MN_MAXSOL], sy[MN_MAXSOL];
     int ns = 0;
     float c = 0.0f;
     Trace T;
-    float3 dl;
+    float4 dl;
     real ux = u0x, uy = u0y;
     if (mnee_solve(ch, v, Ls, &ux, &uy, l, P, iface, layer_n, smooth, &T, st)) {
         sx[0] = ux; sy[0] = uy; ns = 1;
         const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
-        if (f > 0.0f) c += f * hg_eval(g, -dot(dl, wdir));
+        if (f > 0.0f) c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz));
     }
     for (int j = 0; j < nseeds && ns < MN_MAXSOL; ++j) {
         /* rings of momentum offsets 0.1 and 0.25, golden-angle directions */
@@ -379,7 +380,7 @@ inline float connect_mnee_all(Chain* ch, real3 v, int Ls, float3 lpos, float2 sh
         if (dup) continue;
         sx[ns] = ux; sy[ns] = uy; ns++;
         const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
-        if (f > 0.0f) c += f * hg_eval(g, -dot(dl, wdir));
+        if (f > 0.0f) c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz));
     }
     *nsol = ns;
     return c;
@@ -387,31 +388,33 @@ inline float connect_mnee_all(Chain* ch, real3 v, int Ls, float3 lpos, float2 sh
 
 /* Fresnel decision at a face (as photon.cl): gn geometric and sn smooth normal, both pointing
  * from the current medium into the next.  1: transmitted (dir refracted), 0: reflected. */
-inline int pt_fresnel_cross(float3* dir, float3 gn, float3 sn, float n1, float n2, float u) {
-    float ci = dot(*dir, sn);
-    if (ci <= 1e-6f) { sn = gn; ci = dot(*dir, gn); }
+inline int pt_fresnel_cross(float4* dir, float4 gn4, float4 sn4, float n1, float n2, float u) {
+    const float3 d = (*dir).xyz, gn = gn4.xyz;
+    float3 sn = sn4.xyz;
+    float ci = dot(d, sn);
+    if (ci <= 1e-6f) { sn = gn; ci = dot(d, gn); }
     float ct;
     const float R = fresnel_R(n1, n2, ci, &ct);
     if (u < R) {
-        float3 r = reflect3(*dir, sn);
+        float3 r = reflect3(d, sn);
         if (dot(r, gn) > 0.0f) r = reflect3(r, gn);
-        *dir = unit3(r);
+        *dir = (float4)(unit3(r), 0.0f);
         return 0;
     }
-    float3 t = refract3(*dir, -sn, n1 / n2, ci, ct);
+    float3 t = refract3(d, -sn, n1 / n2, ci, ct);
     if (dot(t, gn) <= 0.0f) t = reflect3(t, gn);
-    *dir = unit3(t);
+    *dir = (float4)(unit3(t), 0.0f);
     return 1;
 }
 
-/* Upward smooth normal of interface k at p (float) */
-inline float3 smooth_normal(__constant const Params* P, __constant const float4* iface,
-                            __global const float* smooth, int k, float3 p) {
+/* Upward smooth normal of interface k at (x, y) (float; w = 0: no 3-vectors across calls, mnee.h) */
+inline float4 smooth_normal(__constant const Params* P, __constant const float4* iface,
+                            __global const float* smooth, int k, float x, float y) {
     HF f;
-    hf_eval(P, iface, smooth, k, p.x, p.y, &f);
+    hf_eval(P, iface, smooth, k, x, y, &f);
     real len;
-    const real3 n = hf_normal(&f, &len);
-    return (float3)((float)n.x, (float)n.y, (float)n.z);
+    const real4 n = hf_normal(&f, &len);
+    return (float4)((float)n.x, (float)n.y, (float)n.z, 0.0f);
 }
 
 /* Enter the skin from the air at the first hit of t (an eye ray): Fresnel sampled at the smooth
@@ -419,10 +422,10 @@ inline float3 smooth_normal(__constant const Params* P, __constant const float4*
 inline int pt_enter(Track* t, VOLUME_ARGS, __global const float* smooth, Rng* rng) {
     float3 gn;
     if (!hit_surface(t, P, iface, heights, &gn)) return 0;
-    float3 sn = smooth_normal(P, iface, smooth, 0, t->pos);
-    float3 d = t->dir;
-    if (!pt_fresnel_cross(&d, -gn, -sn, P->n_above, layer_n[0], rng_u01(rng))) return 0;
-    t->dir = d; t->L = 0;
+    const float4 sn = smooth_normal(P, iface, smooth, 0, t->pos.x, t->pos.y);
+    float4 d = (float4)(t->dir, 0.0f);
+    if (!pt_fresnel_cross(&d, (float4)(-gn, 0.0f), -sn, P->n_above, layer_n[0], rng_u01(rng))) return 0;
+    t->dir = d.xyz; t->L = 0;
     return 1;
 }
 
@@ -457,9 +460,12 @@ inline int pt_boundary(Track* t, int ev, float* beta, Rng* rng, VOLUME_ARGS,
     const float n1 = layer_n[L];
     const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
     if (n1 != n2) {
-        float3 sn = smooth_normal(P, iface, smooth, k, t->pos);
+        float4 sn = smooth_normal(P, iface, smooth, k, t->pos.x, t->pos.y);
         if (L2 > L) sn = -sn;
-        if (!pt_fresnel_cross(&t->dir, gn, sn, n1, n2, rng_u01(rng))) {
+        float4 d = (float4)(t->dir, 0.0f);
+        const int through = pt_fresnel_cross(&d, (float4)(gn, 0.0f), sn, n1, n2, rng_u01(rng));
+        t->dir = d.xyz;
+        if (!through) {
             if (ev != EV_TOP && ev != EV_BOTTOM) { t->ix = oix; t->iy = oiy; t->pos = opos; }
             return 1;
         }
@@ -518,7 +524,7 @@ __kernel void pt_pass(VOLUME_ARGS,
 #ifdef FLAT
             const float3 sn = (float3)(0.0f, 0.0f, 1.0f);
 #else
-            float3 sn = smooth_normal(P, iface, smooth, 0, t.pos);
+            float3 sn = smooth_normal(P, iface, smooth, 0, t.pos.x, t.pos.y).xyz;
             if (-dot(t.dir, sn) <= 1e-6f) sn = gn;
 #endif
             if (E->specular) {
@@ -573,7 +579,7 @@ __kernel void pt_pass(VOLUME_ARGS,
                         Chain ch;
                         float c = 0.0f;
 #ifndef FLAT
-                        const real3 vr = (real3)((real)t.pos.x, (real)t.pos.y, (real)t.pos.z);
+                        const real4 vr = R4((real)t.pos.x, (real)t.pos.y, (real)t.pos.z);
                         const int Ls = smooth_layer(P, iface, smooth, vr, t.L);
                         if (Ls < 0) m_mis++;
                         if (Ls >= 0 && chain_build(&ch, Ls, t.pos.z, lpos.z, 1, -1, &rng, iface, chain)) {
@@ -582,8 +588,8 @@ __kernel void pt_pass(VOLUME_ARGS,
                                     const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
                                     MneeStat ms;
                                     int nsol;
-                                    c += connect_mnee_all(&ch, vr, Ls, lpos - (float3)(sh, 0.0f), sh, b, op.y,
-                                                          t.dir, E->mnee_seeds, P, iface, layer_n, optics,
+                                    c += connect_mnee_all(&ch, vr, Ls, (float4)(lpos - (float3)(sh, 0.0f), 0.0f), sh, b,
+                                                          op.y, (float4)(t.dir, 0.0f), E->mnee_seeds, P, iface, layer_n, optics,
                                                           smooth, &ms, &nsol);
                                     m_try++; m_ok += (ulong)ms.ok; m_it += (ulong)ms.iters;
                                     m_cont += (ulong)ms.cont; m_sol += (ulong)nsol;
@@ -733,7 +739,7 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
     if (i >= n) return;
     __global real* o = out + (size_t)i * 20;
     for (int j = 0; j < 20; ++j) o[j] = 0;
-    const real3 v = (real3)((real)verts[i].x, (real)verts[i].y, (real)verts[i].z);
+    const real4 v = R4((real)verts[i].x, (real)verts[i].y, (real)verts[i].z);
     const int Ls = smooth_layer(P, iface, smooth, v, clamp((int)verts[i].w, 0, NL - 1));
     o[11] = Ls;
     if (Ls < 0) return;
@@ -742,19 +748,19 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
     Chain ch;
     if (!chain_build(&ch, Ls, (float)v.z, light.z, mode < 0, mode > 0 ? mode : -1, &rng, iface, chain)) return;
     o[14] = 1;
-    float3 dl;
+    float4 dl;
     MneeStat ms;
     Trace T;
     float f = 0.0f;
     if (use_seeds) {
         /* Newton on the surfaces from the given seed (several seeds: the solutions there are) */
-        const real3 l = (real3)((real)light.x, (real)light.y, (real)light.z);
+        const real4 l = R4((real)light.x, (real)light.y, (real)light.z);
         chain_local_H(&ch, v, l.z, P, iface, smooth);
         real ux = seeds[2 * i], uy = seeds[2 * i + 1];
         ms.iters = 0; ms.halvings = 0; ms.cont = 0; ms.traces = 0;
         ms.ok = mnee_newton(&ch, v, Ls, &ux, &uy, l, 1, P, iface, layer_n, smooth, &T, &ms);
     } else {
-        f = connect_mnee(&ch, v, Ls, light.xyz, (float2)(0.0f), 0, P, iface, layer_n, optics,
+        f = connect_mnee(&ch, v, Ls, (float4)(light.xyz, 0.0f), (float2)(0.0f), 0, P, iface, layer_n, optics,
                          smooth, &dl, &ms, &T);
     }
     if (use_seeds == 0) {
@@ -763,8 +769,8 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
         MneeStat s3;
         int nsol;
         Chain c2 = ch;
-        o[16] = 4 * PI_F * connect_mnee_all(&c2, v, Ls, light.xyz, (float2)(0.0f), 0, 0.0f,
-                                            (float3)(0.0f, 0.0f, 1.0f), mnee_seeds, P, iface, layer_n,
+        o[16] = 4 * PI_F * connect_mnee_all(&c2, v, Ls, (float4)(light.xyz, 0.0f), (float2)(0.0f), 0, 0.0f,
+                                            (float4)(0.0f, 0.0f, 1.0f, 0.0f), mnee_seeds, P, iface, layer_n,
                                             optics, smooth, &s3, &nsol);
         o[17] = nsol;
     }
@@ -773,7 +779,7 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
     if (!ms.ok) return;
     o[3] = mnee_G(&T, P->n_above); o[4] = f; o[5] = T.F; o[6] = T.cos_v; o[7] = T.cos_a;
     o[8] = T.d0.x * layer_n[Ls]; o[9] = T.d0.y * layer_n[Ls]; o[10] = ch.wsel;
-    const real3 l = (real3)((real)light.x, (real)light.y, (real)light.z);
+    const real4 l = R4((real)light.x, (real)light.y, (real)light.z);
     Trace T2;
     mnee_trace(&ch, v, Ls, o[8], o[9], l, 1, P, iface, layer_n, smooth, &T2,
                pts + (size_t)i * (MAXE + 2) * 8);
