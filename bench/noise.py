@@ -37,7 +37,8 @@ sys.path.insert(0, ROOT)
 
 from clppm import config as C, image                        # noqa: E402
 from clppm.progressive import render                       # noqa: E402
-from clppm.reference import cached_volumes, skin_mask_from_eye  # noqa: E402
+from clppm.metrics import skin_mask_from_eye  # noqa: E402
+from clppm.reference import cached_volumes  # noqa: E402
 
 STAGES = ("eye", "calibration", "photon", "grid", "gather")
 PAPER = C.PAPER_MODE

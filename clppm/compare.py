@@ -48,8 +48,8 @@ import numpy as np
 
 from . import config as C
 from . import image
-from .reference import (RefSpec, accuracy, cached_volumes, error_metrics, get_reference, pt_possible,
-                        skin_mask)
+from .metrics import accuracy, block_mean, error_metrics
+from .reference import RefSpec, cached_volumes, get_reference, pt_possible, skin_mask
 
 METHODS = "abcdef"
 STAGES = ("eye", "calibration", "photon", "grid", "gather", "trace")
@@ -221,7 +221,6 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
     against log(reuse).
     """
     from .progressive import render
-    from .reference import block_mean
     log = log or (lambda *a, **k: None)
     cfg = C.paper_mode(cfg)               # reuse by overlapping spheres is the paper's estimator's
     if resolution is None:
