@@ -34,11 +34,11 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from clppm import config as C                      # noqa: E402
+from clppm import config as C, volume              # noqa: E402
 from clppm.compare import MODES, render_seconds    # noqa: E402
 from clppm.progressive import render               # noqa: E402
 from clppm.metrics import accuracy, accuracy_of_seeds, block_mean  # noqa: E402
-from clppm.reference import RefSpec, cached_volumes, get_reference  # noqa: E402
+from clppm.reference import RefSpec, get_reference  # noqa: E402
 
 #: paths per 10x10 square in each half of the reference (noise ~ 1.6 / sqrt(2 paths))
 REF_PATHS = {(80, 60): 1_500_000, (320, 240): 140_000}
@@ -170,7 +170,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     doc, md = {"device": dev.info(), "config": a.config, "results": {}}, []
     os.makedirs(a.out, exist_ok=True)
-    with cached_volumes():
+    with volume.memoised():
         for rs in a.resolutions.split(","):
             res = tuple(int(v) for v in rs.split("x"))
             spec = RefSpec(integrator="pt", resolution=res, block=10, paths=a.ref_paths or REF_PATHS.get(res, 500_000))

@@ -35,10 +35,9 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from clppm import config as C, image                        # noqa: E402
+from clppm import config as C, image, volume                # noqa: E402
 from clppm.progressive import render                       # noqa: E402
 from clppm.metrics import skin_mask_from_eye  # noqa: E402
-from clppm.reference import cached_volumes  # noqa: E402
 
 STAGES = ("eye", "calibration", "photon", "grid", "gather")
 PAPER = C.PAPER_MODE
@@ -104,7 +103,7 @@ def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, m
     # skin pixels and exposure from a one-pass render's report (same for both seeds)
     rep0 = snaps[0][common[-1]][2]
     exposure = rep0["exposure"]
-    from clppm import volume, transport, eyepass
+    from clppm import transport, eyepass
     from clppm.device import open_device
     dev = dev or open_device(None)
     vol = volume.build(c)
@@ -190,7 +189,7 @@ def main(argv=None) -> int:
     results = {}
     t0 = time.perf_counter()
     print(f"bench/noise.py on {dev.name}, method {a.method}")
-    with cached_volumes():
+    with volume.memoised():
         for res in res_list:
             c = C.override(cfg, "camera", "resolution", list(res))
             budget = a.budget or (20.0 if a.quick else (60.0 if res[0] <= 80 else 300.0))

@@ -47,9 +47,9 @@ import time
 import numpy as np
 
 from . import config as C
-from . import image
+from . import image, volume
 from .metrics import accuracy, block_mean, error_metrics
-from .reference import RefSpec, cached_volumes, get_reference, pt_possible, skin_mask
+from .reference import RefSpec, get_reference, pt_possible, skin_mask
 
 METHODS = "abcdef"
 STAGES = ("eye", "calibration", "photon", "grid", "gather", "trace")
@@ -226,7 +226,7 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
     if resolution is None:
         resolution = tuple(cfg["camera"]["resolution"]) if ref is None else tuple(ref.spec.resolution)
     rows, imgs = [], {}
-    with cached_volumes():
+    with volume.memoised():
         mask = None
         for n in photons:
             for s in spacings:
@@ -529,7 +529,7 @@ def cmd_compare(a) -> int:
           f"{''.join(paper_methods)}{', path tracer' if with_pt else ''}; {res_[0]}x{res_[1]}, budget "
           f"{budget:g} render s per run")
     t_all = time.perf_counter()
-    with cached_volumes():
+    with volume.memoised():
         ref = get_reference(cfg, spec, a.cache, dev=dev, force=a.force_ref, progress=True)
         image.write_png(os.path.join(out, "images", "reference.png"), ref.rgb, ref.exposure)
         runs = {}

@@ -26,7 +26,6 @@ against a reference, are :mod:`clppm.metrics`.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
 import json
@@ -38,37 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import config as C
+from . import volume
 from .metrics import accuracy, block_mask, block_mean, skin_mask_from_eye
-
-# ----------------------------------------------------------------------------- volumes
-_VOLUME_KEYS = ("model", "spectrum", "relief", "papillae", "layer")
-
-
-@contextlib.contextmanager
-def cached_volumes():
-    """While active, ``clppm.volume.build`` returns a memoised volume per geometry.
-
-    Building the forearm volume (2000 x 2000 columns, generated relief) takes 5-10 s on
-    the host and does not depend on the method, the camera or the photon counts; a compare
-    or benchmark run renders the same volume a dozen times.  The stage timings of the
-    renders exclude it anyway (it is ``seconds['volume']``).
-    """
-    from . import volume
-    orig = volume.build
-    cache: dict = {}
-
-    def build(cfg, source="<config>"):
-        key = json.dumps({k: cfg.get(k) for k in _VOLUME_KEYS}, sort_keys=True, default=str)
-        if key not in cache:
-            cache[key] = orig(cfg, source)
-        return cache[key]
-
-    volume.build = build
-    try:
-        yield cache
-    finally:
-        volume.build = orig
-
 
 # ----------------------------------------------------------------------------- reference
 @dataclass
@@ -227,7 +197,7 @@ def _save(cache_dir: str, ref: Reference) -> None:
 
 def skin_mask(cfg: dict, dev=None) -> np.ndarray:
     """Skin pixels of ``cfg``'s camera (eye pass only)."""
-    from . import eyepass, transport, volume
+    from . import eyepass, transport
     from .device import open_device
     dev = dev or open_device(None)
     vol = volume.build(cfg)
@@ -265,7 +235,7 @@ def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=No
         f"(seeds {spec.seeds[0]}, {spec.seeds[1]})")
     halves, reports = [], []
     t0 = time.perf_counter()
-    with cached_volumes():
+    with volume.memoised():
         full = apply_overrides(cfg, resolution=spec.resolution)
         mask = block_mask(skin_mask(full, dev), spec.block)
         for s in spec.seeds:
