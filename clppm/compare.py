@@ -43,6 +43,7 @@ import math
 import os
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -505,9 +506,22 @@ def _letters(s: str, flag: str) -> list[str]:
     return ms
 
 
-def cmd_compare(a) -> int:
+@dataclass
+class _Plan:
+    """What ``clppm compare`` runs, from its command line (checked)."""
+
+    cfg: dict
+    mode: dict                 # QUICK or STANDARD
+    methods: list
+    paper_methods: list
+    resolution: tuple
+    budget: float
+    max_passes: int
+    out: str
+
+
+def _plan(a) -> _Plan:
     from . import paths
-    from .device import open_device
     d = QUICK if a.quick else STANDARD
     # the subsurface image is compared: the GGX highlight is the same function in every run
     cfg = C.override(C.load(C.find(a.config)), "render", "specular", False)
@@ -521,44 +535,84 @@ def cmd_compare(a) -> int:
     out = a.out or ("out/compare-quick" if a.quick else "out/compare")
     paths.check_folder(out, "-o/--out")
     paths.check_folder(a.cache, "--cache")
-    os.makedirs(os.path.join(out, "images"), exist_ok=True)
+    return _Plan(cfg, d, methods, paper_methods, res_, budget, max_passes, out)
+
+
+def cmd_compare(a) -> int:
+    from .device import open_device
+    pl = _plan(a)
+    os.makedirs(os.path.join(pl.out, "images"), exist_ok=True)
     dev = open_device(a.device)
-    spec = reference_spec(cfg, res_, d, a.ref_paths, a.ref_passes)
+    spec = reference_spec(pl.cfg, pl.resolution, pl.mode, a.ref_paths, a.ref_passes)
     with_pt = spec.integrator == "pt" and not a.no_pt
-    print(f"clppm compare {os.path.basename(a.config)} on {dev.name}: default {''.join(methods)}, paper "
-          f"{''.join(paper_methods)}{', path tracer' if with_pt else ''}; {res_[0]}x{res_[1]}, budget "
-          f"{budget:g} render s per run")
+    res_ = pl.resolution
+    print(f"clppm compare {os.path.basename(a.config)} on {dev.name}: default {''.join(pl.methods)}, paper "
+          f"{''.join(pl.paper_methods)}{', path tracer' if with_pt else ''}; {res_[0]}x{res_[1]}, budget "
+          f"{pl.budget:g} render s per run")
     t_all = time.perf_counter()
     with volume.memoised():
-        ref = get_reference(cfg, spec, a.cache, dev=dev, force=a.force_ref, progress=True)
-        image.write_png(os.path.join(out, "images", "reference.png"), ref.rgb, ref.exposure)
-        runs = {}
-        print("runs:")
-        for mode, ms in (("default", methods), ("paper", paper_methods)):
-            for m in ms:
-                r = run_method(cfg, m, ref, budget=budget, max_passes=max_passes, mode=mode, photons=a.photons,
-                               seed=a.seed, dev=dev)
-                image.write_png(os.path.join(out, "images", f"{mode}-{m}.png"), r.pop("_rgb"), r.pop("_exposure"))
-                runs[f"{m} {mode}"] = r
-        if with_pt:
-            r = run_pt(cfg, ref, budget=budget, seed=a.seed, dev=dev)
-            image.write_png(os.path.join(out, "images", "path-tracer.png"), r.pop("_rgb"), r.pop("_exposure"))
-            runs["path tracer"] = r
-        shift = None
-        if not a.no_shift:
-            print("colour-shift experiment (paper mode, equal spacing x stored photons per pass):")
-            shift = colour_shift_experiment(
-                cfg, spacings=a.shift_spacings or d["shift_spacings"], photons=a.shift_photons or d["shift_photons"],
-                passes=a.shift_passes or d["shift_passes"], resolution=res_, seed=a.seed, ref=ref, dev=dev,
-                log=print)
+        ref = get_reference(pl.cfg, spec, a.cache, dev=dev, force=a.force_ref, progress=True)
+        image.write_png(os.path.join(pl.out, "images", "reference.png"), ref.rgb, ref.exposure)
+        runs = _run_all(pl, ref, with_pt, a.photons, a.seed, dev)
+        shift = None if a.no_shift else _shift(pl, a, ref, dev)
     summ = summarise(runs)
+    md_text = compare_markdown(os.path.basename(a.config), dev.name, pl, spec, ref, runs, summ, shift)
+    plot(runs, ref, os.path.join(pl.out, "compare.png"),
+         title=f"{os.path.basename(a.config)}: {res_[0]}x{res_[1]}, {dev.name}")
+    doc = {"config": os.path.abspath(a.config), "device": dev.info(), "resolution": list(res_),
+           "budget_s": pl.budget, "max_passes": pl.max_passes,
+           "reference": {"key": ref.key, "spec": ref.spec.as_dict(), "error": ref.error, "info": ref.info},
+           "runs": runs, "summary": summ, "colour_shift": shift,
+           "wall_seconds": time.perf_counter() - t_all}
+    _write_text(os.path.join(pl.out, "compare.json"), json.dumps(doc, indent=1, default=str))
+    _write_text(os.path.join(pl.out, "compare.md"), md_text)
+    print()
+    print(results_markdown(runs, summ, ref))
+    if shift is not None:
+        print()
+        print(shift_markdown(shift))
+    print(f"\nwrote {pl.out}/compare.png, compare.md, compare.json, images/ ({time.perf_counter() - t_all:.0f} s)")
+    return 0
+
+
+def _run_all(pl: _Plan, ref, with_pt: bool, photons, seed, dev) -> dict:
+    """Every method in each mode, and the path tracer; each final image written."""
+    def keep(r: dict, name: str) -> dict:
+        image.write_png(os.path.join(pl.out, "images", f"{name}.png"), r.pop("_rgb"), r.pop("_exposure"))
+        return r
+    runs = {}
+    print("runs:")
+    for mode, ms in (("default", pl.methods), ("paper", pl.paper_methods)):
+        for m in ms:
+            r = run_method(pl.cfg, m, ref, budget=pl.budget, max_passes=pl.max_passes, mode=mode,
+                           photons=photons, seed=seed, dev=dev)
+            runs[f"{m} {mode}"] = keep(r, f"{mode}-{m}")
+    if with_pt:
+        runs["path tracer"] = keep(run_pt(pl.cfg, ref, budget=pl.budget, seed=seed, dev=dev), "path-tracer")
+    return runs
+
+
+def _shift(pl: _Plan, a, ref, dev) -> dict:
+    print("colour-shift experiment (paper mode, equal spacing x stored photons per pass):")
+    d = pl.mode
+    return colour_shift_experiment(
+        pl.cfg, spacings=a.shift_spacings or d["shift_spacings"], photons=a.shift_photons or d["shift_photons"],
+        passes=a.shift_passes or d["shift_passes"], resolution=pl.resolution, seed=a.seed, ref=ref, dev=dev,
+        log=print)
+
+
+def compare_markdown(config_name: str, device_name: str, pl: _Plan, spec: RefSpec, ref, runs: dict,
+                     summ: dict, shift: dict | None) -> str:
+    """compare.md: the set-up, the reference, the speed and accuracy table, Table 1 and the
+    colour-shift experiment."""
+    res_ = pl.resolution
     ppm_runs = {k: r for k, r in runs.items() if r["mode"] != "pt"}
     ref_what = (f"the path tracer, {spec.paths:,} paths per {BLOCK}x{BLOCK}-pixel square in each of two halves"
                 if spec.integrator == "pt" else
                 f"PPM (default mode, method {spec.method}, {spec.passes} passes of {spec.photons:,} stored photons, "
                 "two halves; its density-estimation bias is not in its noise estimate)")
-    md = [f"# clppm compare: {os.path.basename(a.config)}", "",
-          f"Device {dev.name}; {res_[0]}x{res_[1]} pixels, budget {budget:g} render seconds per run (eye + "
+    md = [f"# clppm compare: {config_name}", "",
+          f"Device {device_name}; {res_[0]}x{res_[1]} pixels, budget {pl.budget:g} render seconds per run (eye + "
           "calibration + photon + grid + gather, or the path tracer's trace time; volume build and snapshots "
           "excluded).  Errors are over the skin's 10x10-pixel squares (bias, and the noise left at that scale).", "",
           f"Reference `{ref.key}`: {ref_what}.", "",
@@ -569,25 +623,12 @@ def cmd_compare(a) -> int:
     if shift is not None:
         md += ["", "## Colour shift against spacing and photons (the paper's explanation of method a)", "",
                shift_markdown(shift)]
-    md_text = "\n".join(md) + "\n"
-    plot(runs, ref, os.path.join(out, "compare.png"),
-         title=f"{os.path.basename(a.config)}: {res_[0]}x{res_[1]}, {dev.name}")
-    doc = {"config": os.path.abspath(a.config), "device": dev.info(), "resolution": list(res_),
-           "budget_s": budget, "max_passes": max_passes,
-           "reference": {"key": ref.key, "spec": ref.spec.as_dict(), "error": ref.error, "info": ref.info},
-           "runs": runs, "summary": summ, "colour_shift": shift,
-           "wall_seconds": time.perf_counter() - t_all}
-    with open(os.path.join(out, "compare.json"), "w") as f:
-        json.dump(doc, f, indent=1, default=str)
-    with open(os.path.join(out, "compare.md"), "w") as f:
-        f.write(md_text)
-    print()
-    print(results_markdown(runs, summ, ref))
-    if shift is not None:
-        print()
-        print(shift_markdown(shift))
-    print(f"\nwrote {out}/compare.png, compare.md, compare.json, images/ ({time.perf_counter() - t_all:.0f} s)")
-    return 0
+    return "\n".join(md) + "\n"
+
+
+def _write_text(path: str, text: str) -> None:
+    with open(path, "w") as f:
+        f.write(text)
 
 
 def main(argv=None) -> int:      # python -m clppm.compare
