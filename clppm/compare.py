@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import config as C
-from . import image, volume
+from . import argtypes, image, volume
 from .metrics import accuracy, block_mean, error_metrics
 from .reference import RefSpec, get_reference, pt_possible, skin_mask
 
@@ -451,11 +451,7 @@ def _ints(s: str):
 
 
 def _res(s: str):
-    try:
-        w, h = s.lower().split("x")
-        return int(w), int(h)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{s!r}: expected WxH, e.g. 160x120") from None
+    return argtypes.resolution(s, f"{s!r}: expected WxH, e.g. 160x120")
 
 
 def add_parser(subparsers, add_device) -> None:

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import argtypes
 from . import config as C
 from .config import ConfigError
 
@@ -733,14 +734,7 @@ def plot_fit(path: str, res: FitResult, native: tuple | None = None, title: str 
 
 # ----------------------------------------------------------------------------- CLI
 def _bands_arg(s: str):
-    import argparse
-    try:
-        v = tuple(float(x) for x in s.split(":"))
-    except ValueError:
-        v = ()
-    if len(v) != 3:
-        raise argparse.ArgumentTypeError(f"--bands {s!r}: expected START:STOP:STEP nm, e.g. 380:780:20")
-    return v
+    return argtypes.numbers(s, ":", 3, float, f"--bands {s!r}: expected START:STOP:STEP nm, e.g. 380:780:20")
 
 
 def add_parser(subparsers, add_device) -> None:

@@ -29,7 +29,6 @@ the photon-pass value at the same angle of incidence.
 """
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import math
@@ -39,6 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import argtypes
 from . import config as C
 from .config import ConfigError
 
@@ -420,23 +420,15 @@ def against_photon_pass(Rm, tr, wl) -> dict:
 
 # ----------------------------------------------------------------------------- CLI
 def _bands_arg(s: str):
-    try:
-        parts = [float(x) for x in s.split(":")]
-    except ValueError:
-        parts = []
-    if len(parts) != 3:
-        raise argparse.ArgumentTypeError(f"--bands {s!r}: expected START:STOP:STEP in nm, e.g. 380:780:10")
-    return tuple(parts)
+    return argtypes.numbers(s, ":", 3, float, f"--bands {s!r}: expected START:STOP:STEP in nm, e.g. 380:780:10")
 
 
 def _region_arg(s: str):
-    try:
-        v = [int(x) for x in s.split(",")]
-    except ValueError:
-        v = []
-    if len(v) != 4:
-        raise argparse.ArgumentTypeError(f"--region {s!r}: expected x0,y0,x1,y1 pixels")
-    return tuple(v)
+    return argtypes.numbers(s, ",", 4, int, f"--region {s!r}: expected x0,y0,x1,y1 pixels")
+
+
+def _res_arg(s: str):
+    return argtypes.resolution(s, f"--resolution {s!r}: expected WxH, e.g. 64x48")
 
 
 def add_parser(subparsers, add_device) -> None:
@@ -475,14 +467,6 @@ def add_parser(subparsers, add_device) -> None:
     p.add_argument("--no-nist", action="store_true", help="skip the NIST comparison")
     add_device(p)
     p.set_defaults(func=cmd_reflectance)
-
-
-def _res_arg(s: str):
-    try:
-        w, h = s.lower().split("x")
-        return int(w), int(h)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--resolution {s!r}: expected WxH, e.g. 64x48") from None
 
 
 def cmd_reflectance(a) -> int:
