@@ -221,11 +221,20 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
     shift of the finest spacing minus the coarsest, and the fitted slopes of Δv' and Δb*
     against log(reuse).
     """
-    from .progressive import render
     log = log or (lambda *a, **k: None)
     cfg = C.paper_mode(cfg)               # reuse by overlapping spheres is the paper's estimator's
     if resolution is None:
         resolution = tuple(cfg["camera"]["resolution"]) if ref is None else tuple(ref.spec.resolution)
+    rows, imgs, mask = _shift_renders(cfg, spacings, photons, passes, resolution, seed, dev, log)
+    against = _add_shifts(rows, imgs, mask, ref, spacings, photons)
+    return {"against": against, "passes": int(passes), "resolution": list(resolution), "rows": rows,
+            "summary": [_fine_minus_coarse(rows, n) for n in photons]}
+
+
+def _shift_renders(cfg: dict, spacings, photons, passes: int, resolution, seed, dev, log):
+    """Every (photons, spacing) render: its row (mean skin colour, reuse ...), its image
+    (xyz, exposure) by (spacing, photons), and the skin mask."""
+    from .progressive import apply_overrides, render
     rows, imgs = [], {}
     with volume.memoised():
         mask = None
@@ -235,23 +244,33 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
                 res = render(cfg, spacing=float(s), passes=int(passes), photons=int(n), resolution=resolution,
                              seed=seed, dev=dev, on_pass=lambda p, st, last=last: last.update(pt_R=st["pt_R"]))
                 if mask is None:
-                    from .progressive import apply_overrides
                     mask = skin_mask(apply_overrides(cfg, resolution=resolution, spacing=float(s)), dev)
-                r = res.report
-                xyz = res.xyz[mask] * res.exposure
-                mean = xyz.mean(0)
-                uv = image.xyz_to_uv_prime(mean)
-                lab = image.xyz_to_lab(mean)
                 row = {"spacing_um": float(s), "photons": int(n), "passes": int(passes),
-                       "points_per_ray": r["sample_points"] / max(r["eye_rays_hit"], 1),
-                       "reuse": r["gather_pairs"] / max(r["photons_stored"], 1),
-                       "seconds": render_seconds(r), "R_median_um": median_radius(last, r),
-                       "u": float(uv[0]), "v": float(uv[1]),
-                       "L": float(lab[0]), "a": float(lab[1]), "b": float(lab[2])}
+                       **_mean_colour(res, last, mask)}
                 imgs[(float(s), int(n))] = (res.xyz, res.exposure)
                 rows.append(row)
                 log(f"  spacing {s:g} um, {n} photons/pass: reuse {row['reuse']:.0f}, "
                     f"u'v' ({row['u']:.4f}, {row['v']:.4f}), b* {row['b']:.2f}")
+    return rows, imgs, mask
+
+
+def _mean_colour(res, last: dict, mask) -> dict:
+    """A render's sample points per ray, reuse, seconds, median radius, and the u'v' and Lab of
+    its mean skin colour."""
+    r = res.report
+    mean = (res.xyz[mask] * res.exposure).mean(0)
+    uv = image.xyz_to_uv_prime(mean)
+    lab = image.xyz_to_lab(mean)
+    return {"points_per_ray": r["sample_points"] / max(r["eye_rays_hit"], 1),
+            "reuse": r["gather_pairs"] / max(r["photons_stored"], 1),
+            "seconds": render_seconds(r), "R_median_um": median_radius(last, r),
+            "u": float(uv[0]), "v": float(uv[1]),
+            "L": float(lab[0]), "a": float(lab[1]), "b": float(lab[2])}
+
+
+def _add_shifts(rows: list, imgs: dict, mask, ref, spacings, photons) -> str:
+    """Each row's colour shift against ``ref`` (over its squares), or without one against the
+    finest spacing at the most photons; returns what they are against."""
     b, bmask = 1, mask
     if ref is not None:
         base_xyz, base_exp, against = ref.xyz, ref.exposure, f"reference {ref.key}"
@@ -265,23 +284,25 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
         m = error_metrics(block_mean(xyz, b) * (e / base_exp), base_xyz, bmask, base_exp)
         row.update({k: m[k] for k in ("du_mean", "dv_mean", "du", "dv", "db", "da", "dL", "dY",
                                       "de2000", "rmse_xyz")})
-    summary = []
-    for n in photons:
-        rs = sorted((r for r in rows if r["photons"] == n), key=lambda r: r["spacing_um"])
-        fine, coarse = rs[0], rs[-1]
-        d = {"photons": int(n), "fine_um": fine["spacing_um"], "coarse_um": coarse["spacing_um"],
-             "du_fine_minus_coarse": fine["du_mean"] - coarse["du_mean"],
-             "dv_fine_minus_coarse": fine["dv_mean"] - coarse["dv_mean"],
-             "db_fine_minus_coarse": fine["db"] - coarse["db"],
-             "reuse_fine": fine["reuse"], "reuse_coarse": coarse["reuse"]}
-        if len(rs) >= 2:
-            x = np.log([max(r["reuse"], 1e-9) for r in rs])
-            if np.ptp(x) > 0:
-                d["slope_dv_per_log_reuse"] = float(np.polyfit(x, [r["dv_mean"] for r in rs], 1)[0])
-                d["slope_db_per_log_reuse"] = float(np.polyfit(x, [r["b"] for r in rs], 1)[0])
-        summary.append(d)
-    return {"against": against, "passes": int(passes), "resolution": list(resolution), "rows": rows,
-            "summary": summary}
+    return against
+
+
+def _fine_minus_coarse(rows: list, n: int) -> dict:
+    """At ``n`` photons per pass: the finest spacing's shift minus the coarsest's, and the
+    slopes of Δv' and b* against log(reuse)."""
+    rs = sorted((r for r in rows if r["photons"] == n), key=lambda r: r["spacing_um"])
+    fine, coarse = rs[0], rs[-1]
+    d = {"photons": int(n), "fine_um": fine["spacing_um"], "coarse_um": coarse["spacing_um"],
+         "du_fine_minus_coarse": fine["du_mean"] - coarse["du_mean"],
+         "dv_fine_minus_coarse": fine["dv_mean"] - coarse["dv_mean"],
+         "db_fine_minus_coarse": fine["db"] - coarse["db"],
+         "reuse_fine": fine["reuse"], "reuse_coarse": coarse["reuse"]}
+    if len(rs) >= 2:
+        x = np.log([max(r["reuse"], 1e-9) for r in rs])
+        if np.ptp(x) > 0:
+            d["slope_dv_per_log_reuse"] = float(np.polyfit(x, [r["dv_mean"] for r in rs], 1)[0])
+            d["slope_db_per_log_reuse"] = float(np.polyfit(x, [r["b"] for r in rs], 1)[0])
+    return d
 
 
 def shift_markdown(exp: dict) -> str:
