@@ -218,7 +218,6 @@ def _render_half(c: dict, spec: RefSpec, seed: int, dev, progress: bool):
 def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=None, log=print,
                   force: bool = False, flip: bool = False, progress: bool = False) -> Reference:
     """The cached reference for (cfg, spec), computing (and caching) it if needed."""
-    from .progressive import apply_overrides
     key = reference_key(cfg, spec)
     if not force:
         ref = load_reference(cache_dir, key)
@@ -227,14 +226,32 @@ def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=No
             log(reference_summary(ref))
             return ref
     c = scene_config(cfg, spec)
-    what = (f"path tracer, {spec.paths:,} paths per {spec.block}x{spec.block}-pixel square"
-            if spec.integrator == "pt" else
-            f"PPM method {spec.method}, {spec.photons} stored photons/pass, {spec.passes} passes, "
-            f"K = {spec.initial_photons}{', ' + str(spec.overrides) if spec.overrides else ''}")
-    log(f"reference {key}: computing {what}, {spec.resolution[0]}x{spec.resolution[1]}, two halves "
+    log(f"reference {key}: computing {describe(spec)}, {spec.resolution[0]}x{spec.resolution[1]}, two halves "
         f"(seeds {spec.seeds[0]}, {spec.seeds[1]})")
-    halves, reports = [], []
     t0 = time.perf_counter()
+    halves, reports, mask = _render_halves(cfg, c, spec, dev, progress, log)
+    ref = _mean_of_halves(key, spec, halves, mask)
+    ref.info = {"halves": reports, "seconds": time.perf_counter() - t0,
+                "device": halves[0].report["device"]["name"]}
+    _save(cache_dir, ref)
+    log(f"reference {key}: saved {ref.path} ({ref.info['seconds']:.0f} s)")
+    log(reference_summary(ref))
+    return ref
+
+
+def describe(spec: RefSpec) -> str:
+    """What the reference renders, in words."""
+    if spec.integrator == "pt":
+        return f"path tracer, {spec.paths:,} paths per {spec.block}x{spec.block}-pixel square"
+    return (f"PPM method {spec.method}, {spec.photons} stored photons/pass, {spec.passes} passes, "
+            f"K = {spec.initial_photons}{', ' + str(spec.overrides) if spec.overrides else ''}")
+
+
+def _render_halves(cfg: dict, c: dict, spec: RefSpec, dev, progress: bool, log):
+    """The two halves of the scene config ``c`` (seeds ``spec.seeds``), a report of each, and
+    the skin squares of ``cfg``'s camera at the reference's resolution."""
+    from .progressive import apply_overrides
+    halves, reports = [], []
     with volume.memoised():
         full = apply_overrides(cfg, resolution=spec.resolution)
         mask = block_mask(skin_mask(full, dev), spec.block)
@@ -247,29 +264,32 @@ def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=No
                             **{k: r[k] for k in ("photons_emitted", "photons_stored", "gather_pairs",
                                                  "sample_points", "paths_traced") if k in r}})
             log(f"  half seed {s}: {time.perf_counter() - th:.1f} s")
+    return halves, reports, mask
+
+
+def _mean_of_halves(key: str, spec: RefSpec, halves: list, mask) -> Reference:
+    """The reference: the mean of the two halves over the squares, with its own noise."""
     b = spec.block
-    exposure = float(halves[0].exposure)
     h = np.stack([block_mean(x.xyz, b) for x in halves])
     sp = [block_mean(x.spectral, b) for x in halves]
-    xyz = h.mean(0)
-    rgb = np.mean([block_mean(x.rgb, b) for x in halves], axis=0)
-    spectral = np.mean(sp, axis=0).astype(np.float32)
-    ref = Reference(key=key, spec=spec, xyz=xyz, rgb=rgb, halves_xyz=h, spectral=spectral,
-                    wl=np.asarray(halves[0].wl), mask=mask, exposure=exposure, error={},
-                    info={"halves": reports, "seconds": time.perf_counter() - t0,
-                          "device": halves[0].report["device"]["name"]})
-    # own noise: one half against the other, halved (at the reference's own resolution)
-    half = dataclasses.replace(ref, xyz=h[1], spectral=sp[1], spec=dataclasses.replace(spec, block=1))
+    ref = Reference(key=key, spec=spec, xyz=h.mean(0), rgb=np.mean([block_mean(x.rgb, b) for x in halves], axis=0),
+                    halves_xyz=h, spectral=np.mean(sp, axis=0).astype(np.float32),
+                    wl=np.asarray(halves[0].wl), mask=mask, exposure=float(halves[0].exposure), error={})
+    ref.error = own_noise(ref, sp)
+    return ref
+
+
+def own_noise(ref: Reference, halves_spectral: list) -> dict:
+    """The reference's own noise: the accuracy of one half against the other (at the
+    reference's own resolution), halved (see the module docstring)."""
+    h, sp = ref.halves_xyz, halves_spectral
+    half = dataclasses.replace(ref, xyz=h[1], spectral=sp[1], spec=dataclasses.replace(ref.spec, block=1))
     e = accuracy(h[0], sp[0], half)
     err = {k: (v / 2.0 if isinstance(v, float) else v) for k, v in e.items() if k != "groups"}
     err["groups"] = {k: v / 2.0 for k, v in e["groups"].items()}
     err["note"] = ("noise of the mean of the two halves, estimated as (half1 vs half2) / 2"
-                   + ("" if spec.integrator == "pt" else "; excludes the density-estimation bias the halves share"))
-    ref.error = err
-    _save(cache_dir, ref)
-    log(f"reference {key}: saved {ref.path} ({ref.info['seconds']:.0f} s)")
-    log(reference_summary(ref))
-    return ref
+                   + ("" if ref.spec.integrator == "pt" else "; excludes the density-estimation bias the halves share"))
+    return err
 
 
 def reference_summary(ref: Reference) -> str:
