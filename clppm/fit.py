@@ -29,6 +29,7 @@ of measured vs fitted, and a JSON report.
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import math
 import os
@@ -392,6 +393,16 @@ def jacobian(resid, u, r, lo, hi, steps) -> np.ndarray:
     return J
 
 
+def _on_one_blas_thread(f):
+    """``f`` run inside :class:`_SingleThreadBLAS`."""
+    @functools.wraps(f)
+    def run(*args, **kwargs):
+        with _SingleThreadBLAS():
+            return f(*args, **kwargs)
+    return run
+
+
+@_on_one_blas_thread
 def fit(measured_wl, measured_R, cfg: dict | None = None, *, photons: int = DEFAULT_PHOTONS,
         bands=DEFAULT_BANDS, seed: int = 1, angle_deg: float = 8.0, specular: bool = True,
         max_iter: int = 6, forward: str = "hybrid", start: dict | None = None, dev=None,
@@ -414,19 +425,9 @@ def fit(measured_wl, measured_R, cfg: dict | None = None, *, photons: int = DEFA
     finite differences of 3-5 % steps; ``max_iter`` LM iterations of about 5 evaluations each).
     Slower, and rougher: a change of absorption changes every photon's steps, so nearby
     evaluations share less of their noise than CRN promises for long paths.
+
+    OpenBLAS runs on one thread meanwhile (:class:`_SingleThreadBLAS`).
     """
-    with _SingleThreadBLAS():
-        return _fit(measured_wl, measured_R, cfg, photons=photons, bands=bands, seed=seed,
-                    angle_deg=angle_deg, specular=specular, max_iter=max_iter, forward=forward,
-                    start=start, dev=dev, device=device, source=source, label=label, log=log)
-
-
-def _fit(measured_wl, measured_R, cfg: dict | None = None, *, photons: int = DEFAULT_PHOTONS,
-        bands=DEFAULT_BANDS, seed: int = 1, angle_deg: float = 8.0, specular: bool = True,
-        max_iter: int = 6, forward: str = "hybrid", start: dict | None = None, dev=None,
-        device: str | None = None, source: str = "<config>", label: str = "",
-        log=None) -> tuple[FitResult, FitModel]:
-    """The body of :func:`fit` (OpenBLAS single-threaded around it)."""
     t0 = time.perf_counter()
     if cfg is None:
         path = default_config_path()
@@ -644,24 +645,6 @@ def _colour_differences(wl, R, R0, y) -> tuple[float | None, float | None]:
 
 
 # ----------------------------------------------------------------------------- TOML out
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        if math.isnan(v):
-            raise ValueError("NaN has no place in a config")
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
 def to_toml(cfg: dict, header: list[str] | None = None) -> str:
     """A validated config as TOML text (every key written; None values left out)."""
     lines = [f"# {h}" if h else "#" for h in (header or [])]
@@ -672,14 +655,14 @@ def to_toml(cfg: dict, header: list[str] | None = None) -> str:
         for key in schema:
             v = cfg[sec].get(key)
             if v is not None:
-                lines.append(f"{key} = {_toml_value(v)}")
+                lines.append(f"{key} = {C.toml_value(v)}")
         lines.append("")
     for L in cfg["layer"]:
         lines.append("[[layer]]")
         for key in C.LAYER_SCHEMA:
             v = L.get(key)
             if v is not None:
-                lines.append(f"{key} = {_toml_value(v)}")
+                lines.append(f"{key} = {C.toml_value(v)}")
         lines.append("")
     return "\n".join(lines)
 
