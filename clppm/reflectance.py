@@ -46,9 +46,6 @@ DEFAULT_ANGLE = 8.0
 
 
 # ----------------------------------------------------------------------------- geometry
-is_flat = C.is_flat
-
-
 def beam_direction(angle_deg: float) -> list[float]:
     t = math.radians(angle_deg)
     return [math.sin(t), 0.0, -math.cos(t)]
@@ -73,7 +70,7 @@ def measurement_config(cfg: dict, angle_deg: float = DEFAULT_ANGLE, direction=No
     if flat:
         raw["relief"]["kind"] = "flat"
         raw["papillae"]["amplitude_um"] = 0.0
-    varying = not is_flat(raw)
+    varying = not C.is_flat(raw)
     size = list(map(float, raw["model"]["size_mm"]))
     L = raw["light"]
     L.update(spectrum="flat", band_nm=None, power_w=1.0, direction=[float(x) for x in d])
