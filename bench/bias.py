@@ -34,11 +34,11 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from clppm import config as C                      # noqa: E402
+from clppm import config as C, volume              # noqa: E402
 from clppm.compare import MODES, render_seconds    # noqa: E402
 from clppm.progressive import render               # noqa: E402
-from clppm.reference import (RefSpec, accuracy, accuracy_of_seeds, block_mean, cached_volumes,  # noqa: E402
-                             get_reference)
+from clppm.metrics import accuracy, accuracy_of_seeds, block_mean  # noqa: E402
+from clppm.reference import RefSpec, get_reference  # noqa: E402
 
 #: paths per 10x10 square in each half of the reference (noise ~ 1.6 / sqrt(2 paths))
 REF_PATHS = {(80, 60): 1_500_000, (320, 240): 140_000}
@@ -81,7 +81,7 @@ def run(cfg: dict, mode: str, method: str, res: tuple, ref, dev, log=print, long
 
 
 def mark_row(p: int, imgs: list, secs: list, ref, log=print) -> dict:
-    """A mark's row: :func:`clppm.reference.accuracy_of_seeds` of its images, its seconds."""
+    """A mark's row: :func:`clppm.metrics.accuracy_of_seeds` of its images, its seconds."""
     row = {"passes": p, "seconds": float(np.median(secs)), **accuracy_of_seeds(imgs, ref)}
     # where the error lies: Y / Y_pt - 1 of the (mean) image per square, NaN off the skin
     Y = np.mean([x[..., 1] for x, _ in imgs], 0)
@@ -170,7 +170,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     doc, md = {"device": dev.info(), "config": a.config, "results": {}}, []
     os.makedirs(a.out, exist_ok=True)
-    with cached_volumes():
+    with volume.memoised():
         for rs in a.resolutions.split(","):
             res = tuple(int(v) for v in rs.split("x"))
             spec = RefSpec(integrator="pt", resolution=res, block=10, paths=a.ref_paths or REF_PATHS.get(res, 500_000))

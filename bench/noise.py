@@ -35,17 +35,13 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from clppm import config as C, image                        # noqa: E402
+from clppm import config as C, image, volume                # noqa: E402
+from clppm.compare import render_seconds, schedule          # noqa: E402
 from clppm.progressive import render                       # noqa: E402
-from clppm.reference import cached_volumes, skin_mask_from_eye  # noqa: E402
+from clppm.metrics import skin_mask_from_eye  # noqa: E402
 
-STAGES = ("eye", "calibration", "photon", "grid", "gather")
+STAGES = ("eye", "calibration", "photon", "grid", "gather")   # the stage times kept per row
 PAPER = C.PAPER_MODE
-
-
-def render_seconds(report: dict) -> float:
-    s = report["seconds"]
-    return float(sum(s.get(k, 0.0) for k in STAGES))
 
 
 def two_seed_noise(xyz1, xyz2, mask, exposure) -> dict:
@@ -59,15 +55,6 @@ def two_seed_noise(xyz1, xyz2, mask, exposure) -> dict:
             "mean_Y": float(mY)}
 
 
-def schedule(max_passes: int, ratio: float = 1.5) -> set:
-    out, x = set(), 1.0
-    while x <= max_passes:
-        out.add(int(round(x)))
-        x = max(x * ratio, x + 1)
-    out.add(max_passes)
-    return out
-
-
 def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, max_passes: int = 10**6,
              dev=None, log=print) -> dict:
     """Both seeds until ``budget`` render seconds (or max_passes); noise at matching passes."""
@@ -77,7 +64,7 @@ def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, m
     snaps = []
     for s in seeds:
         shots = {}
-        sched = schedule(max_passes)
+        sched = schedule(max_passes, ratio=1.5)
         limit = {"passes": None}
 
         class Stop(Exception):
@@ -103,7 +90,7 @@ def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, m
     # skin pixels and exposure from a one-pass render's report (same for both seeds)
     rep0 = snaps[0][common[-1]][2]
     exposure = rep0["exposure"]
-    from clppm import volume, transport, eyepass
+    from clppm import transport, eyepass
     from clppm.device import open_device
     dev = dev or open_device(None)
     vol = volume.build(c)
@@ -189,7 +176,7 @@ def main(argv=None) -> int:
     results = {}
     t0 = time.perf_counter()
     print(f"bench/noise.py on {dev.name}, method {a.method}")
-    with cached_volumes():
+    with volume.memoised():
         for res in res_list:
             c = C.override(cfg, "camera", "resolution", list(res))
             budget = a.budget or (20.0 if a.quick else (60.0 if res[0] <= 80 else 300.0))

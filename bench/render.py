@@ -328,9 +328,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=os.path.join("out", "bench"))
     a = ap.parse_args(argv)
 
-    from clppm import config
+    from clppm import config, volume
     from clppm.device import open_device
-    from clppm.reference import cached_volumes
     from clppm.progressive import render
 
     cfg = config.load(a.config)
@@ -348,7 +347,7 @@ def main(argv=None) -> int:
     doc = {"device": info, "config": os.path.abspath(a.config), "quick": a.quick,
            "resolution": [w, h], "stored_per_pass": photons, "passes": passes, "methods": []}
     t_all = time.perf_counter()
-    with cached_volumes():
+    with volume.memoised():
         t0 = time.perf_counter()
         render(cfg, method="f", passes=2, photons=20_000, resolution=(16, 12), dev=dev)   # compile everything
         for m in "abcde":      # the eye kernel's JIT per scheme, cheaply

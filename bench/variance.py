@@ -34,9 +34,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "bench"))
 
-from clppm import config as C, ppm, progressive, transport  # noqa: E402
-from clppm.bands import Bands                                # noqa: E402
-from clppm.reference import cached_volumes, skin_mask     # noqa: E402
+from clppm import config as C, ppm, progressive, transport, volume  # noqa: E402
+from clppm.bands import Bands                                        # noqa: E402
+from clppm.reference import skin_mask                                # noqa: E402
 from noise import two_seed_noise                          # noqa: E402
 
 PAPER = dict(C.PAPER_MODE)
@@ -96,7 +96,7 @@ def main(argv=None) -> int:
     cfg = C.override(cfg, "render", "checkpoint_every", 0)
     base = C.paper_mode(cfg)
     rows, t_all = [], time.perf_counter()
-    with cached_volumes():
+    with volume.memoised():
         mask = skin_mask(base, dev)
         for name, edits, opts in ROWS:
             c = cfg if edits == "default" else base

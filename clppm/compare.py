@@ -43,13 +43,14 @@ import math
 import os
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from . import config as C
-from . import image
-from .reference import (RefSpec, accuracy, cached_volumes, error_metrics, get_reference, pt_possible,
-                        skin_mask)
+from . import argtypes, image, volume
+from .metrics import accuracy, block_mean, error_metrics
+from .reference import RefSpec, get_reference, pt_possible, skin_mask
 
 METHODS = "abcdef"
 STAGES = ("eye", "calibration", "photon", "grid", "gather", "trace")
@@ -208,14 +209,22 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
     shift of the finest spacing minus the coarsest, and the fitted slopes of Δv' and Δb*
     against log(reuse).
     """
-    from .progressive import render
-    from .reference import block_mean
     log = log or (lambda *a, **k: None)
     cfg = C.paper_mode(cfg)               # reuse by overlapping spheres is the paper's estimator's
     if resolution is None:
         resolution = tuple(cfg["camera"]["resolution"]) if ref is None else tuple(ref.spec.resolution)
+    rows, imgs, mask = _shift_renders(cfg, spacings, photons, passes, resolution, seed, dev, log)
+    against = _add_shifts(rows, imgs, mask, ref, spacings, photons)
+    return {"against": against, "passes": int(passes), "resolution": list(resolution), "rows": rows,
+            "summary": [_fine_minus_coarse(rows, n) for n in photons]}
+
+
+def _shift_renders(cfg: dict, spacings, photons, passes: int, resolution, seed, dev, log):
+    """Every (photons, spacing) render: its row (mean skin colour, reuse ...), its image
+    (xyz, exposure) by (spacing, photons), and the skin mask."""
+    from .progressive import apply_overrides, render
     rows, imgs = [], {}
-    with cached_volumes():
+    with volume.memoised():
         mask = None
         for n in photons:
             for s in spacings:
@@ -223,23 +232,33 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
                 res = render(cfg, spacing=float(s), passes=int(passes), photons=int(n), resolution=resolution,
                              seed=seed, dev=dev, on_pass=lambda p, st, last=last: last.update(pt_R=st["pt_R"]))
                 if mask is None:
-                    from .progressive import apply_overrides
                     mask = skin_mask(apply_overrides(cfg, resolution=resolution, spacing=float(s)), dev)
-                r = res.report
-                xyz = res.xyz[mask] * res.exposure
-                mean = xyz.mean(0)
-                uv = image.xyz_to_uv_prime(mean)
-                lab = image.xyz_to_lab(mean)
                 row = {"spacing_um": float(s), "photons": int(n), "passes": int(passes),
-                       "points_per_ray": r["sample_points"] / max(r["eye_rays_hit"], 1),
-                       "reuse": r["gather_pairs"] / max(r["photons_stored"], 1),
-                       "seconds": render_seconds(r), "R_median_um": median_radius(last, r),
-                       "u": float(uv[0]), "v": float(uv[1]),
-                       "L": float(lab[0]), "a": float(lab[1]), "b": float(lab[2])}
+                       **_mean_colour(res, last, mask)}
                 imgs[(float(s), int(n))] = (res.xyz, res.exposure)
                 rows.append(row)
                 log(f"  spacing {s:g} um, {n} photons/pass: reuse {row['reuse']:.0f}, "
                     f"u'v' ({row['u']:.4f}, {row['v']:.4f}), b* {row['b']:.2f}")
+    return rows, imgs, mask
+
+
+def _mean_colour(res, last: dict, mask) -> dict:
+    """A render's sample points per ray, reuse, seconds, median radius, and the u'v' and Lab of
+    its mean skin colour."""
+    r = res.report
+    mean = (res.xyz[mask] * res.exposure).mean(0)
+    uv = image.xyz_to_uv_prime(mean)
+    lab = image.xyz_to_lab(mean)
+    return {"points_per_ray": r["sample_points"] / max(r["eye_rays_hit"], 1),
+            "reuse": r["gather_pairs"] / max(r["photons_stored"], 1),
+            "seconds": render_seconds(r), "R_median_um": median_radius(last, r),
+            "u": float(uv[0]), "v": float(uv[1]),
+            "L": float(lab[0]), "a": float(lab[1]), "b": float(lab[2])}
+
+
+def _add_shifts(rows: list, imgs: dict, mask, ref, spacings, photons) -> str:
+    """Each row's colour shift against ``ref`` (over its squares), or without one against the
+    finest spacing at the most photons; returns what they are against."""
     b, bmask = 1, mask
     if ref is not None:
         base_xyz, base_exp, against = ref.xyz, ref.exposure, f"reference {ref.key}"
@@ -253,23 +272,25 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
         m = error_metrics(block_mean(xyz, b) * (e / base_exp), base_xyz, bmask, base_exp)
         row.update({k: m[k] for k in ("du_mean", "dv_mean", "du", "dv", "db", "da", "dL", "dY",
                                       "de2000", "rmse_xyz")})
-    summary = []
-    for n in photons:
-        rs = sorted((r for r in rows if r["photons"] == n), key=lambda r: r["spacing_um"])
-        fine, coarse = rs[0], rs[-1]
-        d = {"photons": int(n), "fine_um": fine["spacing_um"], "coarse_um": coarse["spacing_um"],
-             "du_fine_minus_coarse": fine["du_mean"] - coarse["du_mean"],
-             "dv_fine_minus_coarse": fine["dv_mean"] - coarse["dv_mean"],
-             "db_fine_minus_coarse": fine["db"] - coarse["db"],
-             "reuse_fine": fine["reuse"], "reuse_coarse": coarse["reuse"]}
-        if len(rs) >= 2:
-            x = np.log([max(r["reuse"], 1e-9) for r in rs])
-            if np.ptp(x) > 0:
-                d["slope_dv_per_log_reuse"] = float(np.polyfit(x, [r["dv_mean"] for r in rs], 1)[0])
-                d["slope_db_per_log_reuse"] = float(np.polyfit(x, [r["b"] for r in rs], 1)[0])
-        summary.append(d)
-    return {"against": against, "passes": int(passes), "resolution": list(resolution), "rows": rows,
-            "summary": summary}
+    return against
+
+
+def _fine_minus_coarse(rows: list, n: int) -> dict:
+    """At ``n`` photons per pass: the finest spacing's shift minus the coarsest's, and the
+    slopes of Δv' and b* against log(reuse)."""
+    rs = sorted((r for r in rows if r["photons"] == n), key=lambda r: r["spacing_um"])
+    fine, coarse = rs[0], rs[-1]
+    d = {"photons": int(n), "fine_um": fine["spacing_um"], "coarse_um": coarse["spacing_um"],
+         "du_fine_minus_coarse": fine["du_mean"] - coarse["du_mean"],
+         "dv_fine_minus_coarse": fine["dv_mean"] - coarse["dv_mean"],
+         "db_fine_minus_coarse": fine["db"] - coarse["db"],
+         "reuse_fine": fine["reuse"], "reuse_coarse": coarse["reuse"]}
+    if len(rs) >= 2:
+        x = np.log([max(r["reuse"], 1e-9) for r in rs])
+        if np.ptp(x) > 0:
+            d["slope_dv_per_log_reuse"] = float(np.polyfit(x, [r["dv_mean"] for r in rs], 1)[0])
+            d["slope_db_per_log_reuse"] = float(np.polyfit(x, [r["b"] for r in rs], 1)[0])
+    return d
 
 
 def shift_markdown(exp: dict) -> str:
@@ -439,11 +460,7 @@ def _ints(s: str):
 
 
 def _res(s: str):
-    try:
-        w, h = s.lower().split("x")
-        return int(w), int(h)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{s!r}: expected WxH, e.g. 160x120") from None
+    return argtypes.resolution(s, f"{s!r}: expected WxH, e.g. 160x120")
 
 
 def add_parser(subparsers, add_device) -> None:
@@ -494,9 +511,22 @@ def _letters(s: str, flag: str) -> list[str]:
     return ms
 
 
-def cmd_compare(a) -> int:
+@dataclass
+class _Plan:
+    """What ``clppm compare`` runs, from its command line (checked)."""
+
+    cfg: dict
+    mode: dict                 # QUICK or STANDARD
+    methods: list
+    paper_methods: list
+    resolution: tuple
+    budget: float
+    max_passes: int
+    out: str
+
+
+def _plan(a) -> _Plan:
     from . import paths
-    from .device import open_device
     d = QUICK if a.quick else STANDARD
     # the subsurface image is compared: the GGX highlight is the same function in every run
     cfg = C.override(C.load(C.find(a.config)), "render", "specular", False)
@@ -510,44 +540,84 @@ def cmd_compare(a) -> int:
     out = a.out or ("out/compare-quick" if a.quick else "out/compare")
     paths.check_folder(out, "-o/--out")
     paths.check_folder(a.cache, "--cache")
-    os.makedirs(os.path.join(out, "images"), exist_ok=True)
+    return _Plan(cfg, d, methods, paper_methods, res_, budget, max_passes, out)
+
+
+def cmd_compare(a) -> int:
+    from .device import open_device
+    pl = _plan(a)
+    os.makedirs(os.path.join(pl.out, "images"), exist_ok=True)
     dev = open_device(a.device)
-    spec = reference_spec(cfg, res_, d, a.ref_paths, a.ref_passes)
+    spec = reference_spec(pl.cfg, pl.resolution, pl.mode, a.ref_paths, a.ref_passes)
     with_pt = spec.integrator == "pt" and not a.no_pt
-    print(f"clppm compare {os.path.basename(a.config)} on {dev.name}: default {''.join(methods)}, paper "
-          f"{''.join(paper_methods)}{', path tracer' if with_pt else ''}; {res_[0]}x{res_[1]}, budget "
-          f"{budget:g} render s per run")
+    res_ = pl.resolution
+    print(f"clppm compare {os.path.basename(a.config)} on {dev.name}: default {''.join(pl.methods)}, paper "
+          f"{''.join(pl.paper_methods)}{', path tracer' if with_pt else ''}; {res_[0]}x{res_[1]}, budget "
+          f"{pl.budget:g} render s per run")
     t_all = time.perf_counter()
-    with cached_volumes():
-        ref = get_reference(cfg, spec, a.cache, dev=dev, force=a.force_ref, progress=True)
-        image.write_png(os.path.join(out, "images", "reference.png"), ref.rgb, ref.exposure)
-        runs = {}
-        print("runs:")
-        for mode, ms in (("default", methods), ("paper", paper_methods)):
-            for m in ms:
-                r = run_method(cfg, m, ref, budget=budget, max_passes=max_passes, mode=mode, photons=a.photons,
-                               seed=a.seed, dev=dev)
-                image.write_png(os.path.join(out, "images", f"{mode}-{m}.png"), r.pop("_rgb"), r.pop("_exposure"))
-                runs[f"{m} {mode}"] = r
-        if with_pt:
-            r = run_pt(cfg, ref, budget=budget, seed=a.seed, dev=dev)
-            image.write_png(os.path.join(out, "images", "path-tracer.png"), r.pop("_rgb"), r.pop("_exposure"))
-            runs["path tracer"] = r
-        shift = None
-        if not a.no_shift:
-            print("colour-shift experiment (paper mode, equal spacing x stored photons per pass):")
-            shift = colour_shift_experiment(
-                cfg, spacings=a.shift_spacings or d["shift_spacings"], photons=a.shift_photons or d["shift_photons"],
-                passes=a.shift_passes or d["shift_passes"], resolution=res_, seed=a.seed, ref=ref, dev=dev,
-                log=print)
+    with volume.memoised():
+        ref = get_reference(pl.cfg, spec, a.cache, dev=dev, force=a.force_ref, progress=True)
+        image.write_png(os.path.join(pl.out, "images", "reference.png"), ref.rgb, ref.exposure)
+        runs = _run_all(pl, ref, with_pt, a.photons, a.seed, dev)
+        shift = None if a.no_shift else _shift(pl, a, ref, dev)
     summ = summarise(runs)
+    md_text = compare_markdown(os.path.basename(a.config), dev.name, pl, spec, ref, runs, summ, shift)
+    plot(runs, ref, os.path.join(pl.out, "compare.png"),
+         title=f"{os.path.basename(a.config)}: {res_[0]}x{res_[1]}, {dev.name}")
+    doc = {"config": os.path.abspath(a.config), "device": dev.info(), "resolution": list(res_),
+           "budget_s": pl.budget, "max_passes": pl.max_passes,
+           "reference": {"key": ref.key, "spec": ref.spec.as_dict(), "error": ref.error, "info": ref.info},
+           "runs": runs, "summary": summ, "colour_shift": shift,
+           "wall_seconds": time.perf_counter() - t_all}
+    _write_text(os.path.join(pl.out, "compare.json"), json.dumps(doc, indent=1, default=str))
+    _write_text(os.path.join(pl.out, "compare.md"), md_text)
+    print()
+    print(results_markdown(runs, summ, ref))
+    if shift is not None:
+        print()
+        print(shift_markdown(shift))
+    print(f"\nwrote {pl.out}/compare.png, compare.md, compare.json, images/ ({time.perf_counter() - t_all:.0f} s)")
+    return 0
+
+
+def _run_all(pl: _Plan, ref, with_pt: bool, photons, seed, dev) -> dict:
+    """Every method in each mode, and the path tracer; each final image written."""
+    def keep(r: dict, name: str) -> dict:
+        image.write_png(os.path.join(pl.out, "images", f"{name}.png"), r.pop("_rgb"), r.pop("_exposure"))
+        return r
+    runs = {}
+    print("runs:")
+    for mode, ms in (("default", pl.methods), ("paper", pl.paper_methods)):
+        for m in ms:
+            r = run_method(pl.cfg, m, ref, budget=pl.budget, max_passes=pl.max_passes, mode=mode,
+                           photons=photons, seed=seed, dev=dev)
+            runs[f"{m} {mode}"] = keep(r, f"{mode}-{m}")
+    if with_pt:
+        runs["path tracer"] = keep(run_pt(pl.cfg, ref, budget=pl.budget, seed=seed, dev=dev), "path-tracer")
+    return runs
+
+
+def _shift(pl: _Plan, a, ref, dev) -> dict:
+    print("colour-shift experiment (paper mode, equal spacing x stored photons per pass):")
+    d = pl.mode
+    return colour_shift_experiment(
+        pl.cfg, spacings=a.shift_spacings or d["shift_spacings"], photons=a.shift_photons or d["shift_photons"],
+        passes=a.shift_passes or d["shift_passes"], resolution=pl.resolution, seed=a.seed, ref=ref, dev=dev,
+        log=print)
+
+
+def compare_markdown(config_name: str, device_name: str, pl: _Plan, spec: RefSpec, ref, runs: dict,
+                     summ: dict, shift: dict | None) -> str:
+    """compare.md: the set-up, the reference, the speed and accuracy table, Table 1 and the
+    colour-shift experiment."""
+    res_ = pl.resolution
     ppm_runs = {k: r for k, r in runs.items() if r["mode"] != "pt"}
     ref_what = (f"the path tracer, {spec.paths:,} paths per {BLOCK}x{BLOCK}-pixel square in each of two halves"
                 if spec.integrator == "pt" else
                 f"PPM (default mode, method {spec.method}, {spec.passes} passes of {spec.photons:,} stored photons, "
                 "two halves; its density-estimation bias is not in its noise estimate)")
-    md = [f"# clppm compare: {os.path.basename(a.config)}", "",
-          f"Device {dev.name}; {res_[0]}x{res_[1]} pixels, budget {budget:g} render seconds per run (eye + "
+    md = [f"# clppm compare: {config_name}", "",
+          f"Device {device_name}; {res_[0]}x{res_[1]} pixels, budget {pl.budget:g} render seconds per run (eye + "
           "calibration + photon + grid + gather, or the path tracer's trace time; volume build and snapshots "
           "excluded).  Errors are over the skin's 10x10-pixel squares (bias, and the noise left at that scale).", "",
           f"Reference `{ref.key}`: {ref_what}.", "",
@@ -558,25 +628,12 @@ def cmd_compare(a) -> int:
     if shift is not None:
         md += ["", "## Colour shift against spacing and photons (the paper's explanation of method a)", "",
                shift_markdown(shift)]
-    md_text = "\n".join(md) + "\n"
-    plot(runs, ref, os.path.join(out, "compare.png"),
-         title=f"{os.path.basename(a.config)}: {res_[0]}x{res_[1]}, {dev.name}")
-    doc = {"config": os.path.abspath(a.config), "device": dev.info(), "resolution": list(res_),
-           "budget_s": budget, "max_passes": max_passes,
-           "reference": {"key": ref.key, "spec": ref.spec.as_dict(), "error": ref.error, "info": ref.info},
-           "runs": runs, "summary": summ, "colour_shift": shift,
-           "wall_seconds": time.perf_counter() - t_all}
-    with open(os.path.join(out, "compare.json"), "w") as f:
-        json.dump(doc, f, indent=1, default=str)
-    with open(os.path.join(out, "compare.md"), "w") as f:
-        f.write(md_text)
-    print()
-    print(results_markdown(runs, summ, ref))
-    if shift is not None:
-        print()
-        print(shift_markdown(shift))
-    print(f"\nwrote {out}/compare.png, compare.md, compare.json, images/ ({time.perf_counter() - t_all:.0f} s)")
-    return 0
+    return "\n".join(md) + "\n"
+
+
+def _write_text(path: str, text: str) -> None:
+    with open(path, "w") as f:
+        f.write(text)
 
 
 def main(argv=None) -> int:      # python -m clppm.compare

@@ -575,7 +575,8 @@ def find(name: str) -> str:
 
 
 # ----------------------------------------------------------------------------- TOML out
-def _toml_value(v) -> str:
+def toml_value(v) -> str:
+    """One value of a validated config as TOML (bool, number, inf, string, array)."""
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, float):
@@ -585,7 +586,7 @@ def _toml_value(v) -> str:
     if isinstance(v, str):
         return json.dumps(v)
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
     raise TypeError(type(v))
 
 
@@ -596,7 +597,7 @@ def _toml_table(head: str, table: dict, schema: dict[str, F]) -> list[str]:
         if v is None:
             out.append(f"# {k} = (unset{'' if f.none_ok else ': required'})")
         else:
-            out.append(f"{k} = {_toml_value(v)}")
+            out.append(f"{k} = {toml_value(v)}")
     return out + [""]
 
 
@@ -639,7 +640,7 @@ def _range_text(f: F) -> str:
 def _default_text(f: F) -> str:
     if f.default is None:
         return "unset" if f.none_ok else "required"
-    return _toml_value(f.default)
+    return toml_value(f.default)
 
 
 def schema_rows() -> list[tuple[str, str, str, str, str]]:

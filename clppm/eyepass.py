@@ -122,16 +122,41 @@ def light_fields(e: np.ndarray, light: Light) -> None:
 def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
         sch: Scheme | None = None, max_points: int = 1 << 16, geometry: bool | None = None) -> EyeData:
     """Eye rays, sample points and path pieces; ``geometry`` (default: when the estimator is
-    the beam) also writes each piece's start and direction."""
-    import pyopencl as cl
-    import pyopencl.array as cla
-    import pyopencl.cltypes as cltypes
-    from pyopencl.scan import ExclusiveScanKernel
+    the beam) also writes each piece's start and direction.
 
+    The kernel runs twice: it counts each ray's sample points and pieces, the counts become
+    offsets by a prefix sum, and it runs again to store them there."""
+    import pyopencl.cltypes as cltypes
     rc = cfg["render"]
     sch = sch or scheme(rc["method"], rc["spacing_um"])
     cam = from_config(cfg["camera"])
-    nrays = cam.width * cam.height * cam.spp
+    rates = layer_rates(vol, sch.stat) if sch.kind == "extinction" else np.zeros(vol.nl, np.float32)
+    eye = _EyeKernel(dev, vol, vbuf, eye_params(cfg, cam, sch, max_points), rates, cam)
+    if geometry is None:
+        geometry = rc["estimator"] == "beam"
+    counts, npoints, npieces = eye.count()
+    if npoints >= 2**32 or npieces >= 2**32:
+        raise DeviceError(f"{npoints} sample points / {npieces} path pieces exceed 32-bit indices; "
+                          "raise render.threshold, use a sparser method or a lower resolution")
+    check_alloc(dev, {"sample points": npoints * 56, "path pieces": npieces * 8,
+                      "sample point slabs": npoints * 8, "piece geometry": npieces * 32 if geometry else 0})
+    eye.offsets()
+    out = eye.store(npoints, npieces, geometry)
+    pos = out["pt_pos"].get()[:npoints] if npoints else np.zeros(0, cltypes.float4)
+    dirs = out["pt_dir"].get()[:npoints] if npoints else np.zeros(0, cltypes.float4)
+    zmin, grazing = _depth_reach(out["geo"], npieces, pos)
+    return EyeData(camera=cam, scheme=sch, nrays=eye.nrays, npoints=npoints, npieces=npieces, geo=out["geo"],
+                   zmin=zmin, grazing=grazing, cone_deg=_view_cone_deg(dirs),
+                   ray_start=eye.npts, pt_pos=out["pt_pos"], pt_dir=out["pt_dir"], pt_piece=out["pt_piece"],
+                   pieces=out["pieces"], ray_spec=out["ray_spec"].get(), ray_hit=out["ray_hit"].get(),
+                   pt_slab=out["pt_slab"], counts=counts,
+                   layers=np.asarray(dirs["w"], np.int32) if npoints else np.zeros(0, np.int32),
+                   depth=-np.asarray(pos["z"], float) if npoints else np.zeros(0))
+
+
+def eye_params(cfg: dict, cam: Camera, sch: Scheme, max_points: int) -> np.ndarray:
+    """The kernel's ``EyeParams``: camera, sampling scheme, transmittance cut, voxels, light."""
+    rc = cfg["render"]
     e = np.zeros(1, EYE_DTYPE)
     e["cam"], e["spp"] = cam.struct(), cam.spp
     e["scheme"] = 0 if sch.kind == "equal" else 1
@@ -146,68 +171,87 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     e["seed_lo"], e["seed_hi"] = P_.split_seed(rc["seed"])
     e["jitter"] = 1 if cam.spp > 1 else 0
     light_fields(e, Light.from_config(cfg))
-    rates = layer_rates(vol, sch.stat) if sch.kind == "extinction" else np.zeros(vol.nl, np.float32)
+    return e
 
-    p = P_.new_params()
-    volume_params(p, vol)
-    mf = cl.mem_flags
-    ctx, q = dev.ctx, dev.queue
-    pbuf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
-    ebuf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=e)
-    rbuf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rates)
-    prg = dev.build("eye.cl", defines(vol))
-    knl = cl.Kernel(prg, "eye_pass")
 
-    npts_a = cla.zeros(q, nrays + 1, np.uint32)
-    npcs_a = cla.zeros(q, nrays + 1, np.uint32)
-    dummy4 = cl.Buffer(ctx, mf.READ_WRITE, 16)
-    dummyf = cl.Buffer(ctx, mf.READ_WRITE, 16)
-    common = [pbuf, *vbuf.args(), ebuf, rbuf]
-    if geometry is None:
-        geometry = rc["estimator"] == "beam"
-    knl(q, (P_.global_size(nrays),), P_.local(knl, q), *common, np.int32(0), npts_a.data, npcs_a.data,
-        npts_a.data, npcs_a.data, dummy4, dummy4, dummy4, dummy4, dummyf, dummyf, dummyf, dummy4)
-    counts = npts_a.get()[:nrays].copy()
-    npoints = int(counts.astype(np.int64).sum())
-    npieces = int(npcs_a.get()[:nrays].astype(np.int64).sum())
-    if npoints >= 2**32 or npieces >= 2**32:
-        raise DeviceError(f"{npoints} sample points / {npieces} path pieces exceed 32-bit indices; "
-                          "raise render.threshold, use a sparser method or a lower resolution")
-    check_alloc(dev, {"sample points": npoints * 56, "path pieces": npieces * 8,
-                      "sample point slabs": npoints * 8, "piece geometry": npieces * 32 if geometry else 0})
-    scan = _scan_kernel(ctx)
-    scan(npts_a)            # in place: exclusive prefix sums, entry nrays = total
-    scan(npcs_a)
-    pt_pos = cla.empty(q, max(npoints, 1), cltypes.float4)
-    pt_dir = cla.empty(q, max(npoints, 1), cltypes.float4)
-    pt_piece = cla.empty(q, npoints + 1, np.uint32)
-    pieces = cla.empty(q, max(npieces, 1), cltypes.float2)
-    ray_spec = cla.empty(q, nrays, np.float32)
-    ray_hit = cla.empty(q, nrays, np.float32)
-    pt_slab = cla.empty(q, max(npoints, 1), cltypes.float2)
-    geo = cla.empty(q, 2 * max(npieces, 1), cltypes.float4) if geometry else None
-    knl(q, (P_.global_size(nrays),), P_.local(knl, q), *common, np.int32(2 if geometry else 1), npts_a.data,
-        npcs_a.data, npts_a.data, npcs_a.data, pt_pos.data, pt_dir.data, pt_piece.data, pieces.data,
-        ray_spec.data, ray_hit.data, pt_slab.data, geo.data if geometry else dummy4)
-    cl.enqueue_copy(q, pt_piece.data, np.array([npieces], np.uint32), dst_offset=4 * npoints)
-    pos = pt_pos.get()[:npoints] if npoints else np.zeros(0, cltypes.float4)
-    dirs = pt_dir.get()[:npoints] if npoints else np.zeros(0, cltypes.float4)
-    zmin, grazing = 0.0, False
-    if geometry and npieces:
+class _EyeKernel:
+    """kernels/eye.cl's ``eye_pass`` with its constant arguments, and the per-ray counts
+    (``npts``, ``npcs``: one entry per ray and one for the total) that become offsets."""
+
+    def __init__(self, dev: Device, vol: Volume, vbuf: VolumeBuffers, e: np.ndarray, rates, cam: Camera):
+        import pyopencl as cl
+        import pyopencl.array as cla
+        p = P_.new_params()
+        volume_params(p, vol)
+        mf = cl.mem_flags
+        ctx, self.q = dev.ctx, dev.queue
+        ro = mf.READ_ONLY | mf.COPY_HOST_PTR
+        self.common = [cl.Buffer(ctx, ro, hostbuf=p), *vbuf.args(), cl.Buffer(ctx, ro, hostbuf=e),
+                       cl.Buffer(ctx, ro, hostbuf=rates)]
+        self.knl = cl.Kernel(dev.build("eye.cl", defines(vol)), "eye_pass")
+        self.ctx = ctx
+        self.nrays = cam.width * cam.height * cam.spp
+        self.npts = cla.zeros(self.q, self.nrays + 1, np.uint32)
+        self.npcs = cla.zeros(self.q, self.nrays + 1, np.uint32)
+        self.dummy4 = cl.Buffer(ctx, mf.READ_WRITE, 16)
+        self.dummyf = cl.Buffer(ctx, mf.READ_WRITE, 16)
+
+    def _launch(self, mode: int, outputs: list) -> None:
+        q, knl = self.q, self.knl
+        knl(q, (P_.global_size(self.nrays),), P_.local(knl, q), *self.common, np.int32(mode),
+            self.npts.data, self.npcs.data, self.npts.data, self.npcs.data, *outputs)
+
+    def count(self) -> tuple[np.ndarray, int, int]:
+        """Sample points and pieces per ray (mode 0): the points per ray and both totals."""
+        d4, df = self.dummy4, self.dummyf
+        self._launch(0, [d4, d4, d4, d4, df, df, df, d4])
+        counts = self.npts.get()[:self.nrays].copy()
+        npoints = int(counts.astype(np.int64).sum())
+        npieces = int(self.npcs.get()[:self.nrays].astype(np.int64).sum())
+        return counts, npoints, npieces
+
+    def offsets(self) -> None:
+        """In place: exclusive prefix sums of the counts, entry nrays = the total."""
+        scan = _scan_kernel(self.ctx)
+        scan(self.npts)
+        scan(self.npcs)
+
+    def store(self, npoints: int, npieces: int, geometry: bool) -> dict:
+        """Sample points and path pieces at their offsets (mode 1; 2 with the pieces' geometry)."""
+        import pyopencl as cl
+        import pyopencl.array as cla
+        import pyopencl.cltypes as cltypes
+        q = self.q
+        out = {"pt_pos": cla.empty(q, max(npoints, 1), cltypes.float4),
+               "pt_dir": cla.empty(q, max(npoints, 1), cltypes.float4),
+               "pt_piece": cla.empty(q, npoints + 1, np.uint32),
+               "pieces": cla.empty(q, max(npieces, 1), cltypes.float2),
+               "ray_spec": cla.empty(q, self.nrays, np.float32),
+               "ray_hit": cla.empty(q, self.nrays, np.float32),
+               "pt_slab": cla.empty(q, max(npoints, 1), cltypes.float2),
+               "geo": cla.empty(q, 2 * max(npieces, 1), cltypes.float4) if geometry else None}
+        self._launch(2 if geometry else 1, [a.data for a in list(out.values())[:7]]
+                     + [out["geo"].data if geometry else self.dummy4])
+        cl.enqueue_copy(q, out["pt_piece"].data, np.array([npieces], np.uint32), dst_offset=4 * npoints)
+        return out
+
+
+def _depth_reach(geo, npieces: int, pos) -> tuple[float, bool]:
+    """The lowest z the pieces reach (the sample points' where the pieces' geometry is not
+    kept), and whether a piece runs closer to horizontal than 60 degrees from vertical."""
+    if geo is not None and npieces:
         g = geo.get()[:2 * npieces]
         s, d = g[0::2], g[1::2]
         zend = np.minimum(s["z"], s["z"] + s["w"] * d["z"])
-        zmin = float(zend.min())
-        grazing = bool(np.any(np.abs(d["z"]) < 0.5))
-    elif npoints:
-        zmin = float(pos["z"].min())
-    cone = float(np.degrees(np.arccos(np.clip(np.percentile(dirs["z"], 1.0), -1, 1)))) if npoints else 0.0
-    return EyeData(camera=cam, scheme=sch, nrays=nrays, npoints=npoints, npieces=npieces, geo=geo,
-                   zmin=zmin, grazing=grazing, cone_deg=cone,
-                   ray_start=npts_a, pt_pos=pt_pos, pt_dir=pt_dir, pt_piece=pt_piece,
-                   pieces=pieces, ray_spec=ray_spec.get(), ray_hit=ray_hit.get(), pt_slab=pt_slab,
-                   counts=counts, layers=np.asarray(dirs["w"], np.int32) if npoints else np.zeros(0, np.int32),
-                   depth=-np.asarray(pos["z"], float) if npoints else np.zeros(0))
+        return float(zend.min()), bool(np.any(np.abs(d["z"]) < 0.5))
+    if len(pos):
+        return float(pos["z"].min()), False
+    return 0.0, False
+
+
+def _view_cone_deg(dirs) -> float:
+    """99th percentile of the sample points' eye directions' angle from +z."""
+    return float(np.degrees(np.arccos(np.clip(np.percentile(dirs["z"], 1.0), -1, 1)))) if len(dirs) else 0.0
 
 
 _SCANS: dict = {}

@@ -29,15 +29,16 @@ of measured vs fitted, and a JSON report.
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import math
 import os
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
+from . import argtypes
 from . import config as C
 from .config import ConfigError
 
@@ -392,6 +393,16 @@ def jacobian(resid, u, r, lo, hi, steps) -> np.ndarray:
     return J
 
 
+def _on_one_blas_thread(f):
+    """``f`` run inside :class:`_SingleThreadBLAS`."""
+    @functools.wraps(f)
+    def run(*args, **kwargs):
+        with _SingleThreadBLAS():
+            return f(*args, **kwargs)
+    return run
+
+
+@_on_one_blas_thread
 def fit(measured_wl, measured_R, cfg: dict | None = None, *, photons: int = DEFAULT_PHOTONS,
         bands=DEFAULT_BANDS, seed: int = 1, angle_deg: float = 8.0, specular: bool = True,
         max_iter: int = 6, forward: str = "hybrid", start: dict | None = None, dev=None,
@@ -414,172 +425,226 @@ def fit(measured_wl, measured_R, cfg: dict | None = None, *, photons: int = DEFA
     finite differences of 3-5 % steps; ``max_iter`` LM iterations of about 5 evaluations each).
     Slower, and rougher: a change of absorption changes every photon's steps, so nearby
     evaluations share less of their noise than CRN promises for long paths.
+
+    OpenBLAS runs on one thread meanwhile (:class:`_SingleThreadBLAS`).
     """
-    with _SingleThreadBLAS():
-        return _fit(measured_wl, measured_R, cfg, photons=photons, bands=bands, seed=seed,
-                    angle_deg=angle_deg, specular=specular, max_iter=max_iter, forward=forward,
-                    start=start, dev=dev, device=device, source=source, label=label, log=log)
-
-
-def _fit(measured_wl, measured_R, cfg: dict | None = None, *, photons: int = DEFAULT_PHOTONS,
-        bands=DEFAULT_BANDS, seed: int = 1, angle_deg: float = 8.0, specular: bool = True,
-        max_iter: int = 6, forward: str = "hybrid", start: dict | None = None, dev=None,
-        device: str | None = None, source: str = "<config>", label: str = "",
-        log=None) -> tuple[FitResult, FitModel]:
-    """The body of :func:`fit` (OpenBLAS single-threaded around it)."""
     t0 = time.perf_counter()
     if cfg is None:
         path = default_config_path()
         cfg = C.load(path)
         source = os.path.basename(path)
-    if photons < 100:
-        raise ConfigError("command line", "--photons", photons, "must be >= 100 for a fit")
-    if forward not in ("hybrid", "mc"):
-        raise ConfigError("command line", "--forward", forward, "must be hybrid or mc")
+    _check_options(photons, forward)
     model = FitModel.from_config(cfg, source)
     fwd = Forward(model, bands, photons, seed, angle_deg, specular, dev=dev, device=device)
-    wl = fwd.wl
-    mw = np.asarray(measured_wl, float)
-    if wl[0] < mw.min() - 1e-9 or wl[-1] > mw.max() + 1e-9:
-        raise ConfigError(label or "measured spectrum", "wavelength_nm", f"{mw.min():g}-{mw.max():g} nm",
-                          f"does not cover the fit bands {wl[0]:g}-{wl[-1]:g} nm")
-    y = np.interp(wl, mw, np.asarray(measured_R, float))
-    bnd = model.bounds()
-    p0 = dict(model.start())
-    if start:
-        p0.update(start)
-    for k in PARAMS:
-        p0[k] = min(max(p0[k], bnd[k][0]), bnd[k][1])
-    lo = _to_u({k: bnd[k][0] for k in PARAMS})
-    hi = _to_u({k: bnd[k][1] for k in PARAMS})
-    R0, se0 = fwd(p0)
+    y = _measured_on_bands(fwd.wl, measured_wl, measured_R, label)
+    box = _Box.of(model)
+    p0 = box.clip(start_point(model, start))
+    R0, _ = fwd(p0)
     settings = {"bands_nm": list(bands), "photons_per_band": photons, "seed": seed,
                 "angle_deg": angle_deg, "specular": "included" if specular else "excluded",
                 "device": fwd.dev.name, "config": source,
                 "layers_melanin": [cfg["layer"][i]["name"] for i in model.melanin_layers],
                 "layers_blood": [cfg["layer"][i]["name"] for i in model.blood_layers],
                 "layers_k": [cfg["layer"][i]["name"] for i in model.scatter_layers],
-                "bounds": bnd}
-    hist = []
+                "bounds": box.bounds}
     if forward == "mc":
-        steps = np.array([_STEP_MC[k] for k in PARAMS])
-
-        def resid(u):
-            return fwd(_to_p(u))[0] - y
-        u, r, J, its, conv, h = least_squares_lm(resid, _to_u(p0), lo, hi, steps, max_iter, log)
-        hist = [{"params": _to_p(np.array(x["u"])), "rms": math.sqrt(x["cost"] / y.size)} for x in h]
-        p = _to_p(u)
-        settings["forward"] = ("photon pass, flat model (relief/papillae off), laterally infinite, "
-                               "pencil beam, common random numbers; LM on it directly")
+        sol = _fit_mc(fwd, y, p0, box, max_iter, log)
     else:
-        sur = Surrogate(model, wl)
-        # the surrogate's single index: the layer index whose AD spectrum is nearest the photon
-        # pass at the start (a calibration, not a fit parameter)
-        best = None
-        for n in sorted({round(float(L["n"]), 4) for L in cfg["layer"]}):
-            sur.set_index(n)
-            e = float(np.sqrt(np.mean((sur(p0) - R0) ** 2)))
-            if best is None or e < best[0]:
-                best = (e, n)
-        sur.set_index(best[1])
-        steps = np.array([_STEP_AD[k] for k in PARAMS])
-        p, u = dict(p0), _to_u(p0)
-        best_p, best_rms = dict(p0), float(np.sqrt(np.mean((R0 - y) ** 2)))
-        hist.append({"params": dict(p0), "rms": best_rms, "surrogate_offset_rms": best[0]})
-        conv, its, stale = False, 0, 0
-        pts = []                                   # (u, offset) at every photon-pass point
-        for its in range(1, max_iter + 1):
-            Rm, _ = fwd(p)
-            pts.append((u.copy(), Rm - sur(p)))
-            # pool the offsets measured near here: the offset moves slowly with the parameters,
-            # its photon noise does not, so nearby points average the noise down
-            near = [d for uj, d in pts if np.max(np.abs(uj - u)) < POOL_RADIUS]
-            delta = np.mean(near, axis=0)
+        sol = _fit_hybrid(fwd, y, p0, R0, box, max_iter, log)
+    settings.update(sol.settings)
+    R, se = fwd(sol.p)
+    de, de0 = _colour_differences(fwd.wl, R, R0, y)
+    settings["mc_se_mean"] = float(np.mean(se))
+    settings["photon_pass_seconds"] = fwd.seconds
+    res = FitResult(
+        params=sol.p, params_se=parameter_errors(sol.J, sol.r, sol.p), start=p0, wl=fwd.wl,
+        measured=y, fitted=R, fitted_se=se, initial=R0, rms=_rms(R - y), rms_initial=_rms(R0 - y),
+        max_abs=float(np.max(np.abs(R - y))), iterations=sol.iterations, evaluations=fwd.evaluations,
+        seconds=time.perf_counter() - t0, converged=sol.converged, history=sol.history,
+        layers=model.layer_values(sol.p), delta_e=de, delta_e_initial=de0, label=label,
+        settings=settings)
+    return res, model
 
-            def resid(uu, delta=delta):
-                return sur(_to_p(uu)) + delta - y
-            un, _, _, _, _, _ = least_squares_lm(resid, u, lo, hi, steps, 60, None, tol=1e-10)
-            moved = float(np.max(np.abs(un - u)))
-            u, p = un, _to_p(un)
-            Rn, _ = fwd(p)
-            rms = float(np.sqrt(np.mean((Rn - y) ** 2)))
-            hist.append({"params": dict(p), "rms": rms, "moved": moved, "pooled": len(near),
-                         "surrogate_offset_rms": float(np.sqrt(np.mean(delta ** 2)))})
-            if log:
-                log(its, p, rms)
-            if rms < best_rms:
-                best_p, best_rms, stale = dict(p), rms, 0
-            else:
-                stale += 1
-            if moved < 2e-3 or stale >= 2:     # fixed point, or at the photon-noise floor
-                conv = True
-                break
-        p = best_p
-        u = _to_u(p)
-        r = fwd(p)[0] - y
-        J = jacobian(lambda uu: sur(_to_p(uu)) - y, u, sur(p) - y, lo, hi, steps)
-        settings["forward"] = ("hybrid: adding-doubling surrogate (iadpython, one index "
-                               f"n = {sur.n:g}, normal incidence, {sur.quad_pts} quadrature angles) "
-                               "corrected per band by the photon pass (flat model, laterally "
-                               "infinite, pencil beam, common random numbers) at each outer "
-                               "iteration; residuals are the photon pass's")
-        settings["surrogate_index"] = sur.n
-        settings["surrogate_offset_rms_start"] = best[0]
-        settings["surrogate_evaluations"] = sur.evaluations
-        settings["surrogate_seconds"] = sur.seconds
-    R, se = fwd(p)
+
+def _rms(d) -> float:
+    return float(np.sqrt(np.mean(d ** 2)))
+
+
+def _check_options(photons: int, forward: str) -> None:
+    if photons < 100:
+        raise ConfigError("command line", "--photons", photons, "must be >= 100 for a fit")
+    if forward not in ("hybrid", "mc"):
+        raise ConfigError("command line", "--forward", forward, "must be hybrid or mc")
+
+
+def _measured_on_bands(wl, measured_wl, measured_R, label: str) -> np.ndarray:
+    """The measurement interpolated linearly onto the fit bands (which it must cover)."""
+    mw = np.asarray(measured_wl, float)
+    if wl[0] < mw.min() - 1e-9 or wl[-1] > mw.max() + 1e-9:
+        raise ConfigError(label or "measured spectrum", "wavelength_nm", f"{mw.min():g}-{mw.max():g} nm",
+                          f"does not cover the fit bands {wl[0]:g}-{wl[-1]:g} nm")
+    return np.interp(wl, mw, np.asarray(measured_R, float))
+
+
+@dataclass
+class _Box:
+    """The parameters' bounds, as parameters and in the solver's variables u."""
+
+    bounds: dict
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @classmethod
+    def of(cls, model: FitModel) -> "_Box":
+        b = model.bounds()
+        return cls(b, _to_u({k: b[k][0] for k in PARAMS}), _to_u({k: b[k][1] for k in PARAMS}))
+
+    def clip(self, p: dict) -> dict:
+        return {**p, **{k: min(max(p[k], self.bounds[k][0]), self.bounds[k][1]) for k in PARAMS}}
+
+
+def start_point(model: FitModel, start: dict | None) -> dict:
+    """The model's own values, with ``start`` over them."""
+    p0 = dict(model.start())
+    if start:
+        p0.update(start)
+    return p0
+
+
+@dataclass
+class _Solution:
+    """Where a solver stopped: parameters, residual and Jacobian there (for the standard
+    errors), and its record."""
+
+    p: dict
+    r: np.ndarray
+    J: np.ndarray | None
+    iterations: int
+    converged: bool
+    history: list
+    settings: dict
+
+
+def _fit_mc(fwd: "Forward", y, p0: dict, box: _Box, max_iter: int, log) -> _Solution:
+    """Levenberg-Marquardt directly on the photon pass."""
+    steps = np.array([_STEP_MC[k] for k in PARAMS])
+
+    def resid(u):
+        return fwd(_to_p(u))[0] - y
+    u, r, J, its, conv, h = least_squares_lm(resid, _to_u(p0), box.lo, box.hi, steps, max_iter, log)
+    hist = [{"params": _to_p(np.array(x["u"])), "rms": math.sqrt(x["cost"] / y.size)} for x in h]
+    note = ("photon pass, flat model (relief/papillae off), laterally infinite, "
+            "pencil beam, common random numbers; LM on it directly")
+    return _Solution(_to_p(u), r, J, its, conv, hist, {"forward": note})
+
+
+def _fit_hybrid(fwd: "Forward", y, p0: dict, R0, box: _Box, max_iter: int, log) -> _Solution:
+    """Space mapping: the adding-doubling surrogate, corrected by the photon pass's offset at
+    each outer iteration, fitted until the parameters stop moving."""
+    sur = Surrogate(fwd.model, fwd.wl)
+    offset0 = calibrate_index(sur, p0, R0)
+    steps = np.array([_STEP_AD[k] for k in PARAMS])
+    hist = [{"params": dict(p0), "rms": _rms(R0 - y), "surrogate_offset_rms": offset0}]
+    p, its, conv = _space_mapping(fwd, sur, y, p0, box, steps, max_iter, log, hist)
+    u = _to_u(p)
+    r = fwd(p)[0] - y
+    J = jacobian(lambda uu: sur(_to_p(uu)) - y, u, sur(p) - y, box.lo, box.hi, steps)
+    settings = {"forward": ("hybrid: adding-doubling surrogate (iadpython, one index "
+                            f"n = {sur.n:g}, normal incidence, {sur.quad_pts} quadrature angles) "
+                            "corrected per band by the photon pass (flat model, laterally "
+                            "infinite, pencil beam, common random numbers) at each outer "
+                            "iteration; residuals are the photon pass's"),
+                "surrogate_index": sur.n, "surrogate_offset_rms_start": offset0,
+                "surrogate_evaluations": sur.evaluations, "surrogate_seconds": sur.seconds}
+    return _Solution(p, r, J, its, conv, hist, settings)
+
+
+def calibrate_index(sur: Surrogate, p0: dict, R0) -> float:
+    """Set the surrogate's single index to the layer index whose adding-doubling spectrum is
+    nearest the photon pass at the start (a calibration, not a fit parameter); returns that
+    RMS offset."""
+    best = None
+    for n in sorted({round(float(L["n"]), 4) for L in sur.model.base["layer"]}):
+        sur.set_index(n)
+        e = _rms(sur(p0) - R0)
+        if best is None or e < best[0]:
+            best = (e, n)
+    sur.set_index(best[1])
+    return best[0]
+
+
+def _space_mapping(fwd: "Forward", sur: Surrogate, y, p0: dict, box: _Box, steps, max_iter: int,
+                   log, hist: list) -> tuple[dict, int, bool]:
+    """The outer iterations of the hybrid fit (appending to ``hist``): the best parameters the
+    photon pass saw, the iterations run, and whether they converged."""
+    p, u = dict(p0), _to_u(p0)
+    best_p, best_rms = dict(p0), hist[0]["rms"]
+    conv, its, stale = False, 0, 0
+    pts = []                                   # (u, offset) at every photon-pass point
+    for its in range(1, max_iter + 1):
+        Rm, _ = fwd(p)
+        pts.append((u.copy(), Rm - sur(p)))
+        near, delta = pooled_offset(pts, u)
+
+        def resid(uu, delta=delta):
+            return sur(_to_p(uu)) + delta - y
+        un, _, _, _, _, _ = least_squares_lm(resid, u, box.lo, box.hi, steps, 60, None, tol=1e-10)
+        moved = float(np.max(np.abs(un - u)))
+        u, p = un, _to_p(un)
+        Rn, _ = fwd(p)
+        rms = _rms(Rn - y)
+        hist.append({"params": dict(p), "rms": rms, "moved": moved, "pooled": near,
+                     "surrogate_offset_rms": _rms(delta)})
+        if log:
+            log(its, p, rms)
+        if rms < best_rms:
+            best_p, best_rms, stale = dict(p), rms, 0
+        else:
+            stale += 1
+        if moved < 2e-3 or stale >= 2:     # fixed point, or at the photon-noise floor
+            conv = True
+            break
+    return best_p, its, conv
+
+
+def pooled_offset(pts: list, u) -> tuple[int, np.ndarray]:
+    """The mean photon-pass offset of the points within :data:`POOL_RADIUS` of ``u``, and how
+    many: the offset moves slowly with the parameters, its photon noise does not, so nearby
+    points average the noise down."""
+    near = [d for uj, d in pts if np.max(np.abs(uj - u)) < POOL_RADIUS]
+    return len(near), np.mean(near, axis=0)
+
+
+def parameter_errors(J, r, p: dict) -> dict:
+    """Standard errors of the parameters from the Jacobian at the solution (None where the
+    covariance is singular); the delta method for the log factors."""
     dof = max(1, r.size - len(PARAMS))
     s2 = float(r @ r) / dof
-    pse = {}
     try:
         cov = np.linalg.inv(J.T @ J) * s2 if J is not None else None
     except np.linalg.LinAlgError:
         cov = None
+    pse = {}
     for j, k in enumerate(PARAMS):
         if cov is None or not np.isfinite(cov[j, j]) or cov[j, j] < 0:
             pse[k] = None
         else:
             sd = math.sqrt(cov[j, j])
             pse[k] = sd * p[k] if _LOG[k] else sd          # delta method for the log factors
+    return pse
+
+
+def _colour_differences(wl, R, R0, y) -> tuple[float | None, float | None]:
+    """CIEDE2000 of the fitted and of the starting spectrum against the measurement (None
+    where the bands do not allow it)."""
     from . import nist
-    de = de0 = None
     try:
-        de = float(nist.delta_e(wl, R, y))
-        de0 = float(nist.delta_e(wl, R0, y))
+        return float(nist.delta_e(wl, R, y)), float(nist.delta_e(wl, R0, y))
     except ValueError:
-        pass
-    settings["mc_se_mean"] = float(np.mean(se))
-    settings["photon_pass_seconds"] = fwd.seconds
-    res = FitResult(
-        params=p, params_se=pse, start=p0, wl=wl, measured=y, fitted=R, fitted_se=se,
-        initial=R0, rms=float(np.sqrt(np.mean((R - y) ** 2))),
-        rms_initial=float(np.sqrt(np.mean((R0 - y) ** 2))),
-        max_abs=float(np.max(np.abs(R - y))), iterations=its, evaluations=fwd.evaluations,
-        seconds=time.perf_counter() - t0, converged=conv, history=hist,
-        layers=model.layer_values(p), delta_e=de, delta_e_initial=de0, label=label,
-        settings=settings)
-    return res, model
+        return None, None
 
 
 # ----------------------------------------------------------------------------- TOML out
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        if math.isnan(v):
-            raise ValueError("NaN has no place in a config")
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
 def to_toml(cfg: dict, header: list[str] | None = None) -> str:
     """A validated config as TOML text (every key written; None values left out)."""
     lines = [f"# {h}" if h else "#" for h in (header or [])]
@@ -590,14 +655,14 @@ def to_toml(cfg: dict, header: list[str] | None = None) -> str:
         for key in schema:
             v = cfg[sec].get(key)
             if v is not None:
-                lines.append(f"{key} = {_toml_value(v)}")
+                lines.append(f"{key} = {C.toml_value(v)}")
         lines.append("")
     for L in cfg["layer"]:
         lines.append("[[layer]]")
         for key in C.LAYER_SCHEMA:
             v = L.get(key)
             if v is not None:
-                lines.append(f"{key} = {_toml_value(v)}")
+                lines.append(f"{key} = {C.toml_value(v)}")
         lines.append("")
     return "\n".join(lines)
 
@@ -652,14 +717,7 @@ def plot_fit(path: str, res: FitResult, native: tuple | None = None, title: str 
 
 # ----------------------------------------------------------------------------- CLI
 def _bands_arg(s: str):
-    import argparse
-    try:
-        v = tuple(float(x) for x in s.split(":"))
-    except ValueError:
-        v = ()
-    if len(v) != 3:
-        raise argparse.ArgumentTypeError(f"--bands {s!r}: expected START:STOP:STEP nm, e.g. 380:780:20")
-    return v
+    return argtypes.numbers(s, ":", 3, float, f"--bands {s!r}: expected START:STOP:STEP nm, e.g. 380:780:20")
 
 
 def add_parser(subparsers, add_device) -> None:

@@ -76,18 +76,19 @@ def _try_folder(d: str) -> str | None:
 
 def check_folder(path: str | None, flag: str, source: str = "command line") -> None:
     """Raise :class:`ConfigError` if files cannot be written into the folder ``path``."""
-    if path is None:
-        return
-    why = folder_problem(path)
-    if why:
-        raise ConfigError(source, flag, path, f"cannot be written ({why})")
+    _refuse(folder_problem, path, flag, source)
 
 
 def check_writable(path: str | None, flag: str, source: str = "command line") -> None:
     """Raise :class:`ConfigError` (one line: flag, path, reason) if ``path`` cannot be written."""
+    _refuse(writable_problem, path, flag, source)
+
+
+def _refuse(problem, path: str | None, flag: str, source: str) -> None:
+    """Raise :class:`ConfigError` if ``problem(path)`` names one (nothing for no path)."""
     if path is None:
         return
-    why = writable_problem(path)
+    why = problem(path)
     if why:
         raise ConfigError(source, flag, path, f"cannot be written ({why})")
 

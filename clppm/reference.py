@@ -1,4 +1,4 @@
-"""Converged reference images, cached on disk, and the error of an image against one.
+"""Converged reference images, cached on disk.
 
 A reference is the mean of two independent renders ("halves") of the same scene with
 different seeds.  Where the scene allows it (flat layers, a point light) it is the unbiased
@@ -21,11 +21,11 @@ Carlo noise only: for a PPM reference, the density-estimation bias of the finite
 (which the halves share) is not in it; a path-tracing reference has none.
 
 Skin pixels (the error is taken over them) are the pixels all of whose eye rays hit the
-model, from the eye pass of the reference scene.
+model, from the eye pass of the reference scene.  The error measures themselves, of an image
+against a reference, are :mod:`clppm.metrics`.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
 import json
@@ -37,242 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import config as C
-from . import image
-
-# ----------------------------------------------------------------------------- volumes
-_VOLUME_KEYS = ("model", "spectrum", "relief", "papillae", "layer")
-
-
-@contextlib.contextmanager
-def cached_volumes():
-    """While active, ``clppm.volume.build`` returns a memoised volume per geometry.
-
-    Building the forearm volume (2000 x 2000 columns, generated relief) takes 5-10 s on
-    the host and does not depend on the method, the camera or the photon counts; a compare
-    or benchmark run renders the same volume a dozen times.  The stage timings of the
-    renders exclude it anyway (it is ``seconds['volume']``).
-    """
-    from . import volume
-    orig = volume.build
-    cache: dict = {}
-
-    def build(cfg, source="<config>"):
-        key = json.dumps({k: cfg.get(k) for k in _VOLUME_KEYS}, sort_keys=True, default=str)
-        if key not in cache:
-            cache[key] = orig(cfg, source)
-        return cache[key]
-
-    volume.build = build
-    try:
-        yield cache
-    finally:
-        volume.build = orig
-
-
-# ----------------------------------------------------------------------------- metrics
-def skin_mask_from_eye(eye) -> np.ndarray:
-    """(H, W) bool: pixels all of whose eye rays hit the model."""
-    cam = eye.camera
-    hit = np.asarray(eye.ray_hit, float).reshape(cam.height, cam.width, cam.spp)
-    return np.all(hit > 0.5, axis=2)
-
-
-def error_metrics(xyz, ref_xyz, mask, exposure: float, rgb=None, ref_rgb=None,
-                  flip: bool = False) -> dict:
-    """Errors of ``xyz`` against ``ref_xyz`` over the skin pixels ``mask``.
-
-    Both are scaled by ``exposure`` (a white diffuser at the image centre has Y = 1), so
-    the numbers are relative to that white:
-
-    * ``rmse_xyz``: RMSE of linear XYZ over skin pixels and the three channels;
-    * ``rel_rmse``: ``rmse_xyz`` / mean reference Y over skin pixels;
-    * ``de2000``: mean CIEDE2000 against the reference (white D65, Y = 1);
-    * ``du``, ``dv``: mean signed per-pixel u', v' shift (test - reference);
-    * ``duv``: mean per-pixel |Δu'v'|;
-    * ``du_mean``, ``dv_mean``: u'v' of the mean skin colour minus the reference's
-      (robust to noise; the colour of the skin as a whole);
-    * ``db``, ``da``, ``dL``: mean signed Δb*, Δa*, ΔL* (b* < 0 is bluer);
-    * ``dY``: mean Y / reference mean Y - 1 (brightness bias);
-    * ``flip``: mean FLIP (LDR, displayed sRGB images at this exposure) over skin pixels,
-      when ``flip`` is set and ``flip-evaluator`` is installed (else absent).
-    """
-    m = np.asarray(mask, bool)
-    n = int(m.sum())
-    if n == 0:
-        raise ValueError("no skin pixels: the reference's eye rays hit nothing")
-    a = np.asarray(xyz, float)[m] * exposure
-    b = np.asarray(ref_xyz, float)[m] * exposure
-    a = np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0)
-    d = a - b
-    out = {"skin_pixels": n, "rmse_xyz": float(np.sqrt(np.mean(d * d)))}
-    mY = float(b[:, 1].mean())
-    out["rel_rmse"] = out["rmse_xyz"] / mY if mY > 0 else float("nan")
-    out["dY"] = float(a[:, 1].mean() / mY - 1.0) if mY > 0 else float("nan")
-    out["de2000"] = float(np.mean(image.delta_e2000(a, b)))
-    ua, ub = image.xyz_to_uv_prime(a), image.xyz_to_uv_prime(b)
-    duv = ua - ub
-    out["du"], out["dv"] = float(duv[:, 0].mean()), float(duv[:, 1].mean())
-    out["duv"] = float(np.mean(np.hypot(duv[:, 0], duv[:, 1])))
-    uma = image.xyz_to_uv_prime(a.mean(0))
-    umb = image.xyz_to_uv_prime(b.mean(0))
-    out["du_mean"], out["dv_mean"] = float(uma[0] - umb[0]), float(uma[1] - umb[1])
-    la, lb = image.xyz_to_lab(a), image.xyz_to_lab(b)
-    dl = (la - lb).mean(0)
-    out["dL"], out["da"], out["db"] = float(dl[0]), float(dl[1]), float(dl[2])
-    if flip and rgb is not None and ref_rgb is not None:
-        f = flip_error(rgb, ref_rgb, m, exposure)
-        if f is not None:
-            out["flip"] = f
-    return out
-
-
-def flip_error(rgb, ref_rgb, mask, exposure: float):
-    """Mean LDR-FLIP over ``mask`` of the displayed (exposed, clipped, sRGB) images, or None.
-
-    FLIP (Andersson et al. 2020) models what a viewer sees flipping between two images; the
-    displayed PNGs are what is looked at, so the LDR mode on them is the sound use here.
-    """
-    try:
-        import flip_evaluator as fe
-    except Exception:
-        return None
-    t = image.encode_srgb(np.asarray(rgb, float) * exposure).astype(np.float32)
-    r = image.encode_srgb(np.asarray(ref_rgb, float) * exposure).astype(np.float32)
-    emap, _, _ = fe.evaluate(np.ascontiguousarray(r), np.ascontiguousarray(t), "LDR",
-                             inputsRGB=True, applyMagma=False, computeMeanError=False)
-    emap = np.asarray(emap, float)
-    if emap.ndim == 3:
-        emap = emap[..., 0]
-    return float(emap[np.asarray(mask, bool)].mean())
-
-
-# ----------------------------------------------------------------------------- blocks
-def block_mean(a, b: int) -> np.ndarray:
-    """Mean over b x b squares of pixels (H, W must be multiples of b)."""
-    a = np.asarray(a)
-    if b == 1:
-        return a
-    H, W = a.shape[:2]
-    return a.reshape(H // b, b, W // b, b, *a.shape[2:]).mean(axis=(1, 3))
-
-
-def block_mask(mask, b: int) -> np.ndarray:
-    """Squares all of whose pixels are skin."""
-    m = np.asarray(mask, bool)
-    if b == 1:
-        return m
-    H, W = m.shape
-    return m.reshape(H // b, b, W // b, b).all(axis=(1, 3))
-
-
-BAND_GROUP_NM = 50.0
-
-
-def band_groups(wl) -> list[tuple[float, float, np.ndarray]]:
-    """50-nm groups of bands from the first band on: (from nm, to nm, band indices)."""
-    wl = np.asarray(wl, float)
-    g = np.floor((wl - wl[0]) / BAND_GROUP_NM + 1e-9).astype(int)
-    if len(wl) > 1 and g[-1] > g[-2]:           # a lone last band (780 nm) joins the group before
-        g[-1] = g[-2]
-    return [(float(wl[g == k][0]), float(wl[g == k][-1]), np.nonzero(g == k)[0]) for k in np.unique(g)]
-
-
-def accuracy(xyz, spectral, ref, flip: bool = False, rgb=None) -> dict:
-    """Errors of an image (full resolution) against ``ref`` at the reference's resolution.
-
-    :func:`error_metrics` on the block means, plus: the relative error of Y per skin block
-    (``block_Y_rms``, ``block_Y_max``: the largest |Y/Y_ref - 1|), the CIEDE2000 of the mean
-    skin colour (``de_mean``) and the relative error of the mean skin radiance in each 50-nm
-    band group (``groups``, ``group_max``)."""
-    b = ref.block
-    x = block_mean(xyz, b)
-    m = error_metrics(x, ref.xyz, ref.mask, ref.exposure, flip=False)
-    mask = ref.mask
-    Yt, Yr = x[..., 1][mask], ref.xyz[..., 1][mask]
-    rel = Yt / np.where(Yr > 0, Yr, np.nan) - 1
-    m["block_Y_rms"] = float(np.sqrt(np.nanmean(rel * rel)))
-    m["block_Y_max"] = float(np.nanmax(np.abs(rel)))
-    a = x[mask].mean(0) * ref.exposure
-    r = ref.xyz[mask].mean(0) * ref.exposure
-    m["de_mean"] = float(image.delta_e2000(a[None], r[None])[0])
-    if spectral is not None:
-        st = block_mean(spectral, b)[mask].mean(0)
-        sr = np.asarray(ref.spectral, float)[mask].mean(0)
-        groups = {}
-        for lo, hi, idx in band_groups(ref.wl):
-            den = sr[idx].sum()
-            groups[f"{lo:.0f}-{hi:.0f}"] = float(st[idx].sum() / den - 1) if den > 0 else float("nan")
-        m["groups"] = groups
-        m["group_max"] = float(np.nanmax(np.abs(list(groups.values()))))
-    return m
-
-
-def accuracy_of_seeds(images: list, ref) -> dict:
-    """:func:`accuracy` of the mean of several renders of one scheme (``images``: (xyz, spectral)
-    pairs already averaged over the reference's squares), which has their bias and 1/sqrt(n) of
-    one image's noise; with two or more: the first image's Y per square (``one_Y_rms``,
-    ``one_Y_max``), one image's noise per square from the first two ((Y1 - Y2)/sqrt 2:
-    ``noise_Y_rms``), and the bias per square with both noises removed in quadrature
-    (``bias_Y_rms`` = sqrt(RMS^2 - noise^2/n - the reference's own noise^2), 0 if negative)."""
-    sq = dataclasses.replace(ref, spec=dataclasses.replace(ref.spec, block=1))     # already squares
-    n = len(images)
-    xyz = np.mean([x for x, _ in images], 0)
-    spectral = None if images[0][1] is None else np.mean([s for _, s in images], 0)
-    m = {"seeds": n, **accuracy(xyz, spectral, sq)}
-    if n > 1:
-        one = accuracy(images[0][0], images[0][1], sq)
-        Yr = ref.xyz[..., 1][ref.mask]
-        d = (images[0][0][..., 1] - images[1][0][..., 1])[ref.mask] / Yr
-        noise = float(np.sqrt(np.mean(d * d) / 2))
-        resid = m["block_Y_rms"] ** 2 - noise ** 2 / n - ref.error["block_Y_rms"] ** 2
-        m.update(one_Y_rms=one["block_Y_rms"], one_Y_max=one["block_Y_max"], noise_Y_rms=noise,
-                 bias_Y_rms=float(np.sqrt(max(resid, 0.0))))
-        rel = np.mean([x[..., 1] for x, _ in images], 0)[ref.mask] / Yr - 1
-        se = square_standard_errors(images, ref)[ref.mask]
-        m.update(beyond(rel, se, BIAS_BOUND))
-    return m
-
-
-#: the bias bound per 10x10-pixel square that issue 11 holds the default to
-BIAS_BOUND = 0.02
-
-
-def square_standard_errors(images: list, ref) -> np.ndarray:
-    """Standard error of Y / Y_ref - 1 per square of the mean of ``images`` (n >= 2): the seeds'
-    scatter / sqrt(n), and the reference's own, from its two halves ((h0 - h1)^2 / 4 is the
-    variance of their mean), added in quadrature.  Both variances are averaged over the 3x3 skin
-    squares around each (noise changes slowly across the image; a square alone has n - 1 and 1
-    degrees of freedom, too few to test it by)."""
-    Y = np.array([x[..., 1] for x, _ in images], float)
-    Yr = ref.xyz[..., 1].astype(float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        v_img = Y.var(0, ddof=1) / len(Y) / Yr ** 2
-        h = ref.halves_xyz[..., 1].astype(float)
-        v_ref = np.where(ref.mask, (h[0] - h[1]) ** 2 / 4 / Yr ** 2, 0.0)
-    k = ref.mask.astype(float)
-    pad = lambda a: np.pad(a, 1)
-    box = lambda a: sum(pad(a)[1 + i:a.shape[0] + 1 + i, 1 + j:a.shape[1] + 1 + j]
-                        for i in (-1, 0, 1) for j in (-1, 0, 1))
-    v_img = np.where(ref.mask, v_img, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        v = (box(v_img) + box(v_ref)) / box(k)
-    return np.where(ref.mask, np.sqrt(v), np.nan)
-
-
-def beyond(rel: np.ndarray, se: np.ndarray, bound: float, z: float = 3.0) -> dict:
-    """Squares whose error |rel| exceeds ``bound`` (``beyond``), and those whose bias exceeds it
-    beyond doubt: by more than ``z`` standard errors (``beyond_sig``; z = 3 is a 0.13 % one-sided
-    false alarm for a square whose bias is exactly the bound), with the largest |rel| - z se
-    (``bias_lower_max``: no square's bias is shown to be larger), and how many noise alone
-    would put beyond the bound if no square had any bias (``beyond_noise``)."""
-    from math import erfc, sqrt
-    e = np.abs(np.asarray(rel, float)) - bound
-    # how many squares noise alone would put beyond the bound if no square had any bias
-    chance = sum(erfc(bound / (sqrt(2) * s)) for s in np.asarray(se, float).ravel() if s > 0)
-    return {"squares": int(e.size), "beyond": int((e > 0).sum()), "beyond_sig": int((e > z * se).sum()),
-            "beyond_noise": float(chance), "bias_lower_max": float(np.max(np.abs(rel) - z * se)),
-            "z": z, "bound": bound}
-
+from . import volume
+from .metrics import accuracy, block_mask, block_mean, skin_mask_from_eye
 
 # ----------------------------------------------------------------------------- reference
 @dataclass
@@ -431,7 +197,7 @@ def _save(cache_dir: str, ref: Reference) -> None:
 
 def skin_mask(cfg: dict, dev=None) -> np.ndarray:
     """Skin pixels of ``cfg``'s camera (eye pass only)."""
-    from . import eyepass, transport, volume
+    from . import eyepass, transport
     from .device import open_device
     dev = dev or open_device(None)
     vol = volume.build(cfg)
@@ -452,7 +218,6 @@ def _render_half(c: dict, spec: RefSpec, seed: int, dev, progress: bool):
 def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=None, log=print,
                   force: bool = False, flip: bool = False, progress: bool = False) -> Reference:
     """The cached reference for (cfg, spec), computing (and caching) it if needed."""
-    from .progressive import apply_overrides
     key = reference_key(cfg, spec)
     if not force:
         ref = load_reference(cache_dir, key)
@@ -461,15 +226,33 @@ def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=No
             log(reference_summary(ref))
             return ref
     c = scene_config(cfg, spec)
-    what = (f"path tracer, {spec.paths:,} paths per {spec.block}x{spec.block}-pixel square"
-            if spec.integrator == "pt" else
-            f"PPM method {spec.method}, {spec.photons} stored photons/pass, {spec.passes} passes, "
-            f"K = {spec.initial_photons}{', ' + str(spec.overrides) if spec.overrides else ''}")
-    log(f"reference {key}: computing {what}, {spec.resolution[0]}x{spec.resolution[1]}, two halves "
+    log(f"reference {key}: computing {describe(spec)}, {spec.resolution[0]}x{spec.resolution[1]}, two halves "
         f"(seeds {spec.seeds[0]}, {spec.seeds[1]})")
-    halves, reports = [], []
     t0 = time.perf_counter()
-    with cached_volumes():
+    halves, reports, mask = _render_halves(cfg, c, spec, dev, progress, log)
+    ref = _mean_of_halves(key, spec, halves, mask)
+    ref.info = {"halves": reports, "seconds": time.perf_counter() - t0,
+                "device": halves[0].report["device"]["name"]}
+    _save(cache_dir, ref)
+    log(f"reference {key}: saved {ref.path} ({ref.info['seconds']:.0f} s)")
+    log(reference_summary(ref))
+    return ref
+
+
+def describe(spec: RefSpec) -> str:
+    """What the reference renders, in words."""
+    if spec.integrator == "pt":
+        return f"path tracer, {spec.paths:,} paths per {spec.block}x{spec.block}-pixel square"
+    return (f"PPM method {spec.method}, {spec.photons} stored photons/pass, {spec.passes} passes, "
+            f"K = {spec.initial_photons}{', ' + str(spec.overrides) if spec.overrides else ''}")
+
+
+def _render_halves(cfg: dict, c: dict, spec: RefSpec, dev, progress: bool, log):
+    """The two halves of the scene config ``c`` (seeds ``spec.seeds``), a report of each, and
+    the skin squares of ``cfg``'s camera at the reference's resolution."""
+    from .progressive import apply_overrides
+    halves, reports = [], []
+    with volume.memoised():
         full = apply_overrides(cfg, resolution=spec.resolution)
         mask = block_mask(skin_mask(full, dev), spec.block)
         for s in spec.seeds:
@@ -481,29 +264,32 @@ def get_reference(cfg: dict, spec: RefSpec, cache_dir: str = "out/cache", dev=No
                             **{k: r[k] for k in ("photons_emitted", "photons_stored", "gather_pairs",
                                                  "sample_points", "paths_traced") if k in r}})
             log(f"  half seed {s}: {time.perf_counter() - th:.1f} s")
+    return halves, reports, mask
+
+
+def _mean_of_halves(key: str, spec: RefSpec, halves: list, mask) -> Reference:
+    """The reference: the mean of the two halves over the squares, with its own noise."""
     b = spec.block
-    exposure = float(halves[0].exposure)
     h = np.stack([block_mean(x.xyz, b) for x in halves])
     sp = [block_mean(x.spectral, b) for x in halves]
-    xyz = h.mean(0)
-    rgb = np.mean([block_mean(x.rgb, b) for x in halves], axis=0)
-    spectral = np.mean(sp, axis=0).astype(np.float32)
-    ref = Reference(key=key, spec=spec, xyz=xyz, rgb=rgb, halves_xyz=h, spectral=spectral,
-                    wl=np.asarray(halves[0].wl), mask=mask, exposure=exposure, error={},
-                    info={"halves": reports, "seconds": time.perf_counter() - t0,
-                          "device": halves[0].report["device"]["name"]})
-    # own noise: one half against the other, halved (at the reference's own resolution)
-    half = dataclasses.replace(ref, xyz=h[1], spectral=sp[1], spec=dataclasses.replace(spec, block=1))
+    ref = Reference(key=key, spec=spec, xyz=h.mean(0), rgb=np.mean([block_mean(x.rgb, b) for x in halves], axis=0),
+                    halves_xyz=h, spectral=np.mean(sp, axis=0).astype(np.float32),
+                    wl=np.asarray(halves[0].wl), mask=mask, exposure=float(halves[0].exposure), error={})
+    ref.error = own_noise(ref, sp)
+    return ref
+
+
+def own_noise(ref: Reference, halves_spectral: list) -> dict:
+    """The reference's own noise: the accuracy of one half against the other (at the
+    reference's own resolution), halved (see the module docstring)."""
+    h, sp = ref.halves_xyz, halves_spectral
+    half = dataclasses.replace(ref, xyz=h[1], spectral=sp[1], spec=dataclasses.replace(ref.spec, block=1))
     e = accuracy(h[0], sp[0], half)
     err = {k: (v / 2.0 if isinstance(v, float) else v) for k, v in e.items() if k != "groups"}
     err["groups"] = {k: v / 2.0 for k, v in e["groups"].items()}
     err["note"] = ("noise of the mean of the two halves, estimated as (half1 vs half2) / 2"
-                   + ("" if spec.integrator == "pt" else "; excludes the density-estimation bias the halves share"))
-    ref.error = err
-    _save(cache_dir, ref)
-    log(f"reference {key}: saved {ref.path} ({ref.info['seconds']:.0f} s)")
-    log(reference_summary(ref))
-    return ref
+                   + ("" if ref.spec.integrator == "pt" else "; excludes the density-estimation bias the halves share"))
+    return err
 
 
 def reference_summary(ref: Reference) -> str:

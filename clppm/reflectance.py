@@ -29,7 +29,6 @@ the photon-pass value at the same angle of incidence.
 """
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import math
@@ -39,6 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import argtypes
 from . import config as C
 from .config import ConfigError
 
@@ -46,9 +46,6 @@ DEFAULT_ANGLE = 8.0
 
 
 # ----------------------------------------------------------------------------- geometry
-is_flat = C.is_flat
-
-
 def beam_direction(angle_deg: float) -> list[float]:
     t = math.radians(angle_deg)
     return [math.sin(t), 0.0, -math.cos(t)]
@@ -73,7 +70,7 @@ def measurement_config(cfg: dict, angle_deg: float = DEFAULT_ANGLE, direction=No
     if flat:
         raw["relief"]["kind"] = "flat"
         raw["papillae"]["amplitude_um"] = 0.0
-    varying = not is_flat(raw)
+    varying = not C.is_flat(raw)
     size = list(map(float, raw["model"]["size_mm"]))
     L = raw["light"]
     L.update(spectrum="flat", band_nm=None, power_w=1.0, direction=[float(x) for x in d])
@@ -102,8 +99,7 @@ def measurement_config(cfg: dict, angle_deg: float = DEFAULT_ANGLE, direction=No
         raw["model"]["lateral"] = "infinite"
         L.update(kind="pencil", center_mm=[size[0] / 2.0, size[1] / 2.0])
     if bands is not None:
-        a, b, s = map(float, bands)
-        raw["spectrum"].update(start_nm=a, stop_nm=b, step_nm=s)
+        _set_bands(raw, bands)
     if seed is not None:
         raw["render"]["seed"] = int(seed)
     return C.validate(raw, source)
@@ -299,18 +295,56 @@ def method_reflectance(cfg: dict, methods="abcdef", passes: int | None = None,
     not give exactly Rd, but the difference is the same for every method, so the methods'
     ratios to each other show their spectral bias.
     """
-    from . import camera, progressive, transport
+    from . import camera
     from .device import open_device
+    methods = _method_letters(methods, source)
+    if bands is not None:
+        raw = copy.deepcopy(cfg)
+        _set_bands(raw, bands)
+        cfg = C.validate(raw, source)
+    cfg_r = render_config(cfg, passes, photons, resolution, seed, specular, source)
+    cam = camera.from_config(cfg_r["camera"])
+    wl = C.wavelengths(cfg_r)
+    region = _image_region(region, cam, source)
+    white = _white_in_region(cfg_r, cam, wl, region, source)
+    dev = dev or open_device(device)
+    out = {"wavelength_nm": wl.tolist(), "region": list(region),
+           "resolution": [cam.width, cam.height], "passes": cfg_r["render"]["passes"],
+           "photons_per_pass": cfg_r["render"]["photons"], "specular": bool(specular),
+           "methods": {}}
+    for m in methods:
+        out["methods"][m] = _image_reflectance(cfg_r, m, white, region, dev, source, progress, log)
+    d = incidence_direction(cfg_r, cam)
+    truth = spectral_reflectance(cfg, photons=band_photons, specular=specular, direction=d,
+                                 seed=seed, dev=dev, source=source)
+    out["photon_pass"] = {"angle_deg": math.degrees(math.acos(min(1.0, -d[2]))),
+                          "geometry": truth.geometry, "R": truth.R.tolist(),
+                          "se": truth.se.tolist(), "photons_per_band": truth.photons}
+    for v in out["methods"].values():
+        v.update(against_photon_pass(np.asarray(v["R"]), truth.R, wl))
+    return out
+
+
+def _method_letters(methods, source: str) -> list[str]:
+    """``methods`` as a list of letters a-f (a string of letters, a comma list, or a list)."""
     methods = [m.strip() for m in (methods.split(",") if isinstance(methods, str) and "," in methods
                                    else list(methods)) if m.strip()]
     for m in methods:
         if m not in "abcdef" or len(m) != 1:
             raise ConfigError(source, "--methods", m, "methods are letters a-f")
-    if bands is not None:
-        raw = copy.deepcopy(cfg)
-        raw["spectrum"].update(start_nm=float(bands[0]), stop_nm=float(bands[1]),
-                               step_nm=float(bands[2]))
-        cfg = C.validate(raw, source)
+    return methods
+
+
+def _set_bands(raw: dict, bands) -> None:
+    """Set the spectrum grid of the raw config ``raw`` to ``bands`` = (start, stop, step) nm."""
+    a, b, s = map(float, bands)
+    raw["spectrum"].update(start_nm=a, stop_nm=b, step_nm=s)
+
+
+def render_config(cfg: dict, passes, photons, resolution, seed, specular: bool, source: str) -> dict:
+    """The config the methods render: passes, photons, resolution and seed overridden, the
+    specular highlight as asked, a light that has a white-reference irradiance."""
+    from . import progressive
     if photons is not None and 0 < photons < cfg["render"]["initial_photons"]:
         # (progressive.apply_overrides checks photons >= initial_photons before clamping)
         cfg = C.override(cfg, "render", "initial_photons", int(photons))
@@ -321,75 +355,79 @@ def method_reflectance(cfg: dict, methods="abcdef", passes: int | None = None,
         raise ConfigError(source, "light.kind", "pencil",
                           "image reflectance needs a point or wide light (a pencil beam has no "
                           "white-reference irradiance)")
-    cam = camera.from_config(cfg_r["camera"])
-    wl = C.wavelengths(cfg_r)
-    spectrum = transport.source_spectrum(cfg_r, wl)
+    return cfg_r
+
+
+def _image_region(region, cam, source: str) -> tuple[int, int, int, int]:
+    """``region`` (default: the central box), checked to lie inside the image."""
     region = tuple(region) if region is not None else default_region(cam.width, cam.height)
     x0, y0, x1, y1 = region
     if not (0 <= x0 < x1 <= cam.width and 0 <= y0 < y1 <= cam.height):
         raise ConfigError(source, "--region", list(region),
                           f"must be x0,y0,x1,y1 inside the {cam.width}x{cam.height} image")
-    white = white_region(cfg_r, cam, wl, spectrum, region)
+    return region
+
+
+def _white_in_region(cfg_r: dict, cam, wl, region, source: str) -> np.ndarray:
+    """:func:`white_region` under the configured light, which must light every pixel of it."""
+    from . import transport
+    white = white_region(cfg_r, cam, wl, transport.source_spectrum(cfg_r, wl), region)
     if not np.all(white > 0):
         raise ConfigError(source, "light", cfg_r["light"]["kind"],
                           "the white reference is zero in the region (light behind the surface?)")
-    dev = dev or open_device(device)
-    out = {"wavelength_nm": wl.tolist(), "region": list(region),
-           "resolution": [cam.width, cam.height], "passes": cfg_r["render"]["passes"],
-           "photons_per_pass": cfg_r["render"]["photons"], "specular": bool(specular),
-           "methods": {}}
-    for m in methods:
-        t0 = time.perf_counter()
-        res = progressive.render(cfg_r, method=m, dev=dev, source=source, progress=progress)
-        Lr = res.spectral[y0:y1, x0:x1, :].astype(np.float64)
-        ratio = Lr / white
-        n = ratio.shape[0] * ratio.shape[1]
-        Rm = ratio.reshape(n, -1).mean(0)
-        se = ratio.reshape(n, -1).std(0, ddof=1) / math.sqrt(n) if n > 1 else np.full(len(wl), np.nan)
-        out["methods"][m] = {"scheme": res.report["scheme"], "R": Rm.tolist(), "se": se.tolist(),
-                             "sample_points": res.report["sample_points"],
-                             "seconds": time.perf_counter() - t0}
-        if log:
-            log(f"  method {m}: {res.report['scheme']}, {res.report['sample_points']} sample points, "
-                f"{time.perf_counter() - t0:.1f} s")
-    d = incidence_direction(cfg_r, cam)
-    angle = math.degrees(math.acos(min(1.0, -d[2])))
-    truth = spectral_reflectance(cfg, photons=band_photons, specular=specular, direction=d,
-                                 seed=seed, dev=dev, source=source)
-    out["photon_pass"] = {"angle_deg": angle, "geometry": truth.geometry, "R": truth.R.tolist(),
-                          "se": truth.se.tolist(), "photons_per_band": truth.photons}
-    tr = truth.R
-    for m, v in out["methods"].items():
-        Rm = np.asarray(v["R"])
-        v["ratio_to_photon_pass"] = (Rm / np.where(tr > 0, tr, np.nan)).tolist()
-        v["mean_abs_diff"] = float(np.mean(np.abs(Rm - tr)))
-        # spectral bias: blue (<500 nm) vs red (>600 nm) ratio to the photon pass
-        blue, red = wl < 500, wl > 600
-        if blue.any() and red.any():
-            rb = np.nanmean(Rm[blue] / tr[blue]); rr = np.nanmean(Rm[red] / tr[red])
-            v["blue_red_bias"] = float(rb / rr - 1.0)
+    return white
+
+
+def _image_reflectance(cfg_r: dict, m: str, white, region, dev, source: str, progress: bool,
+                       log) -> dict:
+    """Render method ``m``; its reflectance factor over ``region`` (mean and standard error)."""
+    from . import progressive
+    t0 = time.perf_counter()
+    res = progressive.render(cfg_r, method=m, dev=dev, source=source, progress=progress)
+    Rm, se = region_ratio(res.spectral, white, region)
+    row = {"scheme": res.report["scheme"], "R": Rm.tolist(), "se": se.tolist(),
+           "sample_points": res.report["sample_points"], "seconds": time.perf_counter() - t0}
+    if log:
+        log(f"  method {m}: {res.report['scheme']}, {res.report['sample_points']} sample points, "
+            f"{time.perf_counter() - t0:.1f} s")
+    return row
+
+
+def region_ratio(spectral, white, region) -> tuple[np.ndarray, np.ndarray]:
+    """Per band: the mean over the pixels of ``region`` of the radiance / the white reference,
+    and its standard error (NaN for a single pixel)."""
+    x0, y0, x1, y1 = region
+    ratio = spectral[y0:y1, x0:x1, :].astype(np.float64) / white
+    n = ratio.shape[0] * ratio.shape[1]
+    Rm = ratio.reshape(n, -1).mean(0)
+    se = ratio.reshape(n, -1).std(0, ddof=1) / math.sqrt(n) if n > 1 else np.full(ratio.shape[2], np.nan)
+    return Rm, se
+
+
+def against_photon_pass(Rm, tr, wl) -> dict:
+    """An image reflectance ``Rm`` against the photon pass's ``tr``: ratio per band, mean
+    absolute difference, and the spectral bias: the blue (< 500 nm) over the red (> 600 nm)
+    ratio, less one."""
+    out = {"ratio_to_photon_pass": (Rm / np.where(tr > 0, tr, np.nan)).tolist(),
+           "mean_abs_diff": float(np.mean(np.abs(Rm - tr)))}
+    blue, red = wl < 500, wl > 600
+    if blue.any() and red.any():
+        rb = np.nanmean(Rm[blue] / tr[blue]); rr = np.nanmean(Rm[red] / tr[red])
+        out["blue_red_bias"] = float(rb / rr - 1.0)
     return out
 
 
 # ----------------------------------------------------------------------------- CLI
 def _bands_arg(s: str):
-    try:
-        parts = [float(x) for x in s.split(":")]
-    except ValueError:
-        parts = []
-    if len(parts) != 3:
-        raise argparse.ArgumentTypeError(f"--bands {s!r}: expected START:STOP:STEP in nm, e.g. 380:780:10")
-    return tuple(parts)
+    return argtypes.numbers(s, ":", 3, float, f"--bands {s!r}: expected START:STOP:STEP in nm, e.g. 380:780:10")
 
 
 def _region_arg(s: str):
-    try:
-        v = [int(x) for x in s.split(",")]
-    except ValueError:
-        v = []
-    if len(v) != 4:
-        raise argparse.ArgumentTypeError(f"--region {s!r}: expected x0,y0,x1,y1 pixels")
-    return tuple(v)
+    return argtypes.numbers(s, ",", 4, int, f"--region {s!r}: expected x0,y0,x1,y1 pixels")
+
+
+def _res_arg(s: str):
+    return argtypes.resolution(s, f"--resolution {s!r}: expected WxH, e.g. 64x48")
 
 
 def add_parser(subparsers, add_device) -> None:
@@ -428,14 +466,6 @@ def add_parser(subparsers, add_device) -> None:
     p.add_argument("--no-nist", action="store_true", help="skip the NIST comparison")
     add_device(p)
     p.set_defaults(func=cmd_reflectance)
-
-
-def _res_arg(s: str):
-    try:
-        w, h = s.lower().split("x")
-        return int(w), int(h)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--resolution {s!r}: expected WxH, e.g. 64x48") from None
 
 
 def cmd_reflectance(a) -> int:

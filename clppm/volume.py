@@ -9,6 +9,8 @@ infinity, so depth from which no light returns costs nothing.
 """
 from __future__ import annotations
 
+import contextlib
+import json
 import math
 from dataclasses import dataclass, field
 
@@ -205,19 +207,55 @@ def relief_normals(h, dx, dy, periodic):
 
 
 # ----------------------------------------------------------------------------- build
-_CACHE: dict = {}
+#: the config sections a volume is made of: a volume is kept per their values
+GEOMETRY_SECTIONS = ("model", "spectrum", "relief", "papillae", "layer")
+_RECENT_MAX = 3
+_recent: dict = {}             # the last few volumes built, always
+_memo: dict | None = None      # every volume built, while memoised() is active
+
+
+def geometry_key(cfg: dict) -> str:
+    """The key a volume is kept under: its config sections, as sorted JSON."""
+    return json.dumps({k: cfg.get(k) for k in GEOMETRY_SECTIONS}, sort_keys=True, default=str)
 
 
 def build(cfg: dict, source: str = "<config>") -> Volume:
-    """The volume of a config; the last few are kept (the forearm's relief takes seconds)."""
-    import json
-    key = json.dumps({k: cfg[k] for k in ("model", "spectrum", "relief", "papillae", "layer")},
-                     sort_keys=True, default=str)
-    if key not in _CACHE:
-        if len(_CACHE) >= 3:
-            _CACHE.pop(next(iter(_CACHE)))
-        _CACHE[key] = _build(cfg, source)
-    return _CACHE[key]
+    """The volume of a config; the last few are kept (the forearm's relief takes seconds), and
+    every one while :func:`memoised` is active."""
+    key = geometry_key(cfg)
+    if _memo is None:
+        return _build_recent(key, cfg, source)
+    if key not in _memo:
+        _memo[key] = _build_recent(key, cfg, source)
+    return _memo[key]
+
+
+def _build_recent(key: str, cfg: dict, source: str) -> Volume:
+    if key not in _recent:
+        if len(_recent) >= _RECENT_MAX:
+            _recent.pop(next(iter(_recent)))
+        _recent[key] = _build(cfg, source)
+    return _recent[key]
+
+
+@contextlib.contextmanager
+def memoised():
+    """While active, :func:`build` keeps every volume it builds, one per geometry (yields that
+    memo; nested uses share the outermost one, which is dropped when it ends).
+
+    Building the forearm volume (2000 x 2000 columns, generated relief) takes 5-10 s on the
+    host and does not depend on the method, the camera or the photon counts; a compare or
+    benchmark run renders the same volume a dozen times.  The stage timings of the renders
+    exclude it anyway (it is ``seconds['volume']``).
+    """
+    global _memo
+    outer = _memo
+    if outer is None:
+        _memo = {}
+    try:
+        yield _memo
+    finally:
+        _memo = outer
 
 
 def _build(cfg: dict, source: str = "<config>") -> Volume:

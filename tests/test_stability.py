@@ -408,7 +408,7 @@ def test_colour_shift_against_spacing_and_photons(dev):
 def test_error_metrics_signs_and_zero():
     """An image against itself: all errors 0; a bluer copy: negative Δb*, Δv'; a brighter one: dY."""
     from clppm import image
-    from clppm.reference import error_metrics
+    from clppm.metrics import error_metrics
     rng = np.random.default_rng(0)
     xyz = rng.uniform(0.1, 0.5, (6, 8, 3)) * image.D65_XYZ * np.array([1.1, 1.0, 0.7])
     mask = np.ones((6, 8), bool)
@@ -427,7 +427,8 @@ def test_accuracy_of_seeds_separates_bias_from_noise():
     image's noise reads 4 %, and the bias with both noises removed reads b's 3 % (within the
     sampling error of 2,000 squares), for n = 2 and 8."""
     from clppm import image
-    from clppm.reference import Reference, RefSpec, accuracy_of_seeds
+    from clppm.metrics import accuracy_of_seeds
+    from clppm.reference import Reference, RefSpec
     rng = np.random.default_rng(3)
     h, w = 40, 50
     truth = rng.uniform(0.2, 0.4, (h, w, 1)) * image.D65_XYZ
@@ -458,7 +459,8 @@ def test_squares_beyond_the_bound_only_when_shown():
     and the reference's noise together; every 10 % square is beyond 2 % beyond doubt, none of the
     unbiased ones is, and the 2.5 % ones are beyond 2 % often but shown so seldom."""
     from clppm import image
-    from clppm.reference import Reference, RefSpec, accuracy_of_seeds
+    from clppm.metrics import accuracy_of_seeds
+    from clppm.reference import Reference, RefSpec
     rng = np.random.default_rng(5)
     h, w, n = 40, 50, 8
     truth = rng.uniform(0.2, 0.4, (h, w, 1)) * image.D65_XYZ
@@ -476,7 +478,7 @@ def test_squares_beyond_the_bound_only_when_shown():
     for _ in range(n):
         x = truth * (1 + bias) * (1 + 0.02 * rng.standard_normal((h, w, 1)))
         imgs.append((x, x))
-    from clppm.reference import square_standard_errors
+    from clppm.metrics import square_standard_errors
     se = square_standard_errors(imgs, ref)
     assert np.median(se) == pytest.approx(math.sqrt(0.02 ** 2 / n + 0.01 ** 2), rel=0.1)
     m = accuracy_of_seeds(imgs, ref)
@@ -522,7 +524,8 @@ def test_path_tracer_reference_squares(dev, tmp_path):
     mean of a block x block square of image pixels); accuracy() averages an image over the same
     squares: an image equal to the reference square by square has no error, one 10 % brighter
     has +10 % in Y in every square and in every 50-nm band group."""
-    from clppm.reference import RefSpec, accuracy, get_reference
+    from clppm.metrics import accuracy
+    from clppm.reference import RefSpec, get_reference
     spec = RefSpec(integrator="pt", resolution=(12, 9), block=3, paths=256, seeds=(5, 6))
     ref = get_reference(scene(), spec, str(tmp_path), dev=dev, log=lambda *a: None)
     assert ref.xyz.shape == (3, 4, 3) and ref.spectral.shape == (3, 4, 7)
