@@ -111,13 +111,13 @@ def _best(fn, repeat: int) -> float:
 def measure(spec: str, repeat: int = 3) -> dict:
     """The figures for one device (run in a worker process)."""
     import numpy as np
-    from clppm import config, device, hashgrid, pathtracer, progressive, tiny, transport, volume
+    from clppm import config, device, hashgrid, pathtracer, photonpass, progressive, tiny, volume
     dev = device.open_device(spec)
     out = {"device": device.describe(dev.device)}
     for key, cfg, n in (("photon_slab", config.slab_config(SLAB), 200_000),
                         ("photon_forearm", tiny.tiny_config(size_mm=10.0, resolution=(80, 60),
                                                             step_nm=5.0), 100_000)):
-        pp = transport.PhotonPass(dev, volume.build(cfg), cfg)
+        pp = photonpass.PhotonPass(dev, volume.build(cfg), cfg)
         out[key] = n / _best(lambda: pp.trace(n), repeat)
     rng = np.random.default_rng(1)
     n, m, h = 1_000_000, 20_000, 0.02

@@ -55,15 +55,14 @@ def _candidates(sc, cal, st, info, ppm, transport, flat: bool) -> int | None:
     import numpy as np
     if not hasattr(ppm, "photon_slabs") or not sc.beam:
         return None
-    prg = sc.dev.build("gather.cl", {**transport.defines(sc.vol, sc.pp.hero), "ESTIMATOR": 3,
-                                     "COUNT_CANDIDATES": 1})
+    prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", count_candidates=True))
     saved_k, saved_hz = sc.kernels["gather_beam"], sc.hz
     sc.kernels["gather_beam"] = cl.Kernel(prg, "gather_beam")
     if not flat:
         sc.hz = None
     acc = ppm.Accumulators.zeros(sc)
     try:
-        ppm.run_pass(sc, cal, st, 0, acc, transport.Tallies(sc.vol.nb, sc.vol.nl))
+        ppm.run_pass(sc, cal, st, 0, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
     finally:
         sc.kernels["gather_beam"], sc.hz = saved_k, saved_hz
     return int(acc.pairs.get().astype(np.int64).sum())
@@ -71,7 +70,7 @@ def _candidates(sc, cal, st, info, ppm, transport, flat: bool) -> int | None:
 
 def worker(a) -> dict:
     import numpy as np
-    from clppm import config as C, ppm, progressive, transport
+    from clppm import config as C, photonpass, ppm, progressive
     from clppm.device import open_device
     cfg = C.load(a.config)
     cfg = progressive.apply_overrides(cfg, resolution=tuple(a.res))
@@ -85,7 +84,7 @@ def worker(a) -> dict:
     setup_s = time.perf_counter() - t0
     st = ppm.point_state(sc, cal)
     acc = ppm.Accumulators.zeros(sc)
-    tal = transport.Tallies(sc.vol.nb, sc.vol.nl)
+    tal = photonpass.Tallies(sc.vol.nb, sc.vol.nl)
     info = ppm.run_pass(sc, cal, st, 0, acc, tal)
     photon_s = sc.timing["photon"]
     first = acc.host()

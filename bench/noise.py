@@ -90,11 +90,11 @@ def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, m
     # skin pixels and exposure from a one-pass render's report (same for both seeds)
     rep0 = snaps[0][common[-1]][2]
     exposure = rep0["exposure"]
-    from clppm import transport, eyepass
+    from clppm import eyepass, volume
     from clppm.device import open_device
     dev = dev or open_device(None)
     vol = volume.build(c)
-    eye = eyepass.run(dev, vol, transport.upload_volume(dev, vol), c, geometry=False)
+    eye = eyepass.run(dev, vol, volume.upload_volume(dev, vol), c, geometry=False)
     mask = skin_mask_from_eye(eye)
     rows = []
     for p in common:

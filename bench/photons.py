@@ -89,9 +89,9 @@ def bench_trace(dev, cfg, vol, n, label, repeats=3):
     """Best of ``repeats`` timed traces of n photons (other passes of the same seed): on a
     shared machine the interference only ever slows a run down, so the fastest run is the
     estimate of the device's rate; the median is reported beside it."""
-    from clppm import transport
+    from clppm import photonpass
     t0 = _now()
-    pp = transport.PhotonPass(dev, vol, cfg, seed=1)
+    pp = photonpass.PhotonPass(dev, vol, cfg, seed=1)
     pp.trace(min(n, 4096), pass_index=99)                  # build + first launch
     setup = _now() - t0
     times = []
@@ -102,20 +102,20 @@ def bench_trace(dev, cfg, vol, n, label, repeats=3):
         if k == 0:
             tot = arrs[0].sum(0)
     dt = min(times)
-    rd = float(tot[1]) / (transport.W0 * n)
+    rd = float(tot[1]) / (photonpass.W0 * n)
     return {"case": label, "mode": "trace", "photons": n, "seconds": dt, "repeats": repeats,
             "photons_per_s": n / dt, "photons_per_s_median": n / float(np.median(times)),
             "setup_s": setup, "Rd": rd,
-            "A": float(tot[transport.NA:].sum()) / (transport.W0 * n)
-            if hasattr(transport, "NA") else None,
-            "specular": float(tot[0]) / (transport.W0 * n)}
+            "A": float(tot[photonpass.NA:].sum()) / (photonpass.W0 * n)
+            if hasattr(photonpass, "NA") else None,
+            "specular": float(tot[0]) / (photonpass.W0 * n)}
 
 
 def bench_store(dev, cfg, vol, target, passes, label):
-    from clppm import transport
+    from clppm import photonpass
     t0 = _now()
     # the renderer's slack (progressive.py): a pass stops past the target, by up to one launch
-    pp = transport.PhotonPass(dev, vol, cfg, capacity=int(target * 1.2) + 4096, seed=1)
+    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=int(target * 1.2) + 4096, seed=1)
     pp.run_pass(10_000, min(target, 20_000))               # build + warm-up (another pass)
     setup = _now() - t0
     emitted = stored = 0

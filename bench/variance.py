@@ -34,7 +34,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.join(ROOT, "bench"))
 
-from clppm import config as C, ppm, progressive, transport, volume  # noqa: E402
+from clppm import config as C, photonpass, ppm, progressive, volume  # noqa: E402
 from clppm.bands import Bands                                        # noqa: E402
 from clppm.reference import skin_mask                                # noqa: E402
 from noise import two_seed_noise                          # noqa: E402
@@ -62,7 +62,7 @@ def render_one(cfg: dict, seed: int, eye_seed: int, passes: int, iso_phase: bool
     import pyopencl as cl
     c = C.override(cfg, "render", "seed", eye_seed)
     sc = ppm.setup(c, dev)
-    sc.pp = transport.PhotonPass(dev, sc.vol, c, capacity=sc.capacity, vbuf=sc.vbuf,
+    sc.pp = photonpass.PhotonPass(dev, sc.vol, c, capacity=sc.capacity, vbuf=sc.vbuf,
                                  bands=Bands.from_config(c), seed=seed)
     rc = c["render"]
     sc.pp.set_storage(rc["storage"], sc.eye.cone_deg, rc["store_scale"], rc["store_min"])

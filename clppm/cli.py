@@ -121,7 +121,7 @@ def _write_json(path: str, obj) -> None:
 
 
 def cmd_trace(a) -> int:
-    from . import config, device, paths, transport, volume
+    from . import config, device, paths, photonpass, volume
     if (a.config is None) == (a.slab is None):
         raise ConfigError("clppm trace", "CONFIG/--slab", None, "give a config file or --slab, not both")
     if a.slab is not None:
@@ -139,8 +139,8 @@ def cmd_trace(a) -> int:
     paths.check_writable(a.json, "--json")
     vol = volume.build(cfg, src)
     dev = device.open_device(a.device)
-    pp = transport.PhotonPass(dev, vol, cfg)
-    rep = transport.trace_report(pp, a.photons, batches=min(a.batches, a.photons))
+    pp = photonpass.PhotonPass(dev, vol, cfg)
+    rep = photonpass.trace_report(pp, a.photons, batches=min(a.batches, a.photons))
     rep["device"] = dev.name
     rep["seed"] = cfg["render"]["seed"]
     print(f"{src}: {a.photons} photons on {dev.name} (seed {rep['seed']})")
@@ -273,7 +273,7 @@ def _render_pt(a, cfg):
 
 
 def cmd_samples(a) -> int:
-    from . import device, eyepass, paths, transport, volume
+    from . import device, eyepass, paths, volume
     from . import progressive as render
     from .skin import PAPER_TABLE1
     _method_or_spacing(a)
@@ -282,7 +282,7 @@ def cmd_samples(a) -> int:
     paths.check_writable(a.json, "--json")
     vol = volume.build(cfg, os.path.basename(a.config))
     dev = device.open_device(a.device)
-    vb = transport.upload_volume(dev, vol)
+    vb = volume.upload_volume(dev, vol)
     sch = eyepass.scheme(cfg["render"]["method"], cfg["render"]["spacing_um"])
     ed = eyepass.run(dev, vol, vb, cfg, sch)
     pl = ed.per_layer(vol.nl)

@@ -271,14 +271,16 @@ ESTIMATORS = {"sphere": 0, "clip": 1, "layer": 2, "beam": 3}
 
 
 def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator: str | None = None,
-                   gclass: int | None = None, pt_fp64: bool | None = None) -> dict:
+                   gclass: int | None = None, pt_fp64: bool | None = None,
+                   count_candidates: bool = False) -> dict:
     """Every ``-D`` switch of clppm's kernels, assembled in this one place (as MCX-CL does).
 
     From the volume: NB bands, NL layers, FLAT (no relief or papillae: the flat code paths);
     ``nb`` alone (no volume): the photon grid's kernels (hashgrid.cl).  HERO_C: bands a photon
     path carries, when more than one (spectral.h).  FAST_MATH: the compiler's relaxed math,
     when CLPPM_FAST_MATH=1.  A pass's own: ESTIMATOR (gather.cl: sphere, clip, layer, beam),
-    GCLASS (the beam gather's band classes), PT_FP64 (pt.cl: double-precision sums)."""
+    GCLASS (the beam gather's band classes), PT_FP64 (pt.cl: double-precision sums),
+    COUNT_CANDIDATES (gather.cl: count the photons a query visits, for bench/gather.py)."""
     if vol is None:
         return {"NB": int(nb)} if nb is not None else {}
     d = {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
@@ -290,6 +292,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
         d["GCLASS"] = int(gclass)
     if pt_fp64 is not None:
         d["PT_FP64"] = bool(pt_fp64)
+    if count_candidates:
+        d["COUNT_CANDIDATES"] = 1
     return d
 
 

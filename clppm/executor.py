@@ -44,7 +44,7 @@ import numpy as np
 from distributed import WorkerPlugin
 
 from . import checkpoint as ckpt
-from . import driver, film, paths, ppm, progressive, transport
+from . import driver, film, paths, photonpass, ppm, progressive
 from . import config as C
 from .config import ConfigError
 from .device import DeviceError
@@ -160,7 +160,7 @@ def scene_task(cfg: dict, key: str, source: str, calibrate: bool) -> dict:
         meta = progressive.run_identity(cfg, sc.dev, sc.eye)
         timing = {k: v for k, v in sc.timing.items() if k not in ppm.STAGES}
         return {"meta": meta, "cal": cal, "timing": timing, "npix": sc.npix, "nb": sc.vol.nb,
-                "tallies": transport.Tallies(sc.vol.nb, sc.vol.nl).counts}
+                "tallies": photonpass.Tallies(sc.vol.nb, sc.vol.nl).counts}
 
 
 @dataclass

@@ -31,9 +31,8 @@ import numpy as np
 from . import params as P_
 from .camera import CAMERA_DTYPE, Camera, from_config
 from .light import Light
-from .device import Device, DeviceError, check_alloc
-from .transport import VolumeBuffers, defines, volume_params
-from .volume import Volume
+from .device import Device, DeviceError, check_alloc, kernel_defines
+from .volume import Volume, VolumeBuffers, volume_params
 
 SPACING = {"a": 4.0, "b": 7.0, "c": 14.0}
 EXTINCTION_STAT = {"d": "max", "e": "mean", "f": "min"}
@@ -188,7 +187,7 @@ class _EyeKernel:
         ro = mf.READ_ONLY | mf.COPY_HOST_PTR
         self.common = [cl.Buffer(ctx, ro, hostbuf=p), *vbuf.args(), cl.Buffer(ctx, ro, hostbuf=e),
                        cl.Buffer(ctx, ro, hostbuf=rates)]
-        self.knl = cl.Kernel(dev.build("eye.cl", defines(vol)), "eye_pass")
+        self.knl = cl.Kernel(dev.build("eye.cl", kernel_defines(vol)), "eye_pass")
         self.ctx = ctx
         self.nrays = cam.width * cam.height * cam.spp
         self.npts = cla.zeros(self.q, self.nrays + 1, np.uint32)

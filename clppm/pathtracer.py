@@ -33,14 +33,14 @@ import time
 import numpy as np
 
 from . import checkpoint as ckpt
-from . import driver, film, image, paths, progressive, transport, volume
+from . import driver, film, image, paths, progressive, volume
 from . import params as P_
 from .bands import Bands, band_width
 from .camera import CAMERA_DTYPE, from_config
 from .light import Light
 from . import config as C
 from .config import ConfigError
-from .device import Device, DeviceError, check_alloc, kernel_defines, open_device
+from .device import Device, check_alloc, kernel_defines, open_device
 
 NBIN = 8
 BIN_LABELS = ["1", "2", "3", "4", "5-8", "9-16", "17-64", "65+"]
@@ -149,9 +149,9 @@ class PathTracer:
         self.nspp = int(cfg["render"]["pt_samples_per_pass"])
         q, mf = dev.queue, cl.mem_flags
         self.kernel = cl.Kernel(build(dev, vol), "pt_pass")
-        self.vbuf = transport.upload_volume(dev, vol)
+        self.vbuf = volume.upload_volume(dev, vol)
         p = P_.new_params()
-        transport.volume_params(p, vol)
+        volume.volume_params(p, vol)
         self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
         self.chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
         e = np.zeros(1, PT_DTYPE)
@@ -419,9 +419,9 @@ class _Probe:
         import pyopencl.cltypes as cltypes
         self.dev, self.prg = dev, build(dev, vol)
         self.real = np.float64 if fp64(dev) else np.float32
-        self.vb = transport.upload_volume(dev, vol)
+        self.vb = volume.upload_volume(dev, vol)
         p = P_.new_params()
-        transport.volume_params(p, vol)
+        volume.volume_params(p, vol)
         self.pbuf, self.chain = self.buffer(p), self.buffer(chain_tables(vol))
         v = np.ascontiguousarray(verts, np.float32)
         self.n = len(v)

@@ -22,13 +22,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import eyepass, hashgrid, transport, volume
+from . import eyepass, hashgrid, photonpass, volume
 from .bands import Bands
-from .device import Device, check_alloc
+from .device import Device, check_alloc, kernel_defines
 
 #: pass index of the calibration photon pass (its photons set R0 and are then dropped)
 CAL_PASS = 0xFFFFFFFF
-ESTIMATORS = {"sphere": 0, "clip": 1, "layer": 2, "beam": 3}
 STAGES = ("photon", "grid", "gather")
 
 
@@ -57,9 +56,9 @@ class Scene:
     cfg: dict
     dev: Device
     vol: volume.Volume
-    vbuf: transport.VolumeBuffers
+    vbuf: volume.VolumeBuffers
     eye: eyepass.EyeData
-    pp: transport.PhotonPass
+    pp: photonpass.PhotonPass
     kernels: dict
     hgtab: object
     layer_z: object
@@ -156,7 +155,7 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     timing = {}
     t0 = time.perf_counter()
     vol = volume.build(cfg, source)
-    vbuf = transport.upload_volume(dev, vol)
+    vbuf = volume.upload_volume(dev, vol)
     timing["volume"] = time.perf_counter() - t0
     cam = from_config(cfg["camera"])
     nrays = cam.width * cam.height * cam.spp
@@ -168,12 +167,11 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height))
     target = int(rc["photons"])
     capacity = int(target * 1.2) + 4096
-    pp = transport.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf, bands=Bands.from_config(cfg))
+    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf, bands=Bands.from_config(cfg))
     pp.set_storage(rc["storage"], eye.cone_deg, rc["store_scale"], rc["store_min"])
     pp.set_emission(rc["emission"])
     gclass = band_classes(vol.nb, pp.hero)
-    prg = dev.build("gather.cl", {**transport.defines(vol, pp.hero), "ESTIMATOR": ESTIMATORS[rc["estimator"]],
-                                  "GCLASS": gclass})
+    prg = dev.build("gather.cl", kernel_defines(vol, hero=pp.hero, estimator=rc["estimator"], gclass=gclass))
     kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "gather_beam_points", "init_radius",
                                               "count_within", "photon_slabs", "photon_keys")}
     mf = cl.mem_flags
@@ -294,7 +292,7 @@ def calibrate(sc: Scene) -> Calibration:
     frac = 0.25 if sc.target >= 4 * 20_000 else 1.0
     n_cal = int(math.ceil(sc.target * frac))
     K = float(sc.cfg["render"]["initial_photons"]) * n_cal / sc.target
-    info = sc.pp.run_pass(CAL_PASS, n_cal, tallies=transport.Tallies(sc.vol.nb, sc.vol.nl))
+    info = sc.pp.run_pass(CAL_PASS, n_cal, tallies=photonpass.Tallies(sc.vol.nb, sc.vol.nl))
     n = min(info["stored"], sc.capacity)
     x0, y0, x1, y1, zdeep, ztop = sc.box
     depth = max(ztop - zdeep, 1.0)
@@ -349,7 +347,7 @@ def prepare(sc: Scene, cal: Calibration) -> None:
 
 
 def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulators,
-             tallies: transport.Tallies) -> dict:
+             tallies: photonpass.Tallies) -> dict:
     """Photon pass p, grid, gather into ``acc``; returns the pass's counts."""
     q = sc.dev.queue
     rc = sc.cfg["render"]
@@ -420,7 +418,7 @@ def band_classes(nb: int, hero: int) -> int:
 
 
 def run_passes(sc: Scene, cal: Calibration, st: PointState, passes, acc: Accumulators,
-               tallies: transport.Tallies) -> list[dict]:
+               tallies: photonpass.Tallies) -> list[dict]:
     """Passes ``passes`` added into ``acc`` (not cleared): the step of the in-process run (one
     pass) and of a Dask chunk (its passes) alike.  Returns each pass's counts."""
     return [run_pass(sc, cal, st, p, acc, tallies) for p in passes]
@@ -447,7 +445,7 @@ def run_chunk(sc: Scene, cal: Calibration, st: PointState, chunk: int, passes, a
     acc.clear()
     if start is not None:
         acc.pix.set(np.ascontiguousarray(start, np.float64))
-    tallies = transport.Tallies(sc.vol.nb, sc.vol.nl)
+    tallies = photonpass.Tallies(sc.vol.nb, sc.vol.nl)
     before = dict(sc.timing)
     infos = run_passes(sc, cal, st, passes, acc, tallies)
     pix, pairs = acc.host()

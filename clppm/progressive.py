@@ -16,7 +16,7 @@ import numpy as np
 
 from . import checkpoint as ckpt
 from . import config as C
-from . import driver, film, paths, ppm, transport
+from . import driver, film, paths, photonpass, ppm
 from .device import Device, open_device
 from .film import RenderResult
 from .light import Light
@@ -86,7 +86,7 @@ class PPMRun:
     points: ppm.PointState
     total: ppm.Accumulators           # sum of the closed chunks, added in chunk order
     chunk: ppm.Accumulators           # the open chunk
-    tallies: transport.Tallies
+    tallies: photonpass.Tallies
     meta: dict                        # what a checkpoint must match (run_identity)
     t_start: float
     on_pass: object = None
@@ -120,7 +120,7 @@ class PPMRun:
             cal = ppm.Calibration(R0=st["R0"].astype(np.float32), store_zmin=st["store_zmin"],
                                   first_search_mean=st["stats"].get("first_search_mean"))
         run = cls(sc=sc, cal=cal, points=ppm.point_state(sc, cal), total=ppm.Accumulators.zeros(sc),
-                  chunk=ppm.Accumulators.zeros(sc), tallies=transport.Tallies(sc.vol.nb, sc.vol.nl),
+                  chunk=ppm.Accumulators.zeros(sc), tallies=photonpass.Tallies(sc.vol.nb, sc.vol.nl),
                   meta=meta, t_start=t_start, on_pass=on_pass)
         if st is not None:
             run._restore(st)

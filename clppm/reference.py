@@ -197,11 +197,11 @@ def _save(cache_dir: str, ref: Reference) -> None:
 
 def skin_mask(cfg: dict, dev=None) -> np.ndarray:
     """Skin pixels of ``cfg``'s camera (eye pass only)."""
-    from . import eyepass, transport
+    from . import eyepass
     from .device import open_device
     dev = dev or open_device(None)
     vol = volume.build(cfg)
-    vb = transport.upload_volume(dev, vol)
+    vb = volume.upload_volume(dev, vol)
     eye = eyepass.run(dev, vol, vb, cfg, eyepass.scheme(cfg["render"]["method"], cfg["render"]["spacing_um"]),
                       geometry=False)
     return skin_mask_from_eye(eye)

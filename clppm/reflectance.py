@@ -164,13 +164,13 @@ class Reflectance:
 def trace_bands(dev, vol, mcfg: dict, photons: int, batches: int = 10,
                 specular: bool = True) -> dict:
     """Trace ``photons`` per band with the band fixed; fractions and batch standard errors."""
-    from . import transport
+    from . import photonpass
     if photons < 2:
         raise ConfigError("command line", "--photons", photons, "must be >= 2")
     batches = max(2, min(int(batches), int(photons)))
-    pp = transport.PhotonPass(dev, vol, mcfg)
+    pp = photonpass.PhotonPass(dev, vol, mcfg)
     nb, nl = vol.nb, vol.nl
-    cats = list(transport.CATEGORIES)
+    cats = list(photonpass.CATEGORIES)
     ix = {c: cats.index(c) for c in ("specular", "diffuse", "transmitted", "lost", "rr_gain",
                                       "rr_loss", "missed")}
     na = len(cats)                                  # first per-layer absorption column
@@ -179,7 +179,7 @@ def trace_bands(dev, vol, mcfg: dict, photons: int, batches: int = 10,
                      float)
     out = {k: np.zeros(nb) for k in ("R", "se", "Rd", "Rd_se", "specular", "Tt", "A", "lost", "missed")}
     bal = 0.0
-    W0 = transport.W0
+    W0 = photonpass.W0
     n = float(photons) * W0
     for b in range(nb):
         pp.p["fixed_band"] = b
@@ -370,8 +370,8 @@ def _image_region(region, cam, source: str) -> tuple[int, int, int, int]:
 
 def _white_in_region(cfg_r: dict, cam, wl, region, source: str) -> np.ndarray:
     """:func:`white_region` under the configured light, which must light every pixel of it."""
-    from . import transport
-    white = white_region(cfg_r, cam, wl, transport.source_spectrum(cfg_r, wl), region)
+    from .bands import source_spectrum
+    white = white_region(cfg_r, cam, wl, source_spectrum(cfg_r, wl), region)
     if not np.all(white > 0):
         raise ConfigError(source, "light", cfg_r["light"]["kind"],
                           "the white reference is zero in the region (light behind the surface?)")

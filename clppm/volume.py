@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import skin
+from .params import LATERAL
 from .config import ConfigError, wavelengths
 
 BIG = 1e30
@@ -333,3 +334,46 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
     vol.info = {"columns": [nx, ny], "varying_interfaces": len(var),
                 "device_bytes": sum(vol.device_bytes().values())}
     return vol
+
+
+# ----------------------------------------------------------------------------- on the device
+def volume_params(p: np.ndarray, vol: Volume) -> None:
+    """The volume's fields of the kernels' ``Params`` (common.h)."""
+    p["x0"], p["y0"], p["dx"], p["dy"] = vol.x0, vol.y0, vol.dx, vol.dy
+    p["xw"], p["yw"] = vol.nx * vol.dx, vol.ny * vol.dy
+    p["nx"], p["ny"] = vol.nx, vol.ny
+    p["lateral"] = LATERAL[vol.lateral]
+    p["n_above"], p["n_below"] = vol.n_above, vol.n_below
+    p["z_top"] = vol.z_top
+
+
+@dataclass
+class VolumeBuffers:
+    """The volume on the device (shared by the photon and eye passes)."""
+
+    iface: object
+    layer_n: object
+    optics: object
+    heights: object
+    normals: object
+
+    def args(self):
+        return [self.iface, self.layer_n, self.optics, self.heights, self.normals]
+
+
+def upload_volume(dev, vol: Volume) -> VolumeBuffers:
+    """The volume's arrays as read-only device buffers (interface heights as float32, normals
+    as float16)."""
+    import pyopencl as cl
+    mf = cl.mem_flags
+
+    def buf(a):
+        a = np.ascontiguousarray(a)
+        return cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+    iface = vol.iface.copy()
+    iface[:, 0] = np.where(np.abs(iface[:, 0]) >= 1e29, -1e30, iface[:, 0])
+    return VolumeBuffers(iface=buf(iface.astype(np.float32)),
+                         layer_n=buf(vol.n.astype(np.float32)),
+                         optics=buf(vol.optics_table()),
+                         heights=buf(vol.heights.astype(np.float32)),
+                         normals=buf(vol.normals.astype(np.float16)))

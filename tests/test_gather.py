@@ -13,7 +13,8 @@ import pytest
 
 cl = pytest.importorskip("pyopencl")
 
-from clppm import config as C, ppm, progressive, transport  # noqa: E402
+from clppm import config as C, photonpass, ppm, progressive  # noqa: E402
+from clppm.device import kernel_defines  # noqa: E402
 
 
 def _cfg(path: str):
@@ -30,7 +31,7 @@ def _cfg(path: str):
 def _plain(sc: ppm.Scene) -> ppm.Scene:
     """The same scene with the plain layout: cubic cells, z keys, one class of all bands."""
     import copy
-    prg = sc.dev.build("gather.cl", {**transport.defines(sc.vol, sc.pp.hero), "ESTIMATOR": 3, "GCLASS": 1})
+    prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=1))
     p = copy.copy(sc)
     p.kernels = {**sc.kernels, **{k: cl.Kernel(prg, k) for k in ("gather_beam", "gather_beam_points",
                                                                   "photon_keys")}}
@@ -47,11 +48,11 @@ def _pass(sc, cal, p=0, count=False):
     st = ppm.point_state(sc, cal)
     acc = ppm.Accumulators.zeros(sc)
     if count:
-        prg = sc.dev.build("gather.cl", {**transport.defines(sc.vol, sc.pp.hero), "ESTIMATOR": 3,
-                                         "GCLASS": sc.gclass, "COUNT_CANDIDATES": 1})
+        prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=sc.gclass,
+                                                        count_candidates=True))
         sc = __import__("copy").copy(sc)
         sc.kernels = {**sc.kernels, "gather_beam": cl.Kernel(prg, "gather_beam")}
-    ppm.run_pass(sc, cal, st, p, acc, transport.Tallies(sc.vol.nb, sc.vol.nl))
+    ppm.run_pass(sc, cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
     pix, pairs = acc.host()
     return pix, pairs, st.M.get()[:sc.npts]
 

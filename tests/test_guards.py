@@ -21,7 +21,7 @@ from clppm import checkpoint as ckpt
 from clppm import cli
 from clppm import config as C
 from clppm import device as D
-from clppm import progressive, transport, volume
+from clppm import photonpass, progressive, volume
 
 H, W = 16, 24
 
@@ -116,8 +116,8 @@ def test_extreme_inputs_tallies(dev, case):
     """Photon tallies stay exact (integers), finite as fractions, and balance."""
     cfg = _cfg(**{**CASES, **CASES_TRACE_ONLY}[case])
     vol = volume.build(cfg)
-    pp = transport.PhotonPass(dev, vol, cfg)
-    rep = transport.trace_report(pp, 4000, batches=4)
+    pp = photonpass.PhotonPass(dev, vol, cfg)
+    rep = photonpass.trace_report(pp, 4000, batches=4)
     for k in ("specular", "Rd", "Tt", "A", "lost", "missed", "roulette_net"):
         assert math.isfinite(rep[k]), (case, k, rep[k])
         assert -1e-9 <= rep[k] <= 1 + 1e-9 or k == "roulette_net", (case, k, rep[k])
@@ -166,7 +166,7 @@ def test_photon_launches_grow_geometrically(dev):
     """A scene where the first photons store nothing and later ones store 1e5 events each."""
     cfg = _cfg(**{"layers.mua": 10.0})
     vol = volume.build(cfg)
-    pp = transport.PhotonPass(dev, vol, cfg, capacity=6496)
+    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=6496)
     launches, state = [], {"count": 0}
 
     def events(i):                       # photons 0-3 miss; every later one scatters 1e5 times
@@ -237,7 +237,7 @@ def _small_device(monkeypatch, global_mib, alloc_mib):
 def test_render_stops_before_allocating(dev, monkeypatch, tmp_path):
     _small_device(monkeypatch, 8, 2)
     built = []
-    monkeypatch.setattr(transport.PhotonPass, "__init__",
+    monkeypatch.setattr(photonpass.PhotonPass, "__init__",
                         lambda *a, **k: built.append(1) or pytest.fail("allocated before the check"))
     cfg = _cfg(**{"render.photons": 100_000})
     with pytest.raises(D.DeviceError, match=r"needs [0-9.]+ MiB .* 8 MiB global memory .* 2 MiB"):
@@ -365,7 +365,7 @@ class _DeviceLost:
 
     def __init__(self, at):
         import pyopencl as cl
-        self.at, self.real, self.cl = at, transport.PhotonPass.run_pass, cl
+        self.at, self.real, self.cl = at, photonpass.PhotonPass.run_pass, cl
 
     def __call__(self, pp, pass_index, target, tallies=None):
         from clppm.ppm import CAL_PASS
@@ -376,7 +376,7 @@ class _DeviceLost:
 
 def _lost_setup(monkeypatch, tmp_path, at=3):
     lost = _DeviceLost(at)
-    monkeypatch.setattr(transport.PhotonPass, "run_pass", lambda pp, i, t, tallies=None: lost(pp, i, t, tallies))
+    monkeypatch.setattr(photonpass.PhotonPass, "run_pass", lambda pp, i, t, tallies=None: lost(pp, i, t, tallies))
     p = tmp_path / "c.toml"
     raw = copy.deepcopy(BASE)
     raw["render"].update(passes=5, checkpoint_every=1)

@@ -282,11 +282,11 @@ def test_bare_clppm_prints_help(capsys):
 
 
 def test_internal_error_one_line_and_verbose_traceback(tmp_path, monkeypatch, capsys):
-    from clppm import transport
+    from clppm import photonpass  # noqa: F401 (monkeypatched below)
 
     def bug(*a, **k):
         raise RuntimeError("a bug\nover two lines")
-    monkeypatch.setattr(transport, "trace_report", bug)
+    monkeypatch.setattr(photonpass, "trace_report", bug)
     args = ["trace", "--slab", "mua=1,mus=9,g=0.7", "--photons", "100"]
     capsys.readouterr()
     assert cli.main(args) == 1

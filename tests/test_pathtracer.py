@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from clppm import checkpoint as ckpt
-from clppm import cli, config, pathtracer as pt, progressive, transport, volume
+from clppm import cli, config, pathtracer as pt, photonpass, progressive, volume
 from scenes import tiny_toml
 
 
@@ -209,9 +209,9 @@ def _unscattered_reflectance(vol):
 def _tally_radiance(dev, cfg, c, photons):
     """E R_cone / (pi (1 - c^2)) from the photon pass's exact exit tally, unscattered part removed."""
     vol = volume.build(cfg)
-    pp = transport.PhotonPass(dev, vol, cfg)
+    pp = photonpass.PhotonPass(dev, vol, cfg)
     pp.p["rcone_cos"] = c
-    rep = transport.trace_report(pp, photons, batches=10)
+    rep = photonpass.trace_report(pp, photons, batches=10)
     k = E_FAR / (math.pi * (1 - c * c))
     return k * (rep["Rd_cone"] - _unscattered_reflectance(vol)), k * rep["Rd_cone_se"]
 

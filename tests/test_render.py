@@ -10,7 +10,7 @@ import os
 import numpy as np
 import pytest
 
-from clppm import config, eyepass, image, transport, volume
+from clppm import config, eyepass, image, photonpass, volume
 from clppm import progressive as pr
 from clppm.skin import PAPER_TABLE1
 
@@ -42,7 +42,7 @@ def layer(name, t, mua, mus, g=0.0, n=1.0):
 
 def eye_for(dev, cfg):
     vol = volume.build(cfg)
-    return vol, eyepass.run(dev, vol, transport.upload_volume(dev, vol), cfg)
+    return vol, eyepass.run(dev, vol, volume.upload_volume(dev, vol), cfg)
 
 
 def per_ray_layer_counts(ed, nl):
@@ -160,8 +160,8 @@ def _consistency(dev, method, passes, layers=None):
     layers = layers or [layer("m", math.inf, 1.0, 100.0)]
     cfg = slab_cfg(layers, method=method, passes=passes, photons=200_000, K=20)
     vol = volume.build(cfg)
-    pp = transport.PhotonPass(dev, vol, cfg)
-    rep = transport.trace_report(pp, 300_000, batches=10)
+    pp = photonpass.PhotonPass(dev, vol, cfg)
+    rep = photonpass.trace_report(pp, 300_000, batches=10)
     c = rep["rcone_cos"]
     expect = rep["Rd_cone"] / (math.pi * (1 - c * c))
     res = pr.render(cfg, dev=dev)
@@ -201,7 +201,7 @@ def test_table1_sample_counts(dev, forearm_volume):
     Within 10 % in at least 25 of 30 cells and within 25 % in all (the issue's bar; the cells
     outside 10 % are explained in the README)."""
     cfg, vol = forearm_volume
-    vb = transport.upload_volume(dev, vol)
+    vb = volume.upload_volume(dev, vol)
     names = vol.names[:5]
     rel = []
     for m in "abcdef":

@@ -14,7 +14,7 @@ import pytest
 
 cl = pytest.importorskip("pyopencl")
 
-from clppm import config, transport, volume  # noqa: E402
+from clppm import config, photonpass, volume  # noqa: E402
 from clppm.bands import Bands, source_spectrum  # noqa: E402
 
 SKIN = [  # the Jacques recipe over 9 bands: mu_s ~ lambda^-1.5, g(lambda), melanin and blood absorption
@@ -75,7 +75,7 @@ def z_scores(a, b):
 
 def photon_pass(dev, cfg, hero=1, capacity=2_000_000, seed=5, band=None):
     vol = volume.build(cfg)
-    pp = transport.PhotonPass(dev, vol, cfg, capacity=capacity, seed=seed, bands=Bands.from_config(cfg, hero=hero, sampling="power"))
+    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=capacity, seed=seed, bands=Bands.from_config(cfg, hero=hero, sampling="power"))
     pp.p["store_zmin"] = -250.0                # the depths eye rays see; the paths go deeper
     if band is not None:                       # every photon in one band (a single-band run)
         pp.p["fixed_band"] = band
@@ -126,7 +126,7 @@ def test_hero_weights_finite_for_degenerate_bands(dev):
     vol.mua = vol.mua.copy()
     vol.mus[:, 2] = 0.0
     vol.mua[:, 6] = 1.0
-    pp = transport.PhotonPass(dev, vol, cfg, capacity=2_000_000, seed=6, bands=Bands.from_config(cfg, hero=9, sampling="power"))
+    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=2_000_000, seed=6, bands=Bands.from_config(cfg, hero=9, sampling="power"))
     pp.p["store_zmin"] = -250.0
     pw = stored_power(pp, 4000, 3, None)
     assert np.all(np.isfinite(pw))

@@ -27,7 +27,7 @@ import os
 import numpy as np
 import pytest
 
-from clppm import config, transport, volume
+from clppm import config, photonpass, volume
 from clppm import progressive as pr
 from clppm.reference import skin_mask
 
@@ -141,8 +141,8 @@ def test_layer_thinner_than_voxel(dev, quantize):
     vol = volume.build(cfg)
     if quantize:
         assert vol.iface[2, 0] == vol.iface[3, 0]                 # zero thickness after snapping
-    pp = transport.PhotonPass(dev, vol, cfg)
-    rep = transport.trace_report(pp, 20_000, batches=4)
+    pp = photonpass.PhotonPass(dev, vol, cfg)
+    rep = photonpass.trace_report(pp, 20_000, batches=4)
     assert rep["energy_balance_error"] == 0.0
     assert rep["lost"] == 0.0
 
@@ -342,21 +342,21 @@ def test_tallies_exact_beyond_int64(dev):
     cfg = scene(lambda r: r.update(light={"kind": "wide", "center_mm": [50.0, 50.0], "width_mm": [1.0, 1.0],
                                           "direction": [0.0, 0.0, -1.0]}))
     vol = volume.build(cfg)
-    pp = transport.PhotonPass(dev, vol, cfg)
+    pp = photonpass.PhotonPass(dev, vol, cfg)
     n = (1 << 25) + (1 << 20)
     pp.trace(n, batches=1)
     t = pp.tallies
-    miss = transport.CATEGORIES.index("missed")
+    miss = photonpass.CATEGORIES.index("missed")
     total_miss = sum(t.counts[b][miss] for b in range(vol.nb))
     assert t.emitted == n
-    assert total_miss == n * transport.W0 and total_miss > 2**63
+    assert total_miss == n * photonpass.W0 and total_miss > 2**63
     assert t.balance_error() == 0.0
 
 
 def _stored_passes(dev, target_total, per_pass):
     cfg = scene()
     vol = volume.build(cfg)
-    pp = transport.PhotonPass(dev, vol, cfg, capacity=int(per_pass * 1.2) + 4096)
+    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=int(per_pass * 1.2) + 4096)
     stored, emitted, p = 0, 0, 0
     while stored < target_total:
         info = pp.run_pass(p, per_pass)

@@ -1,7 +1,7 @@
 """Photon transport of kernels/photon.cl against published and adding-doubling references.
 
 Every statistical comparison uses the standard error of batch means (10 batches) from
-``transport.trace_report`` and a fixed seed, so each run is deterministic; tolerances are
+``photonpass.trace_report`` and a fixed seed, so each run is deterministic; tolerances are
 3 standard errors (plus the reference's own accuracy where it has one).
 """
 from __future__ import annotations
@@ -16,11 +16,11 @@ import pytest
 cl = pytest.importorskip("pyopencl")
 from scipy import stats  # noqa: E402
 
-from clppm import bands, config, transport, volume  # noqa: E402
-from clppm.transport import CATEGORIES, W0  # noqa: E402
+from clppm import bands, config, photonpass, volume  # noqa: E402
+from clppm.photonpass import CATEGORIES, W0  # noqa: E402
 
 try:                                   # categories that make up a photon's weight
-    from clppm.transport import BALANCE, NA  # noqa: E402
+    from clppm.photonpass import BALANCE, NA# noqa: E402
 except ImportError:                    # pragma: no cover - before the cone tally existed
     BALANCE, NA = list(range(len(CATEGORIES))), len(CATEGORIES)
 
@@ -52,7 +52,7 @@ def photons_in(row, nl):
 def slab_pass(dev, spec, seed=SEED, capacity=0):
     cfg = config.slab_config(spec)
     vol = volume.build(cfg, "--slab")
-    return transport.PhotonPass(dev, vol, cfg, capacity=capacity, seed=seed)
+    return photonpass.PhotonPass(dev, vol, cfg, capacity=capacity, seed=seed)
 
 
 def traced_report(pp, n, batches=BATCHES):
@@ -67,7 +67,7 @@ def traced_report(pp, n, batches=BATCHES):
 
     pp.trace = trace
     try:
-        rep = transport.trace_report(pp, n, batches=batches)
+        rep = photonpass.trace_report(pp, n, batches=batches)
     finally:
         del pp.trace
     assert len(captured) == 1
@@ -215,7 +215,7 @@ def test_determinism_same_seed(dev):
     d = slab_pass(dev, spec, seed=7).trace(30_000, pass_index=1, batches=3)
     assert not any(np.array_equal(x, y) for x, y in zip(a, d))
     # and the report is the same numbers as the arrays
-    rep = transport.trace_report(slab_pass(dev, spec, seed=7), 30_000, batches=3)
+    rep = photonpass.trace_report(slab_pass(dev, spec, seed=7), 30_000, batches=3)
     rd = sum(int(x[0, CATEGORIES.index("diffuse")]) for x in a) / (W0 * 30_000)
     assert rep["Rd"] == rd
 
@@ -286,7 +286,7 @@ def test_forearm_photon_pass(dev, forearm):
     per-band tallies add up to the totals exactly."""
     cfg, vol = forearm
     n = 20_000
-    pp = transport.PhotonPass(dev, vol, cfg, capacity=50_000, seed=3)
+    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=50_000, seed=3)
     rep, arrs = traced_report(pp, n)
     for k, v in rep.items():
         if isinstance(v, float):

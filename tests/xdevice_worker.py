@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from clppm import config, device, progressive, tiny, transport, volume
+from clppm import config, device, photonpass, progressive, tiny, volume
 
 SLAB = "mua=10,mus=90,g=0.75,n=1.4,d=0.02"
 SLAB_PHOTONS = 40_000
@@ -19,8 +19,8 @@ def main(out: str) -> None:
     dev = device.open_device(None)
     cfg = config.slab_config(SLAB)
     cfg = config.override(cfg, "render", "seed", 11)
-    pp = transport.PhotonPass(dev, volume.build(cfg), cfg)
-    rep = transport.trace_report(pp, SLAB_PHOTONS, batches=20)
+    pp = photonpass.PhotonPass(dev, volume.build(cfg), cfg)
+    rep = photonpass.trace_report(pp, SLAB_PHOTONS, batches=20)
     scene = tiny.tiny_config(size_mm=4.0, resolution=(40, 30), step_nm=40.0, photons=20_000)
     scene = config.override(scene, "render", "passes", 2)
     imgs = {}

@@ -13,7 +13,6 @@ launch into Python integers and reset: exact and unbounded.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,7 +21,7 @@ from . import params as P_
 from .bands import Bands
 from .light import Light
 from .device import Device, kernel_defines
-from .volume import Volume
+from .volume import Volume, VolumeBuffers, upload_volume, volume_params
 
 W0 = 2 ** 38
 CATEGORIES = ["specular", "diffuse", "transmitted", "lost", "rr_gain", "rr_loss", "missed",
@@ -64,49 +63,6 @@ def source_params(p: np.ndarray, light: Light, vol: Volume) -> float:
     if light.kind == "wide":
         p["swx"], p["swy"] = light.width
     return 1.0
-
-
-def volume_params(p: np.ndarray, vol: Volume) -> None:
-    p["x0"], p["y0"], p["dx"], p["dy"] = vol.x0, vol.y0, vol.dx, vol.dy
-    p["xw"], p["yw"] = vol.nx * vol.dx, vol.ny * vol.dy
-    p["nx"], p["ny"] = vol.nx, vol.ny
-    p["lateral"] = P_.LATERAL[vol.lateral]
-    p["n_above"], p["n_below"] = vol.n_above, vol.n_below
-    p["z_top"] = vol.z_top
-
-
-def defines(vol: Volume, hero: int = 1) -> dict:   # TEMP until the helpers' branches merge
-    return kernel_defines(vol, hero=hero)
-
-
-@dataclass
-class VolumeBuffers:
-    """The volume on the device (shared by the photon and eye passes)."""
-
-    iface: object
-    layer_n: object
-    optics: object
-    heights: object
-    normals: object
-
-    def args(self):
-        return [self.iface, self.layer_n, self.optics, self.heights, self.normals]
-
-
-def upload_volume(dev: Device, vol: Volume) -> VolumeBuffers:
-    import pyopencl as cl
-    mf = cl.mem_flags
-
-    def buf(a):
-        a = np.ascontiguousarray(a)
-        return cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
-    iface = vol.iface.copy()
-    iface[:, 0] = np.where(np.abs(iface[:, 0]) >= 1e29, -1e30, iface[:, 0])
-    return VolumeBuffers(iface=buf(iface.astype(np.float32)),
-                         layer_n=buf(vol.n.astype(np.float32)),
-                         optics=buf(vol.optics_table()),
-                         heights=buf(vol.heights.astype(np.float32)),
-                         normals=buf(vol.normals.astype(np.float16)))
 
 
 @dataclass
