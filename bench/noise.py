@@ -35,7 +35,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from clppm import config as C, image, volume                # noqa: E402
+from clppm import colorimetry, config as C, image, volume                # noqa: E402
 from clppm.compare import render_seconds, schedule          # noqa: E402
 from clppm.progressive import render                       # noqa: E402
 from clppm.metrics import skin_mask_from_eye  # noqa: E402
@@ -51,7 +51,7 @@ def two_seed_noise(xyz1, xyz2, mask, exposure) -> dict:
     mY = 0.5 * (a[:, 1].mean() + b[:, 1].mean())
     dY = (a[:, 1] - b[:, 1]) / math.sqrt(2.0)
     return {"noise_Y": float(np.sqrt(np.mean(dY * dY)) / mY) if mY > 0 else float("nan"),
-            "noise_dE": float(np.mean(image.delta_e2000(a, b)) / math.sqrt(2.0)),
+            "noise_dE": float(np.mean(colorimetry.delta_e2000(a, b)) / math.sqrt(2.0)),
             "mean_Y": float(mY)}
 
 

@@ -36,7 +36,7 @@ def hero_pdf(wl: np.ndarray, spectrum: np.ndarray, how: str) -> np.ndarray:
     s = np.asarray(spectrum, float)
     if how == "power" or len(wl) == 1:
         return s / s.sum()
-    from .image import cmfs
+    from .colorimetry import cmfs
     v = s * cmfs(wl).sum(axis=1)
     v = v + 0.1 * v.mean()
     return v / v.sum()

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import config as C
-from . import argtypes, image, volume
+from . import argtypes, colorimetry, image, volume
 from .metrics import accuracy, block_mean, error_metrics
 from .reference import RefSpec, get_reference, pt_possible, skin_mask
 
@@ -247,8 +247,8 @@ def _mean_colour(res, last: dict, mask) -> dict:
     its mean skin colour."""
     r = res.report
     mean = (res.xyz[mask] * res.exposure).mean(0)
-    uv = image.xyz_to_uv_prime(mean)
-    lab = image.xyz_to_lab(mean)
+    uv = colorimetry.xyz_to_uv_prime(mean)
+    lab = colorimetry.xyz_to_lab(mean)
     return {"points_per_ray": r["sample_points"] / max(r["eye_rays_hit"], 1),
             "reuse": r["gather_pairs"] / max(r["photons_stored"], 1),
             "seconds": render_seconds(r), "R_median_um": median_radius(last, r),

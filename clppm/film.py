@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import image, paths
+from . import colorimetry, image, paths
 from .bands import band_width
 from .light import Light
 
@@ -58,8 +58,8 @@ def white_reference(light: Light, cam, wl, spectrum) -> np.ndarray:
 def tristimulus(L: np.ndarray, wl) -> np.ndarray:
     """XYZ of spectral radiance ``L`` (..., NB): the rectangle rule over the bands."""
     if len(wl) > 1:
-        return image.spectral_to_xyz(L, wl)
-    return L * image.cmfs(wl)[0] * band_width(wl)
+        return colorimetry.spectral_to_xyz(L, wl)
+    return L * colorimetry.cmfs(wl)[0] * band_width(wl)
 
 
 def develop(L: np.ndarray, cfg: dict, cam, wl, spectrum) -> RenderResult:
@@ -68,7 +68,7 @@ def develop(L: np.ndarray, cfg: dict, cam, wl, spectrum) -> RenderResult:
     nonfinite = int(np.size(L) - np.count_nonzero(np.isfinite(L)))
     L = np.nan_to_num(L, nan=0.0, posinf=0.0, neginf=0.0).reshape(cam.height, cam.width, len(wl))
     xyz = tristimulus(L, wl)
-    rgb = image.xyz_to_linear_srgb(xyz)
+    rgb = colorimetry.xyz_to_linear_srgb(xyz)
     Yw = float(tristimulus(white_reference(Light.from_config(cfg), cam, wl, spectrum)[None, :], wl)[0, 1])
     rc = cfg["render"]
     exposure = rc["exposure"] if rc["exposure"] is not None else (1.0 / Yw if Yw > 0 else 1.0)

@@ -22,7 +22,7 @@ import dataclasses
 
 import numpy as np
 
-from . import image
+from . import colorimetry
 
 
 # ----------------------------------------------------------------------------- pixels
@@ -64,15 +64,15 @@ def error_metrics(xyz, ref_xyz, mask, exposure: float, rgb=None, ref_rgb=None,
     mY = float(b[:, 1].mean())
     out["rel_rmse"] = out["rmse_xyz"] / mY if mY > 0 else float("nan")
     out["dY"] = float(a[:, 1].mean() / mY - 1.0) if mY > 0 else float("nan")
-    out["de2000"] = float(np.mean(image.delta_e2000(a, b)))
-    ua, ub = image.xyz_to_uv_prime(a), image.xyz_to_uv_prime(b)
+    out["de2000"] = float(np.mean(colorimetry.delta_e2000(a, b)))
+    ua, ub = colorimetry.xyz_to_uv_prime(a), colorimetry.xyz_to_uv_prime(b)
     duv = ua - ub
     out["du"], out["dv"] = float(duv[:, 0].mean()), float(duv[:, 1].mean())
     out["duv"] = float(np.mean(np.hypot(duv[:, 0], duv[:, 1])))
-    uma = image.xyz_to_uv_prime(a.mean(0))
-    umb = image.xyz_to_uv_prime(b.mean(0))
+    uma = colorimetry.xyz_to_uv_prime(a.mean(0))
+    umb = colorimetry.xyz_to_uv_prime(b.mean(0))
     out["du_mean"], out["dv_mean"] = float(uma[0] - umb[0]), float(uma[1] - umb[1])
-    la, lb = image.xyz_to_lab(a), image.xyz_to_lab(b)
+    la, lb = colorimetry.xyz_to_lab(a), colorimetry.xyz_to_lab(b)
     dl = (la - lb).mean(0)
     out["dL"], out["da"], out["db"] = float(dl[0]), float(dl[1]), float(dl[2])
     if flip and rgb is not None and ref_rgb is not None:
@@ -92,8 +92,8 @@ def flip_error(rgb, ref_rgb, mask, exposure: float):
         import flip_evaluator as fe
     except Exception:
         return None
-    t = image.encode_srgb(np.asarray(rgb, float) * exposure).astype(np.float32)
-    r = image.encode_srgb(np.asarray(ref_rgb, float) * exposure).astype(np.float32)
+    t = colorimetry.encode_srgb(np.asarray(rgb, float) * exposure).astype(np.float32)
+    r = colorimetry.encode_srgb(np.asarray(ref_rgb, float) * exposure).astype(np.float32)
     emap, _, _ = fe.evaluate(np.ascontiguousarray(r), np.ascontiguousarray(t), "LDR",
                              inputsRGB=True, applyMagma=False, computeMeanError=False)
     emap = np.asarray(emap, float)
@@ -150,7 +150,7 @@ def accuracy(xyz, spectral, ref, flip: bool = False, rgb=None) -> dict:
     m["block_Y_max"] = float(np.nanmax(np.abs(rel)))
     a = x[mask].mean(0) * ref.exposure
     r = ref.xyz[mask].mean(0) * ref.exposure
-    m["de_mean"] = float(image.delta_e2000(a[None], r[None])[0])
+    m["de_mean"] = float(colorimetry.delta_e2000(a[None], r[None])[0])
     if spectral is not None:
         st = block_mean(spectral, b)[mask].mean(0)
         sr = np.asarray(ref.spectral, float)[mask].mean(0)

@@ -221,30 +221,30 @@ def reflectance_xyz(wl, R, grid=None) -> tuple[np.ndarray, np.ndarray]:
     ``R`` is interpolated linearly onto a 5 nm grid inside both ``wl`` and 380-780 nm; the
     white is the perfect reflector under the same D65 and grid (so Lab is relative to it).
     """
-    from . import image
+    from . import colorimetry
     from .spectra import d65
     wl = np.asarray(wl, float)
     g = _colour_grid(wl) if grid is None else grid
     R = np.asarray(R, float)
     Rg = np.apply_along_axis(lambda r: np.interp(g, wl, r), -1, R)
     S = np.asarray(d65(g), float)
-    white = image.spectral_to_xyz(S, g)
+    white = colorimetry.spectral_to_xyz(S, g)
     k = 1.0 / white[1]
-    return image.spectral_to_xyz(Rg * S, g) * k, white * k
+    return colorimetry.spectral_to_xyz(Rg * S, g) * k, white * k
 
 
 def delta_e(wl, Ra, Rb) -> np.ndarray:
     """CIEDE2000 between reflectance spectra ``Ra`` and ``Rb`` (D65, 2°)."""
-    from . import image
+    from . import colorimetry
     xa, w = reflectance_xyz(wl, Ra)
     xb, _ = reflectance_xyz(wl, Rb)
-    return image.delta_e2000(xa, xb, white_XYZ=w)
+    return colorimetry.delta_e2000(xa, xb, white_XYZ=w)
 
 
 def lab(wl, R) -> np.ndarray:
-    from . import image
+    from . import colorimetry
     x, w = reflectance_xyz(wl, R)
-    return image.xyz_to_lab(x, white_XYZ=w)
+    return colorimetry.xyz_to_lab(x, white_XYZ=w)
 
 
 def compare(wl, R, band_nm: tuple[float, float] = (450.0, 700.0)) -> dict:
@@ -271,12 +271,12 @@ def compare(wl, R, band_nm: tuple[float, float] = (450.0, 700.0)) -> dict:
     Rsub_g = np.stack([np.interp(g, w0n, Rn[:, k]) for k in range(Rn.shape[1])], axis=0)
     med_g = np.median(Rsub_g, axis=0)
     Rm_g = np.interp(g, wl_u, R_u)
-    from . import image
+    from . import colorimetry
     xm, white = reflectance_xyz(g, Rm_g, grid=g)
     xmed, _ = reflectance_xyz(g, med_g, grid=g)
     xs, _ = reflectance_xyz(g, Rsub_g, grid=g)
-    de_all = image.delta_e2000(np.broadcast_to(xm, xs.shape), xs, white_XYZ=white)
-    de_med = float(image.delta_e2000(xm, xmed, white_XYZ=white))
+    de_all = colorimetry.delta_e2000(np.broadcast_to(xm, xs.shape), xs, white_XYZ=white)
+    de_med = float(colorimetry.delta_e2000(xm, xmed, white_XYZ=white))
     jde = int(np.argmin(de_all))
     sel = (wl_u >= band_nm[0] - 1e-9) & (wl_u <= band_nm[1] + 1e-9)
     below = wl_u[sel & (R_u < pop["p5"])]
@@ -291,8 +291,8 @@ def compare(wl, R, band_nm: tuple[float, float] = (450.0, 700.0)) -> dict:
         "delta_e2000_nearest": float(de_all[j]),
         "least_delta_e_subject": names[jde],
         "delta_e2000_least": float(de_all[jde]),
-        "lab_model": [float(v) for v in image.xyz_to_lab(xm, white_XYZ=white)],
-        "lab_median": [float(v) for v in image.xyz_to_lab(xmed, white_XYZ=white)],
+        "lab_model": [float(v) for v in colorimetry.xyz_to_lab(xm, white_XYZ=white)],
+        "lab_median": [float(v) for v in colorimetry.xyz_to_lab(xmed, white_XYZ=white)],
         "inside_5_95": {"range_nm": list(band_nm), "inside": bool(below.size == 0 and above.size == 0),
                         "below_p5_nm": [float(v) for v in below],
                         "above_p95_nm": [float(v) for v in above]},

@@ -33,7 +33,7 @@ import time
 import numpy as np
 
 from . import checkpoint as ckpt
-from . import driver, film, image, paths, progressive, volume
+from . import colorimetry, driver, film, paths, progressive, volume
 from . import params as P_
 from .bands import Bands, band_width
 from .camera import CAMERA_DTYPE, from_config
@@ -254,7 +254,7 @@ def noise(sums, sq, counts, scale, wl) -> dict:
     (bands are independent estimates: Var Y = sum_b (ybar_b dl s_b)^2 Var(mean_b)); pixels
     where a band has fewer than 2 samples get none."""
     dl = band_width(wl)
-    ybar = image.cmfs(wl)[:, 1] * dl * scale
+    ybar = colorimetry.cmfs(wl)[:, 1] * dl * scale
     c = np.maximum(counts, 1).astype(float)
     mean = sums / c
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -97,9 +97,3 @@ def d65(wl) -> np.ndarray:
     """Relative spectral power of CIE D65 (100 at 560 nm) at ``wl``, via colour's interpolator."""
     sd = colour.SDS_ILLUMINANTS["D65"]
     return np.asarray(sd[np.asarray(wl, dtype=np.float64)], dtype=np.float64)
-
-
-def cmfs(wl) -> np.ndarray:
-    """(N, 3) CIE 1931 2° colour matching functions x̄, ȳ, z̄ at ``wl``, via colour's interpolator."""
-    msds = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
-    return np.asarray(msds[np.atleast_1d(np.asarray(wl, dtype=np.float64))], dtype=np.float64)

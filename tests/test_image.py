@@ -9,7 +9,7 @@ import pytest
 import colour
 import OpenEXR
 
-from clppm import image
+from clppm import colorimetry, image
 
 WL = np.arange(380.0, 781.0, 5.0)  # 81 bands
 
@@ -23,75 +23,75 @@ def _d65(wl):
 
 
 def test_cmfs_match_colour_table():
-    c = image.cmfs(WL)
+    c = colorimetry.cmfs(WL)
     assert c.shape == (81, 3)
-    table = colour.MSDS_CMFS[image.CMFS_NAME]
+    table = colour.MSDS_CMFS[colorimetry.CMFS_NAME]
     np.testing.assert_allclose(c, table[WL], rtol=0, atol=1e-12)
     # Outside the table: zero, not extrapolated.
-    assert np.all(image.cmfs([300.0, 900.0]) == 0)
+    assert np.all(colorimetry.cmfs([300.0, 900.0]) == 0)
     # Interpolated (non-integer) wavelengths lie between neighbours' values.
-    y = image.cmfs([555.0, 555.5, 556.0])[:, 1]
+    y = colorimetry.cmfs([555.0, 555.5, 556.0])[:, 1]
     assert min(y[0], y[2]) - 1e-6 <= y[1] <= max(y[0], y[2]) + 1e-6
 
 
 def test_d65_chromaticity():
-    XYZ = image.spectral_to_xyz(_d65(WL), WL)
+    XYZ = colorimetry.spectral_to_xyz(_d65(WL), WL)
     xy = XYZ[:2] / XYZ.sum()
-    ref = colour.CCS_ILLUMINANTS[image.CMFS_NAME]["D65"]
+    ref = colour.CCS_ILLUMINANTS[colorimetry.CMFS_NAME]["D65"]
     np.testing.assert_allclose(xy, [0.3127, 0.3290], atol=2e-3)
     np.testing.assert_allclose(xy, ref, atol=2e-3)
 
 
 def test_spectral_to_xyz_vectorised_and_uniform_grid():
     L = np.random.default_rng(1).random((2, 3, WL.size))
-    XYZ = image.spectral_to_xyz(L, WL)
+    XYZ = colorimetry.spectral_to_xyz(L, WL)
     assert XYZ.shape == (2, 3, 3)
-    np.testing.assert_allclose(XYZ[1, 2], image.spectral_to_xyz(L[1, 2], WL))
+    np.testing.assert_allclose(XYZ[1, 2], colorimetry.spectral_to_xyz(L[1, 2], WL))
     with pytest.raises(ValueError):
-        image.spectral_to_xyz(L[..., :10], WL[[0, 1, 2, 3, 4, 5, 6, 7, 8, 10]])
+        colorimetry.spectral_to_xyz(L[..., :10], WL[[0, 1, 2, 3, 4, 5, 6, 7, 8, 10]])
     with pytest.raises(ValueError):
-        image.spectral_to_xyz(L, WL[:-1])
+        colorimetry.spectral_to_xyz(L, WL[:-1])
 
 
 def test_white_reflector_under_d65_is_srgb_white():
     E = _d65(WL)
     refl = np.ones_like(WL)
-    XYZ_w = image.spectral_to_xyz(E, WL)
-    XYZ = image.spectral_to_xyz(refl * E, WL) / XYZ_w[1]
+    XYZ_w = colorimetry.spectral_to_xyz(E, WL)
+    XYZ = colorimetry.spectral_to_xyz(refl * E, WL) / XYZ_w[1]
     np.testing.assert_allclose(XYZ[1], 1.0, atol=1e-12)
-    rgb = image.xyz_to_linear_srgb(XYZ)
+    rgb = colorimetry.xyz_to_linear_srgb(XYZ)
     np.testing.assert_allclose(rgb, [1.0, 1.0, 1.0], atol=1e-2)
-    np.testing.assert_allclose(image.linear_srgb_to_xyz(rgb), XYZ, atol=1e-10)
+    np.testing.assert_allclose(colorimetry.linear_srgb_to_xyz(rgb), XYZ, atol=1e-10)
 
 
 def test_srgb_matrix_round_trip_vectorised():
     rgb = np.random.default_rng(2).random((4, 5, 3))
-    XYZ = image.linear_srgb_to_xyz(rgb)
+    XYZ = colorimetry.linear_srgb_to_xyz(rgb)
     assert XYZ.shape == rgb.shape
-    np.testing.assert_allclose(image.xyz_to_linear_srgb(XYZ), rgb, atol=1e-12)
+    np.testing.assert_allclose(colorimetry.xyz_to_linear_srgb(XYZ), rgb, atol=1e-12)
     # (1,1,1) maps to the D65 white.
-    np.testing.assert_allclose(image.linear_srgb_to_xyz([1, 1, 1]), image.D65_XYZ, atol=1e-4)
+    np.testing.assert_allclose(colorimetry.linear_srgb_to_xyz([1, 1, 1]), colorimetry.D65_XYZ, atol=1e-4)
 
 
 def test_encode_srgb():
-    assert round(float(image.encode_srgb(0.5)) * 255) in (187, 188, 189)
-    np.testing.assert_allclose(image.encode_srgb([-1.0, 0.0, 1.0, 5.0]), [0, 0, 1, 1])
-    out = image.encode_srgb([np.nan, np.inf])
+    assert round(float(colorimetry.encode_srgb(0.5)) * 255) in (187, 188, 189)
+    np.testing.assert_allclose(colorimetry.encode_srgb([-1.0, 0.0, 1.0, 5.0]), [0, 0, 1, 1])
+    out = colorimetry.encode_srgb([np.nan, np.inf])
     np.testing.assert_array_equal(out, [0.0, 1.0])
 
 
 def test_uv_prime():
     XYZ = np.array([[0.2, 0.3, 0.4], [0.9, 0.5, 0.1]])
-    uv = image.xyz_to_uv_prime(XYZ)
+    uv = colorimetry.xyz_to_uv_prime(XYZ)
     ref = colour.xy_to_Luv_uv(colour.XYZ_to_xy(XYZ))
     np.testing.assert_allclose(uv, ref, atol=1e-12)
     # D65 white: (0.1978, 0.4683).
-    np.testing.assert_allclose(image.xyz_to_uv_prime(image.D65_XYZ), [0.19784, 0.46834], atol=1e-4)
+    np.testing.assert_allclose(colorimetry.xyz_to_uv_prime(colorimetry.D65_XYZ), [0.19784, 0.46834], atol=1e-4)
 
 
 def test_lab_and_delta_e2000():
-    white = image.D65_XYZ * 3.0  # any absolute scale, shared by colour and white
-    lab_w = image.xyz_to_lab(white, white)
+    white = colorimetry.D65_XYZ * 3.0  # any absolute scale, shared by colour and white
+    lab_w = colorimetry.xyz_to_lab(white, white)
     np.testing.assert_allclose(lab_w, [100, 0, 0], atol=1e-8)
     # Sharma, Wu & Dalal (2005) test pair 1: dE00 = 2.0425.
     lab1 = np.array([50.0, 2.6772, -79.7751])
@@ -99,13 +99,13 @@ def test_lab_and_delta_e2000():
     xy_w = colour.XYZ_to_xy(white)
     x1 = colour.Lab_to_XYZ(lab1, illuminant=xy_w) * white[1]
     x2 = colour.Lab_to_XYZ(lab2, illuminant=xy_w) * white[1]
-    np.testing.assert_allclose(image.xyz_to_lab(x1, white), lab1, atol=1e-9)
-    de = image.delta_e2000(x1, x2, white)
+    np.testing.assert_allclose(colorimetry.xyz_to_lab(x1, white), lab1, atol=1e-9)
+    de = colorimetry.delta_e2000(x1, x2, white)
     assert abs(float(de) - 2.0425) < 1e-4
     # Vectorised over leading axes; identical colours give exactly 0.
     a = np.stack([x1, x2, x1])[None]
     b = np.stack([x2, x2, x1])[None]
-    de_v = image.delta_e2000(a, b, white)
+    de_v = colorimetry.delta_e2000(a, b, white)
     assert de_v.shape == (1, 3)
     np.testing.assert_allclose(de_v, [[2.0425, 0.0, 0.0]], atol=1e-4)
     assert de_v[0, 1] == 0 and de_v[0, 2] == 0
@@ -115,19 +115,19 @@ def test_black_produces_no_nan():
     black = np.zeros((2, 2, 3))
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # also: no divide-by-zero warnings
-        lab = image.xyz_to_lab(black)
-        uv = image.xyz_to_uv_prime(black)
-        de = image.delta_e2000(black, black)
-        de2 = image.delta_e2000(black, np.ones(3) * 0.5)
-        rgb = image.xyz_to_linear_srgb(black)
-        enc = image.encode_srgb(rgb)
-        xyz = image.spectral_to_xyz(np.zeros((2, WL.size)), WL)
+        lab = colorimetry.xyz_to_lab(black)
+        uv = colorimetry.xyz_to_uv_prime(black)
+        de = colorimetry.delta_e2000(black, black)
+        de2 = colorimetry.delta_e2000(black, np.ones(3) * 0.5)
+        rgb = colorimetry.xyz_to_linear_srgb(black)
+        enc = colorimetry.encode_srgb(rgb)
+        xyz = colorimetry.spectral_to_xyz(np.zeros((2, WL.size)), WL)
     for a in (lab, uv, de, de2, rgb, enc, xyz):
         assert np.all(np.isfinite(a))
     np.testing.assert_array_equal(lab, 0.0)
     np.testing.assert_array_equal(de, 0.0)
     # Black's u'v' is defined as the white point's.
-    np.testing.assert_allclose(uv, np.broadcast_to(image.xyz_to_uv_prime(image.D65_XYZ), uv.shape))
+    np.testing.assert_allclose(uv, np.broadcast_to(colorimetry.xyz_to_uv_prime(colorimetry.D65_XYZ), uv.shape))
 
 
 # ---------------------------------------------------------------- EXR / PNG I/O

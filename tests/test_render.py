@@ -10,7 +10,7 @@ import os
 import numpy as np
 import pytest
 
-from clppm import config, eyepass, image, photonpass, volume
+from clppm import config, eyepass, photonpass, volume
 from clppm import progressive as pr
 from clppm.skin import PAPER_TABLE1
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from clppm import spectra
+from clppm import colorimetry, spectra
 
 
 def test_wavelengths_default_81_bands_inclusive():
@@ -73,10 +73,10 @@ def test_d65_normalisation():
 
 def test_cmfs_shape_and_values():
     wl = spectra.wavelengths()
-    c = spectra.cmfs(wl)
+    c = colorimetry.cmfs(wl)
     assert c.shape == (81, 3)
     assert np.all(c >= 0)
-    assert np.allclose(spectra.cmfs([555.0])[0], [0.5120501, 1.0, 0.00575], atol=1e-6)
+    assert np.allclose(colorimetry.cmfs([555.0])[0], [0.5120501, 1.0, 0.00575], atol=1e-6)
     # y-bar peaks at 555 nm; on the 5 nm grid 555 is a band centre.
     assert wl[np.argmax(c[:, 1])] == 555.0
     # Integrals of the 2-degree observer over 380-780 nm are nearly equal (equal-energy white).

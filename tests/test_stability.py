@@ -407,10 +407,10 @@ def test_colour_shift_against_spacing_and_photons(dev):
 # ----------------------------------------------------------------------------- reference, metrics
 def test_error_metrics_signs_and_zero():
     """An image against itself: all errors 0; a bluer copy: negative Δb*, Δv'; a brighter one: dY."""
-    from clppm import image
+    from clppm import colorimetry
     from clppm.metrics import error_metrics
     rng = np.random.default_rng(0)
-    xyz = rng.uniform(0.1, 0.5, (6, 8, 3)) * image.D65_XYZ * np.array([1.1, 1.0, 0.7])
+    xyz = rng.uniform(0.1, 0.5, (6, 8, 3)) * colorimetry.D65_XYZ * np.array([1.1, 1.0, 0.7])
     mask = np.ones((6, 8), bool)
     mask[0] = False
     z = error_metrics(xyz, xyz, mask, 1.0)
@@ -426,12 +426,12 @@ def test_accuracy_of_seeds_separates_bias_from_noise():
     reference with 2 % noise of its own: the mean of n images has the bias plus 4/sqrt(n) %, one
     image's noise reads 4 %, and the bias with both noises removed reads b's 3 % (within the
     sampling error of 2,000 squares), for n = 2 and 8."""
-    from clppm import image
+    from clppm import colorimetry
     from clppm.metrics import accuracy_of_seeds
     from clppm.reference import Reference, RefSpec
     rng = np.random.default_rng(3)
     h, w = 40, 50
-    truth = rng.uniform(0.2, 0.4, (h, w, 1)) * image.D65_XYZ
+    truth = rng.uniform(0.2, 0.4, (h, w, 1)) * colorimetry.D65_XYZ
     bias = 0.03 * rng.standard_normal((h, w, 1))
     ref_xyz = truth * (1 + 0.02 * rng.standard_normal((h, w, 1)))
     ref = Reference(key="t", spec=RefSpec(integrator="pt", resolution=(w, h), block=1), xyz=ref_xyz,
@@ -458,12 +458,12 @@ def test_squares_beyond_the_bound_only_when_shown():
     reference whose halves differ by its 1 % noise: the standard error per square is the mean's
     and the reference's noise together; every 10 % square is beyond 2 % beyond doubt, none of the
     unbiased ones is, and the 2.5 % ones are beyond 2 % often but shown so seldom."""
-    from clppm import image
+    from clppm import colorimetry
     from clppm.metrics import accuracy_of_seeds
     from clppm.reference import Reference, RefSpec
     rng = np.random.default_rng(5)
     h, w, n = 40, 50, 8
-    truth = rng.uniform(0.2, 0.4, (h, w, 1)) * image.D65_XYZ
+    truth = rng.uniform(0.2, 0.4, (h, w, 1)) * colorimetry.D65_XYZ
     bias = np.zeros((h, w, 1))
     idx = rng.permutation(h * w)
     bias.reshape(-1)[idx[:40]] = 0.10
