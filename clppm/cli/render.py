@@ -1,0 +1,177 @@
+"""``clppm render``: progressive photon mapping, the path tracer, or a Dask cluster."""
+from __future__ import annotations
+
+import os
+import signal
+
+from ..config import ConfigError
+from .options import (EXIT, METHODS_HELP, InputError, add_device, load_config, method_or_spacing,
+                      resolution_arg)
+
+
+def _scheduler(a) -> tuple[str | None, str]:
+    """--scheduler, else CLPPM_SCHEDULER unless a local device was chosen; and its name."""
+    if a.scheduler:
+        if a.devices or a.device:
+            raise ConfigError("command line", "--scheduler", a.scheduler,
+                              "give --scheduler, --devices or --device, not two of them")
+        return a.scheduler, "--scheduler"
+    env = os.environ.get("CLPPM_SCHEDULER") or None
+    if a.devices and a.device:
+        raise ConfigError("command line", "--devices", a.devices, "give --devices or --device, not both")
+    return (None if a.devices or a.device else env), "CLPPM_SCHEDULER"
+
+
+def _render_config(a) -> dict:
+    """The config with every command-line change applied (checked like the file's values)."""
+    from .. import config
+    cfg = load_config(a.config)
+    if a.preview_every is not None:
+        cfg = config.override(cfg, "render", "preview_every", a.preview_every)
+    for item in a.set or []:
+        cfg = config.set_item(cfg, item)
+    if a.integrator == "ppm":
+        method_or_spacing(a)
+        if a.paper:
+            cfg = config.paper_mode(cfg)
+        for key, flag in (("radius", a.radius), ("estimator", a.estimator), ("storage", a.storage),
+                          ("bands_per_path", a.bands_per_path)):
+            if flag is not None:
+                cfg = config.override(cfg, "render", key, flag)
+    return cfg
+
+
+def _check_render_paths(a, cfg) -> None:
+    """-o, its sidecars, --resume and --passes against the checkpoint: before any work."""
+    from .. import paths
+    from ..driver import check_resume_passes
+    paths.check_render_output(a.output)
+    passes = a.passes if a.passes is not None else cfg["render"]["passes"]
+    check_resume_passes(a.resume, passes, "--passes" if a.passes is not None else "render.passes")
+
+
+def cmd_render(a) -> int:
+    from .. import paths
+    from ..driver import interrupt_signal
+    cfg = _render_config(a)
+    _check_render_paths(a, cfg)
+    with paths.OutputLock(a.output):
+        paths.check_checkpoint_free(a.output, a.resume, a.force)
+        if a.integrator == "pt":
+            res = _render_pt(a, cfg)
+        else:
+            res = _render_ppm(a, cfg)
+    r = res.report
+    files = paths.render_outputs(a.output)
+    side = ", ".join(os.path.basename(files[k]) for k in ("png", "report", "checkpoint") if k in files)
+    what = (f"path tracer, {r['passes_done']} passes, {r['paths_traced']} paths, "
+            f"{r['mean_vertices_per_path']:.1f} vertices per path" if a.integrator == "pt" else
+            f"method {r['scheme']}, {r['passes_done']} passes, {r['photons_emitted']} photons emitted, "
+            f"{r['sample_points']} sample points")
+    print(f"wrote {a.output} (+ {side}): {what}, {r['seconds']['total']:.1f} s on {r['device']['name']}")
+    if r["interrupted"]:
+        sig = interrupt_signal() or signal.SIGINT
+        again = " ".join(["clppm render", a.config, "-o", a.output] + (["--integrator pt"] if a.integrator == "pt" else [])
+                         + ["--resume", files["checkpoint"]])
+        print(f"interrupted by {signal.Signals(sig).name} after pass {r['passes_done']} of "
+              f"{r['passes_requested']}: resume with --resume {files['checkpoint']} ({again})")
+        return EXIT["sigterm"] if sig == signal.SIGTERM else EXIT["sigint"]
+    return EXIT["ok"]
+
+
+def _render_ppm(a, cfg):
+    from .. import progressive as render
+    scheduler, flag = _scheduler(a)
+    kw = dict(method=a.method, passes=a.passes, photons=a.photons, resolution=a.resolution, seed=a.seed,
+              spacing=a.spacing, out=a.output, progress=not a.quiet, resume=a.resume,
+              source=os.path.basename(a.config))
+    if not (scheduler or a.devices):
+        return render.render(cfg, device=a.device, **kw)
+    try:
+        from .. import executor
+    except ImportError as e:
+        raise ConfigError("command line", flag if scheduler else "--devices", scheduler or a.devices,
+                          f"needs dask.distributed ({e}): pip install 'clppm[dask]'") from None
+    try:
+        return executor.render_distributed(cfg, scheduler=scheduler, devices=a.devices,
+                                           scheduler_flag=flag, **kw)
+    except executor.ExecutorError as e:
+        raise InputError(str(e)) from None
+
+
+def _render_pt(a, cfg):
+    from ..driver import say
+    from ..pathtracer import render_pt
+    for flag, v in (("--method", a.method), ("--spacing", a.spacing), ("--photons", a.photons),
+                    ("--paper", a.paper or None), ("--estimator", a.estimator), ("--storage", a.storage),
+                    ("--bands-per-path", a.bands_per_path), ("--radius", a.radius)):
+        if v is not None:
+            raise ConfigError("command line", flag, v, "applies to --integrator ppm only")
+    say(not a.quiet, "path tracer: building the volume...")
+    return render_pt(cfg, passes=a.passes, resolution=a.resolution, seed=a.seed, device=a.device,
+                     out=a.output, progress=not a.quiet, resume=a.resume,
+                     source=os.path.basename(a.config))
+
+
+RENDER_EPILOG = "sample-point methods (--method, render.method):\n" + "".join(
+    f"  {m}  {t}\n" for m, t in METHODS_HELP.items()) + """
+outputs of -o NAME.exr: NAME.exr (spectral + linear sRGB EXR), NAME.png (sRGB), NAME.json (run
+report), NAME.ckpt.npz (checkpoint); -o NAME.png writes the PNG, .json and .ckpt.npz only.
+
+examples:
+  clppm render forearm -o out/forearm.exr
+  clppm render forearm --method b --passes 20 -o out/b.exr
+  clppm render forearm -o out/forearm.exr --resume out/forearm.ckpt.npz --passes 12
+  clppm render configs/forearm_flat.toml --integrator pt --passes 50 -o out/pt.exr
+  clppm render forearm --set layer.0.n=1.45 --set render.seed=3 -o out/n145.png
+  clppm render forearm --paper -o out/paper.exr
+"""
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("render", help="render a config: progressive photon mapping (or --integrator pt)",
+                       description="Render a config file (or a shipped one by name: forearm, cheek, ...).",
+                       epilog=RENDER_EPILOG)
+    p.add_argument("config", help="config file, or the name of a shipped config (`clppm config --example`)")
+    p.add_argument("--integrator", choices=("ppm", "pt"), default="ppm",
+                   help="ppm: progressive photon mapping; pt: the unbiased path tracer "
+                        "(flat scenes, point light; render.pt_samples_per_pass paths per pixel per pass)")
+    p.add_argument("--method", choices=list("abcdef"),
+                   help="sample-point scheme, see below (default: the config's render.method)")
+    p.add_argument("--spacing", type=float, help="equal spacing of sample points in um, any value "
+                   "(instead of --method; default: the method's)")
+    p.add_argument("--passes", type=int, help="passes in all, counting a resumed checkpoint's "
+                   "(default: the config's render.passes)")
+    p.add_argument("--photons", type=int, help="stored photons per pass (default: the config's render.photons)")
+    p.add_argument("--resolution", type=resolution_arg, help="WxH pixels (default: the config's camera.resolution)")
+    p.add_argument("--seed", type=int, help="random seed (default: the config's render.seed)")
+    p.add_argument("--resume", metavar="CKPT", help="continue from a checkpoint (NAME.ckpt.npz)")
+    p.add_argument("--force", action="store_true",
+                   help="start over even though -o's checkpoint of an earlier render exists (it is replaced)")
+    p.add_argument("--preview-every", type=int, metavar="K",
+                   help="write NAME.preview.png every K passes (default: the config's render.preview_every)")
+    p.add_argument("--paper", action="store_true",
+                   help="the paper's design: every scattering event stored, one band per path, the "
+                        "sphere estimator, the per-point radius (configs/forearm_paper.toml: with its budget)")
+    p.add_argument("--estimator", choices=("beam", "layer", "clip", "sphere"),
+                   help="render.estimator (default: the config's; beam in the default mode, sphere the paper's)")
+    p.add_argument("--storage", choices=("importance", "all"),
+                   help="render.storage: importance-driven or every event (the paper) (default: the config's)")
+    p.add_argument("--bands-per-path", type=int,
+                   help="render.bands_per_path (0: auto, 1: the paper's) (default: the config's)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="any config value, SECTION.KEY=VALUE or layer.N.KEY=VALUE (N: index of the "
+                        "[[layer]], from 0), e.g. --set render.store_scale=30 --set layer.0.n=1.45; "
+                        "TOML syntax for the value; repeatable")
+    p.add_argument("--radius", choices=("ppm", "global"),
+                   help="render.radius: per-point (ppm) or global (Knaus & Zwicker; needed to distribute) "
+                        "(default: the config's)")
+    p.add_argument("-o", "--output", default="out/render.exr",
+                   help="NAME.exr (spectral + RGB EXR, and NAME.png) or NAME.png (the PNG alone); "
+                        "NAME.json and NAME.ckpt.npz beside it")
+    p.add_argument("--devices", help="'all' or P:D,P:D: a local Dask cluster, one worker per listed "
+                   "device (a device listed twice gets two workers)")
+    p.add_argument("--scheduler", help="address of a running Dask scheduler (default: "
+                   "$CLPPM_SCHEDULER unless --device/--devices is given)")
+    add_device(p)
+    p.set_defaults(func=cmd_render)
