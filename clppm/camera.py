@@ -6,15 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: ``Camera`` in kernels/camera.h: the eye pass's and the path tracer's parameter structs hold it
-CAMERA_DTYPE = np.dtype([
-    ("cpx", "f4"), ("cpy", "f4"), ("cpz", "f4"),
-    ("fx", "f4"), ("fy", "f4"), ("fz", "f4"),
-    ("rx", "f4"), ("ry", "f4"), ("rz", "f4"),
-    ("ux", "f4"), ("uy", "f4"), ("uz", "f4"),
-    ("tan_half", "f4"), ("aspect", "f4"),
-    ("width", "i4"), ("height", "i4"),
-])
+from .structs import CAMERA_DTYPE
+
 
 
 @dataclass(frozen=True)

@@ -236,6 +236,18 @@ def local_size(kernel, device, want: int = 64) -> int:
     return ls
 
 
+def global_size(n: int, want: int = 64) -> int:
+    """``n`` work items rounded up to a multiple of ``want`` (at least ``want``): one global
+    size rule for every launch, so PoCL compiles a kernel for one work-group size only."""
+    return max(want, (int(n) + want - 1) // want * want)
+
+
+def launch(kernel, queue, n: int, want: int = 64) -> tuple[tuple[int], tuple[int]]:
+    """The (global, local) sizes to run ``kernel`` over ``n`` work items: ``kernel(queue,
+    *launch(kernel, queue, n), *args)``; the local size from :func:`local_size`."""
+    return (global_size(n, want),), (local_size(kernel, queue.device, want),)
+
+
 def launched(device) -> list[dict]:
     """What :func:`local_size` recorded on ``device``, one row per kernel name."""
     k = _device_key(device)

@@ -28,23 +28,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import params as P_
-from .camera import CAMERA_DTYPE, Camera, from_config
+from . import structs as S
+from .camera import Camera, from_config
 from .light import Light
-from .device import Device, DeviceError, check_alloc, kernel_defines
+from .device import Device, DeviceError, check_alloc, kernel_defines, launch
 from .volume import Volume, VolumeBuffers, volume_params
 
 SPACING = {"a": 4.0, "b": 7.0, "c": 14.0}
 EXTINCTION_STAT = {"d": "max", "e": "mean", "f": "min"}
-
-EYE_DTYPE = np.dtype([
-    ("cam", CAMERA_DTYPE), ("spp", "i4"),
-    ("scheme", "i4"), ("spacing", "f4"), ("od_cut", "f4"), ("merge", "i4"),
-    ("vox_dx", "f4"), ("vox_dz", "f4"), ("max_points", "i4"), ("max_len", "f4"),
-    ("light_kind", "i4"), ("lx", "f4"), ("ly", "f4"), ("lz", "f4"), ("alpha", "f4"),
-    ("seed_lo", "u4"), ("seed_hi", "u4"), ("jitter", "i4"),
-    ("bx0", "f4"), ("by0", "f4"), ("bx1", "f4"), ("by1", "f4"),
-])
 
 
 @dataclass(frozen=True)
@@ -156,7 +147,7 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
 def eye_params(cfg: dict, cam: Camera, sch: Scheme, max_points: int) -> np.ndarray:
     """The kernel's ``EyeParams``: camera, sampling scheme, transmittance cut, voxels, light."""
     rc = cfg["render"]
-    e = np.zeros(1, EYE_DTYPE)
+    e = np.zeros(1, S.EYE_DTYPE)
     e["cam"], e["spp"] = cam.struct(), cam.spp
     e["scheme"] = 0 if sch.kind == "equal" else 1
     e["spacing"] = sch.spacing if sch.kind == "equal" else 1.0
@@ -167,7 +158,7 @@ def eye_params(cfg: dict, cam: Camera, sch: Scheme, max_points: int) -> np.ndarr
     e["max_points"] = max_points
     e["max_len"] = 1e5
     e["alpha"] = rc["roughness"]
-    e["seed_lo"], e["seed_hi"] = P_.split_seed(rc["seed"])
+    e["seed_lo"], e["seed_hi"] = S.split_seed(rc["seed"])
     e["jitter"] = 1 if cam.spp > 1 else 0
     light_fields(e, Light.from_config(cfg))
     return e
@@ -180,7 +171,7 @@ class _EyeKernel:
     def __init__(self, dev: Device, vol: Volume, vbuf: VolumeBuffers, e: np.ndarray, rates, cam: Camera):
         import pyopencl as cl
         import pyopencl.array as cla
-        p = P_.new_params()
+        p = S.new_params()
         volume_params(p, vol)
         mf = cl.mem_flags
         ctx, self.q = dev.ctx, dev.queue
@@ -197,7 +188,7 @@ class _EyeKernel:
 
     def _launch(self, mode: int, outputs: list) -> None:
         q, knl = self.q, self.knl
-        knl(q, (P_.global_size(self.nrays),), P_.local(knl, q), *self.common, np.int32(mode),
+        knl(q, *launch(knl, q, self.nrays), *self.common, np.int32(mode),
             self.npts.data, self.npcs.data, self.npts.data, self.npcs.data, *outputs)
 
     def count(self) -> tuple[np.ndarray, int, int]:

@@ -25,7 +25,7 @@ sorted keys.
 Device side, kernels ``#include "grid.h"`` and loop with
 ``GRID_FOR_EACH_ROW(gp, cell_start, x, R, begin, end) { ... } GRID_END_ROWS``
 over contiguous photon ranges (one per (iy, iz) row of cells); the struct
-``GridParams`` there is mirrored by :data:`GRID_PARAMS_DTYPE`.
+``GridParams`` there is mirrored by :data:`S.GRID_PARAMS_DTYPE`.
 
 Buffers are kept in a :class:`GridBuffers` cache and reused from pass to pass
 while they are large enough.  A :class:`Grid` refers to those buffers, so it is
@@ -39,19 +39,11 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl.cltypes as cltypes
 
-from .device import Device
+from . import structs as S
+from .device import Device, launch
 
 DEFAULT_MAX_CELLS = 2 ** 23
 
-#: numpy mirror of ``GridParams`` in kernels/grid.h (4-byte fields, 48 bytes)
-GRID_PARAMS_DTYPE = np.dtype([
-    ("lo_x", np.float32), ("lo_y", np.float32), ("lo_z", np.float32),
-    ("h", np.float32), ("inv_h", np.float32),
-    ("nx", np.int32), ("ny", np.int32), ("nz", np.int32),
-    ("ncells", np.uint32),
-    ("hz", np.float32), ("inv_hz", np.float32), ("nclass", np.uint32),
-])
-assert GRID_PARAMS_DTYPE.itemsize == 48
 
 _WG = 128  # global sizes are rounded up to this (PoCL picks a work-group size dividing it)
 
@@ -59,15 +51,6 @@ _WG = 128  # global sizes are rounded up to this (PoCL picks a work-group size d
 def _cl():
     import pyopencl as cl
     return cl
-
-
-def _gsize(n: int) -> tuple[int]:
-    return (max(1, -(-int(n) // _WG)) * _WG,)
-
-
-def _local(kernel, q) -> tuple[int]:
-    from .params import local
-    return local(kernel, q, _WG)
 
 
 # --------------------------------------------------------------------------- params
@@ -78,7 +61,7 @@ def _cells_for(extent: np.ndarray, h: float) -> np.ndarray:
 
 def grid_params(lo, hi, h: float, max_cells: int = DEFAULT_MAX_CELLS, hz: float | None = None,
                 nclass: int = 1) -> np.void:
-    """``GridParams`` (a numpy record of :data:`GRID_PARAMS_DTYPE`) for the box
+    """``GridParams`` (a numpy record of :data:`S.GRID_PARAMS_DTYPE`) for the box
     ``[lo, hi)`` and cell edge ``h`` (µm; cells ``hz`` deep, default ``h``: cubic), ``h``
     and ``hz`` grown by one factor as needed so that ``nx*ny*nz <= max_cells``.  The
     effective sizes are ``params["h"]`` and ``params["hz"]``.  With ``nclass > 1`` the grid
@@ -113,7 +96,7 @@ def grid_params(lo, hi, h: float, max_cells: int = DEFAULT_MAX_CELLS, hz: float 
         while int(np.prod(n)) * nclass > max_cells:
             h *= 1.01
             n = cells(h)
-    rec = np.zeros((), dtype=GRID_PARAMS_DTYPE)
+    rec = np.zeros((), dtype=S.GRID_PARAMS_DTYPE)
     rec["lo_x"], rec["lo_y"], rec["lo_z"] = lo.astype(np.float32)
     h32 = np.float32(h)
     hz32 = h32 if hz is None else np.float32(h * aspect)
@@ -346,32 +329,32 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
         rank = bufs.get("rank", n, np.uint32)
         cell_start.fill(0)
         stage("clear")
-        k["grid_count"](q, _gsize(n), _local(k["grid_count"], q), params, un, kpos, cell_start.data, rank.data)
+        k["grid_count"](q, *launch(k["grid_count"], q, n, _WG), params, un, kpos, cell_start.data, rank.data)
         stage("count")
         # in place: counts -> exclusive prefix sums, cell_start[ncells] == n
         _scan(dev)(cell_start, allocator=bufs.pool)
         stage("scan")
         perm = bufs.get("idx", n, np.int32)
-        k["grid_scatter"](q, _gsize(n), _local(k["grid_scatter"], q), params, un, kpos,
+        k["grid_scatter"](q, *launch(k["grid_scatter"], q, n, _WG), params, un, kpos,
                           cell_start.data, rank.data, perm.data)
         stage("scatter")
-        k["grid_permute"](q, _gsize(n), _local(k["grid_permute"], q), un, perm.data, pos, dirb,
+        k["grid_permute"](q, *launch(k["grid_permute"], q, n, _WG), un, perm.data, pos, dirb,
                           spos.data, sdir.data)
         stage("permute")
         sorted_idx = perm
     elif method == "radix":
         keys = bufs.get("keys", n, np.uint32)
         idx = bufs.get("idx", n, np.int32)
-        k["grid_keys"](q, _gsize(n), _local(k["grid_keys"], q), params, un, kpos, keys.data, idx.data)
+        k["grid_keys"](q, *launch(k["grid_keys"], q, n, _WG), params, un, kpos, keys.data, idx.data)
         stage("keys")
         key_bits = max(1, (ncells - 1).bit_length())
         (skeys, sidx), _ = _radix(dev)(keys, idx, key_bits=key_bits, queue=q,
                                        allocator=bufs.pool)
         stage("sort")
-        k["grid_permute"](q, _gsize(n), _local(k["grid_permute"], q), un, sidx.data, pos, dirb,
+        k["grid_permute"](q, *launch(k["grid_permute"], q, n, _WG), un, sidx.data, pos, dirb,
                           spos.data, sdir.data)
         stage("permute")
-        k["grid_starts_from_keys"](q, _gsize(n + 1), _local(k["grid_starts_from_keys"], q), un, np.uint32(ncells),
+        k["grid_starts_from_keys"](q, *launch(k["grid_starts_from_keys"], q, n + 1, _WG), un, np.uint32(ncells),
                                    skeys.data, cell_start.data)
         stage("starts")
         sorted_idx = sidx
@@ -381,7 +364,7 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     if extra is not None and extra_stride > 0:
         sextra = bufs.get("sextra", max(n, 1) * extra_stride, np.float32)
         if n:
-            k["grid_permute_extra"](q, _gsize(n), _local(k["grid_permute_extra"], q), un, np.uint32(extra_stride), sorted_idx.data,
+            k["grid_permute_extra"](q, *launch(k["grid_permute_extra"], q, n, _WG), un, np.uint32(extra_stride), sorted_idx.data,
                                     extra, sextra.data)
     return Grid(params=params, n=n, cell_start=cell_start, spos_w=spos, sdir_b=sdir,
                 method=method, sextra=sextra)
@@ -427,7 +410,7 @@ def _gather(dev: Device, which: str, head_args: list, queries, radii, nb: int,
         ncand = cla.empty(q, m, np.uint32)
         args.append(ncand.data)
     knl = _kernels(dev, nb)[which]
-    knl(q, _gsize(m), _local(knl, q), *args)
+    knl(q, *launch(knl, q, m, _WG), *args)
     res = GatherResult(count.get(), wsum.get(), band.get().reshape(m, nb),
                        ncand.get() if with_cand else None)
     return res

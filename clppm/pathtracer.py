@@ -34,13 +34,13 @@ import numpy as np
 
 from . import checkpoint as ckpt
 from . import colorimetry, driver, film, paths, progressive, volume
-from . import params as P_
+from . import structs as S
 from .bands import Bands, band_width
-from .camera import CAMERA_DTYPE, from_config
+from .camera import from_config
 from .light import Light
 from . import config as C
 from .config import ConfigError
-from .device import Device, check_alloc, kernel_defines, open_device
+from .device import Device, check_alloc, kernel_defines, launch, open_device
 
 NBIN = 8
 BIN_LABELS = ["1", "2", "3", "4", "5-8", "9-16", "17-64", "65+"]
@@ -55,15 +55,6 @@ MNEE_STATS = ["solves", "solved", "newton_iterations", "continued", "vertex_abov
 MNEE_SEEDS = 8
 FLAT_REF = "configs/forearm_flat.toml"
 
-PT_DTYPE = np.dtype([
-    ("cam", CAMERA_DTYPE), ("nspp", "i4"), ("pass_", "u4"), ("band0", "u4"), ("pix_offset", "u4"), ("count", "u4"),
-    ("seed_lo", "u4"), ("seed_hi", "u4"),
-    ("lx", "f4"), ("ly", "f4"), ("lz", "f4"),
-    ("alpha", "f4"), ("specular", "i4"),
-    ("rr_threshold", "f4"), ("rr_m", "f4"), ("max_vertices", "i4"),
-    ("nee_od", "f4"), ("nee_q_floor", "f4"), ("mnee_seeds", "i4"),
-])
-assert PT_DTYPE.itemsize == CAMERA_DTYPE.itemsize + 4 * (len(PT_DTYPE.names) - 1)
 
 RR_THRESHOLD = 1e-3      # roulette below this fraction of the weight after entering the skin
 RR_M = 10.0
@@ -73,6 +64,7 @@ MAX_VERTICES = 1_000_000
 # vertices, whose light is attenuated by at least exp(-od), skip the connection solve.
 NEE_OD = 6.0
 NEE_Q_FLOOR = 1e-6
+LAUNCH_MIN = 64          # pixels per launch at least (a work group)
 LAUNCH_SECONDS = 1.0     # target duration of one kernel launch (PoCL: keep the host responsive)
 
 
@@ -150,15 +142,15 @@ class PathTracer:
         q, mf = dev.queue, cl.mem_flags
         self.kernel = cl.Kernel(build(dev, vol), "pt_pass")
         self.vbuf = volume.upload_volume(dev, vol)
-        p = P_.new_params()
+        p = S.new_params()
         volume.volume_params(p, vol)
         self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=p)
         self.chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
-        e = np.zeros(1, PT_DTYPE)
+        e = np.zeros(1, S.PT_DTYPE)
         e["cam"] = cam.struct()
         rc, self.light = cfg["render"], Light.from_config(cfg)
         e["nspp"] = self.nspp
-        e["seed_lo"], e["seed_hi"] = P_.split_seed(rc["seed"])
+        e["seed_lo"], e["seed_hi"] = S.split_seed(rc["seed"])
         e["lx"], e["ly"], e["lz"] = self.light.position
         e["alpha"] = rc["roughness"]
         e["specular"] = 1 if rc["specular"] else 0
@@ -166,7 +158,7 @@ class PathTracer:
         e["nee_od"], e["nee_q_floor"] = NEE_OD, NEE_Q_FLOOR
         e["mnee_seeds"] = MNEE_SEEDS
         self.e = e
-        self.ebuf = cl.Buffer(dev.ctx, mf.READ_ONLY, PT_DTYPE.itemsize)
+        self.ebuf = cl.Buffer(dev.ctx, mf.READ_ONLY, S.PT_DTYPE.itemsize)
         nb = vol.nb
         self.pix_sum = cla.zeros(q, self.npix * nb, np.float64)
         self.pix_sq = cla.zeros(q, self.npix * nb, np.float64)
@@ -177,7 +169,7 @@ class PathTracer:
         sm = vol.smooth if vol.smooth is not None else np.zeros(1, np.float32)
         self.smooth = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
                                 hostbuf=np.ascontiguousarray(sm, np.float32).reshape(-1))
-        self.launch = min(self.npix, max(P_.WG, 16384 // self.nspp))   # ~16k paths, then timed
+        self.launch = min(self.npix, max(LAUNCH_MIN, 16384 // self.nspp))   # ~16k paths, then timed
         self.bands = Bands.from_config(cfg, hero=1)
         self.spectrum = self.bands.spectrum
         self.offsets = band_offsets(self.npix, nb)
@@ -195,7 +187,7 @@ class PathTracer:
             self.e["pix_offset"], self.e["count"] = done, n
             cl.enqueue_copy(q, self.ebuf, self.e)
             t0 = time.perf_counter()
-            self.kernel(q, (P_.global_size(n),), P_.local(self.kernel, q), self.pbuf, *self.vbuf.args(), self.ebuf,
+            self.kernel(q, *launch(self.kernel, q, n), self.pbuf, *self.vbuf.args(), self.ebuf,
                         self.chain, self.pix_sum.data, self.pix_sq.data, self.pix_stats.data,
                         self.pix_bins.data, self.smooth, self.pix_mnee.data)
             q.finish()
@@ -204,7 +196,7 @@ class PathTracer:
             launches += 1
             if n == self.launch:
                 grow = LAUNCH_SECONDS / max(dt, 1e-3)
-                self.launch = int(min(max(self.launch * min(grow, 4.0), P_.WG), self.npix))
+                self.launch = int(min(max(self.launch * min(grow, 4.0), LAUNCH_MIN), self.npix))
         return launches
 
     def state_arrays(self) -> dict:
@@ -420,7 +412,7 @@ class _Probe:
         self.dev, self.prg = dev, build(dev, vol)
         self.real = np.float64 if fp64(dev) else np.float32
         self.vb = volume.upload_volume(dev, vol)
-        p = P_.new_params()
+        p = S.new_params()
         volume.volume_params(p, vol)
         self.pbuf, self.chain = self.buffer(p), self.buffer(chain_tables(vol))
         v = np.ascontiguousarray(verts, np.float32)
@@ -443,7 +435,7 @@ class _Probe:
         knl = cl.Kernel(self.prg, name)
         head = (self.pbuf, *self.vb.args(), self.chain)
         rest = ((args[0], self.light) + args[1:]) if smooth_first else ((self.light,) + args)
-        knl(q, (P_.global_size(self.n),), P_.local(knl, q), *head, *rest)
+        knl(q, *launch(knl, q, self.n), *head, *rest)
         cl.enqueue_copy(q, self.out, self.obuf)
         cl.enqueue_copy(q, self.pts, self.qbuf)
         q.finish()

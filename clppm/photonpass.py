@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import params as P_
+from . import structs as S
 from .bands import Bands
 from .light import Light
-from .device import Device, kernel_defines
+from .device import Device, kernel_defines, launch
 from .volume import Volume, VolumeBuffers, upload_volume, volume_params
 
 W0 = 2 ** 38
@@ -150,13 +150,13 @@ class PhotonPass:
         with np.errstate(divide="ignore"):
             logmu = np.log(np.maximum(vol.mut, 1e-30)).astype(np.float32).ravel()
         self.logmu = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(logmu))
-        p = P_.new_params()
+        p = S.new_params()
         volume_params(p, vol)
         self.light = light or Light.from_config(cfg)
         self.power_fraction = source_params(p, self.light, vol)
         s = cfg["render"]["seed"] if seed is None else seed
         self.seed = int(s)
-        p["seed_lo"], p["seed_hi"] = P_.split_seed(s)
+        p["seed_lo"], p["seed_hi"] = S.split_seed(s)
         p["fixed_band"] = self.band
         sd = cfg["render"]["store_depth_um"]
         if sd is not None:
@@ -172,7 +172,7 @@ class PhotonPass:
         self.dir_b = cl.Buffer(dev.ctx, mf.READ_WRITE, 16 * cap)
         self.extra = cl.Buffer(dev.ctx, mf.READ_WRITE, 4 * max(cap * (self.hero - 1), 1))
         self.tallies = Tallies(vol.nb, vol.nl)
-        self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY, P_.PARAMS_DTYPE.itemsize)
+        self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY, S.PARAMS_DTYPE.itemsize)
         self.truncated = False
         self.store_imp = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=storage_importance(vol))
 
@@ -201,7 +201,7 @@ class PhotonPass:
             self.p["qmc_s0"], self.p["qmc_s1"], self.p["qmc_s2"] = qmc_shift(self.seed, pass_index)
         self.p["count"] = n
         cl.enqueue_copy(q, self.pbuf, self.p)
-        self.kernel(q, (P_.global_size(n),), P_.local(self.kernel, q), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
+        self.kernel(q, *launch(self.kernel, q, n), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
                     self.band_spi, self.logmu, self.pos_w, self.dir_b, self.extra, self.count_buf, self.tally_buf)
 
     def _flush(self, emitted: int, into: Tallies | None = None) -> np.ndarray:

@@ -24,7 +24,7 @@ import numpy as np
 
 from . import eyepass, hashgrid, photonpass, volume
 from .bands import Bands
-from .device import Device, check_alloc, kernel_defines
+from .device import Device, check_alloc, kernel_defines, launch
 
 #: pass index of the calibration photon pass (its photons set R0 and are then dropped)
 CAL_PASS = 0xFFFFFFFF
@@ -189,8 +189,8 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
 
 
 def _local(sc, name: str, q) -> tuple[int]:
-    from .params import local
-    return local(sc.kernels[name], q, 64)
+    from .device import local_size
+    return (local_size(sc.kernels[name], q.device, 64),)
 
 
 def _round(n: int, wg: int = 64) -> int:
@@ -227,7 +227,7 @@ def photon_keys(sc: Scene, n: int):
     import pyopencl.cltypes as cltypes
     k = sc.gbufs.get("kpos", max(n, 1), cltypes.float4)
     if n:
-        sc.kernels["photon_keys"](sc.dev.queue, (_round(n),), _local(sc, "photon_keys", sc.dev.queue), sc.pp.pbuf, sc.vbuf.iface,
+        sc.kernels["photon_keys"](sc.dev.queue, *launch(sc.kernels["photon_keys"], sc.dev.queue, n), sc.pp.pbuf, sc.vbuf.iface,
                                   sc.vbuf.heights, sc.vlay, sc.pp.pos_w, sc.pp.dir_b,
                                   np.uint32(n), k.data)
     return k
@@ -269,7 +269,7 @@ def photon_slabs(sc: Scene, grid: hashgrid.Grid):
     import pyopencl.cltypes as cltypes
     sl = sc.gbufs.get("sslab", max(grid.n, 1), cltypes.float2)
     if grid.n:
-        sc.kernels["photon_slabs"](sc.dev.queue, (_round(grid.n),), _local(sc, "photon_slabs", sc.dev.queue), sc.pp.pbuf, sc.vbuf.iface,
+        sc.kernels["photon_slabs"](sc.dev.queue, *launch(sc.kernels["photon_slabs"], sc.dev.queue, grid.n), sc.pp.pbuf, sc.vbuf.iface,
                                    sc.vbuf.heights, grid.spos_w.data, grid.sdir_b.data,
                                    np.uint32(grid.n), sl.data)
     return sl
@@ -302,7 +302,7 @@ def calibrate(sc: Scene) -> Calibration:
     rmax = 4.0 * r_guess
     R = cla.zeros(q, npts, np.float32)
     grid = build_grid(sc, n, r_guess, rmax)
-    sc.kernels["init_radius"](q, (_round(npts),), _local(sc, "init_radius", q), grid.params, grid.cell_start.data,
+    sc.kernels["init_radius"](q, *launch(sc.kernels["init_radius"], q, npts), grid.params, grid.cell_start.data,
                               sc.eye.pt_pos.data, R.data, np.uint32(npts), np.float32(K),
                               np.float32(r_guess), np.float32(rmax), np.int32(4))
     stride = max(1, npts // 20000)
@@ -312,7 +312,7 @@ def calibrate(sc: Scene) -> Calibration:
     for _ in range(3):
         radii = R.get()
         grid = build_grid(sc, n, float(np.median(radii)), float(radii.max()))
-        sc.kernels["count_within"](q, (_round(ns),), _local(sc, "count_within", q), grid.params, grid.cell_start.data,
+        sc.kernels["count_within"](q, *launch(sc.kernels["count_within"], q, ns), grid.params, grid.cell_start.data,
                                    grid.spos_w.data, grid.sdir_b.data, sc.eye.pt_pos.data,
                                    sc.eye.pt_dir.data, R.data, sc.layer_z, np.uint32(npts),
                                    np.uint32(stride), cnt.data)
@@ -382,7 +382,7 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
     if sc.beam:
         gather_beam(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
     else:
-        sc.kernels["gather"](q, (_round(sc.npix),), _local(sc, "gather", q), grid.params, grid.cell_start.data,
+        sc.kernels["gather"](q, *launch(sc.kernels["gather"], q, sc.npix), grid.params, grid.cell_start.data,
                              grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
                              e.ray_start.data, e.pt_pos.data, e.pt_dir.data, e.pt_piece.data,
                              e.pieces.data, e.pt_slab.data, sc.layer_z, *tail)

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import skin
-from .params import LATERAL
+from .structs import LATERAL
 from .config import ConfigError, wavelengths
 
 BIG = 1e30

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from clppm import hashgrid as hg
+from clppm import structs
 
 NB = 8
 METHODS = ["counting", "radix"]
@@ -208,7 +209,7 @@ def test_flat_cell_params():
 def test_grid_params_and_cell_size():
     p = hg.grid_params([0, 0, 0], [100, 50, 10], 4.0)
     assert (p["nx"], p["ny"], p["nz"]) == (25, 13, 3) and p["ncells"] == 25 * 13 * 3
-    assert p.dtype == hg.GRID_PARAMS_DTYPE and p.dtype.itemsize == 48
+    assert p.dtype == structs.GRID_PARAMS_DTYPE and p.dtype.itemsize == 48
     capped = hg.grid_params([0, 0, 0], [100, 100, 100], 0.1, max_cells=10000)
     assert capped["ncells"] <= 10000 and capped["h"] > 4.0
     assert hg.choose_cell_size([2.0, 4.0, 6.0], [0, 0, 0], [100, 100, 100]) == pytest.approx(2.0)

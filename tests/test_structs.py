@@ -69,12 +69,12 @@ def _key(name: str) -> str:
 
 
 def _structs():
-    from clppm import eyepass, hashgrid, params, pathtracer
+    from clppm import structs
     return [
-        ("common.h", "Params", params.PARAMS_DTYPE),
-        ("grid.h", "GridParams", hashgrid.GRID_PARAMS_DTYPE),
-        ("eye.cl", "EyeParams", eyepass.EYE_DTYPE),
-        ("pt.cl", "PtParams", pathtracer.PT_DTYPE),
+        ("common.h", "Params", structs.PARAMS_DTYPE),
+        ("grid.h", "GridParams", structs.GRID_PARAMS_DTYPE),
+        ("eye.cl", "EyeParams", structs.EYE_DTYPE),
+        ("pt.cl", "PtParams", structs.PT_DTYPE),
     ]
 
 
@@ -99,6 +99,6 @@ def test_parser_catches_a_swapped_pair(tmp_path):
     """The check must fail for two swapped fields of one type (which a size check passes)."""
     src = (KERNELS / "grid.h").read_text().replace("float lo_x, lo_y, lo_z;", "float lo_y, lo_x, lo_z;")
     (tmp_path / "grid.h").write_text(src)
-    from clppm import hashgrid
+    from clppm import structs
     c = c_struct_fields("grid.h", "GridParams", tmp_path)
-    assert [n for n, _ in c] != list(hashgrid.GRID_PARAMS_DTYPE.names)
+    assert [n for n, _ in c] != list(structs.GRID_PARAMS_DTYPE.names)
