@@ -294,7 +294,6 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     ``pos_w`` and ``dir_b``; with ``nclass > 1`` its ``.w`` is the photon's class (a grid
     per class, :func:`grid_params`).
     """
-    import pyopencl.array as cla
     n = int(n)
     if n < 0 or n > 2 ** 32 - 2:
         raise ValueError(f"photon count out of range: {n}")
@@ -311,53 +310,14 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     spos = bufs.get("spos_w", n, f4)
     sdir = bufs.get("sdir_b", n, f4)
     un = np.uint32(n)
-    t_last = [0.0]
-
-    def stage(name):
-        if timings is not None:
-            import time
-            q.finish()
-            t = time.perf_counter()
-            if name is not None:
-                timings[name] = timings.get(name, 0.0) + t - t_last[0]
-            t_last[0] = t
-
-    stage(None)
+    stage = _Stages(q, timings)
     if n == 0:
         cell_start.fill(0)
+        sorted_idx = None
     elif method == "counting":
-        rank = bufs.get("rank", n, np.uint32)
-        cell_start.fill(0)
-        stage("clear")
-        k["grid_count"](q, *launch(k["grid_count"], q, n, _WG), params, un, kpos, cell_start.data, rank.data)
-        stage("count")
-        # in place: counts -> exclusive prefix sums, cell_start[ncells] == n
-        _scan(dev)(cell_start, allocator=bufs.pool)
-        stage("scan")
-        perm = bufs.get("idx", n, np.int32)
-        k["grid_scatter"](q, *launch(k["grid_scatter"], q, n, _WG), params, un, kpos,
-                          cell_start.data, rank.data, perm.data)
-        stage("scatter")
-        k["grid_permute"](q, *launch(k["grid_permute"], q, n, _WG), un, perm.data, pos, dirb,
-                          spos.data, sdir.data)
-        stage("permute")
-        sorted_idx = perm
+        sorted_idx = _counting_sort(dev, k, bufs, params, un, kpos, pos, dirb, cell_start, spos, sdir, stage)
     elif method == "radix":
-        keys = bufs.get("keys", n, np.uint32)
-        idx = bufs.get("idx", n, np.int32)
-        k["grid_keys"](q, *launch(k["grid_keys"], q, n, _WG), params, un, kpos, keys.data, idx.data)
-        stage("keys")
-        key_bits = max(1, (ncells - 1).bit_length())
-        (skeys, sidx), _ = _radix(dev)(keys, idx, key_bits=key_bits, queue=q,
-                                       allocator=bufs.pool)
-        stage("sort")
-        k["grid_permute"](q, *launch(k["grid_permute"], q, n, _WG), un, sidx.data, pos, dirb,
-                          spos.data, sdir.data)
-        stage("permute")
-        k["grid_starts_from_keys"](q, *launch(k["grid_starts_from_keys"], q, n + 1, _WG), un, np.uint32(ncells),
-                                   skeys.data, cell_start.data)
-        stage("starts")
-        sorted_idx = sidx
+        sorted_idx = _radix_sort(dev, k, bufs, params, un, ncells, kpos, pos, dirb, cell_start, spos, sdir, stage)
     else:
         raise ValueError(f"unknown grid build method {method!r} (counting, radix)")
     sextra = None
@@ -368,6 +328,66 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
                                     extra, sextra.data)
     return Grid(params=params, n=n, cell_start=cell_start, spos_w=spos, sdir_b=sdir,
                 method=method, sextra=sextra)
+
+
+class _Stages:
+    """With a ``timings`` dict: drain the queue after each stage and add its seconds (bench only:
+    it serialises); without one, nothing."""
+
+    def __init__(self, q, timings: dict | None):
+        self.q, self.timings = q, timings
+        self.t = self._now() if timings is not None else 0.0
+
+    def _now(self) -> float:
+        import time
+        self.q.finish()
+        return time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        if self.timings is not None:
+            t = self._now()
+            self.timings[name] = self.timings.get(name, 0.0) + t - self.t
+            self.t = t
+
+
+def _counting_sort(dev, k, bufs, params, un, kpos, pos, dirb, cell_start, spos, sdir, stage):
+    """Histogram with atomic_inc, exclusive scan, scatter, permute; returns the sorted order."""
+    q, n = dev.queue, int(un)
+    rank = bufs.get("rank", n, np.uint32)
+    cell_start.fill(0)
+    stage("clear")
+    k["grid_count"](q, *launch(k["grid_count"], q, n, _WG), params, un, kpos, cell_start.data, rank.data)
+    stage("count")
+    # in place: counts -> exclusive prefix sums, cell_start[ncells] == n
+    _scan(dev)(cell_start, allocator=bufs.pool)
+    stage("scan")
+    perm = bufs.get("idx", n, np.int32)
+    k["grid_scatter"](q, *launch(k["grid_scatter"], q, n, _WG), params, un, kpos,
+                      cell_start.data, rank.data, perm.data)
+    stage("scatter")
+    k["grid_permute"](q, *launch(k["grid_permute"], q, n, _WG), un, perm.data, pos, dirb,
+                      spos.data, sdir.data)
+    stage("permute")
+    return perm
+
+
+def _radix_sort(dev, k, bufs, params, un, ncells, kpos, pos, dirb, cell_start, spos, sdir, stage):
+    """pyopencl's RadixSort of (cell, index), permute, cell starts; returns the sorted order."""
+    q, n = dev.queue, int(un)
+    keys = bufs.get("keys", n, np.uint32)
+    idx = bufs.get("idx", n, np.int32)
+    k["grid_keys"](q, *launch(k["grid_keys"], q, n, _WG), params, un, kpos, keys.data, idx.data)
+    stage("keys")
+    key_bits = max(1, (ncells - 1).bit_length())
+    (skeys, sidx), _ = _radix(dev)(keys, idx, key_bits=key_bits, queue=q, allocator=bufs.pool)
+    stage("sort")
+    k["grid_permute"](q, *launch(k["grid_permute"], q, n, _WG), un, sidx.data, pos, dirb,
+                      spos.data, sdir.data)
+    stage("permute")
+    k["grid_starts_from_keys"](q, *launch(k["grid_starts_from_keys"], q, n + 1, _WG), un, np.uint32(ncells),
+                               skeys.data, cell_start.data)
+    stage("starts")
+    return sidx
 
 
 # --------------------------------------------------------------------------- gathers (tests, bench)
