@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import bands_per_path, wavelengths
+from .config import bands_per_path, render_settings, wavelengths
 
 
 def source_spectrum(cfg: dict, wl: np.ndarray) -> np.ndarray:
@@ -81,5 +81,5 @@ class Bands:
         spectrum = source_spectrum(cfg, wl)
         fixed = fixed_band(cfg, wl)
         h = bands_per_path(cfg) if hero is None else int(hero)
-        return cls(wl=wl, spectrum=spectrum, pdf=hero_pdf(wl, spectrum, sampling or cfg["render"]["band_sampling"]),
+        return cls(wl=wl, spectrum=spectrum, pdf=hero_pdf(wl, spectrum, sampling or render_settings(cfg).band_sampling),
                    hero=h if fixed < 0 else 1, fixed=fixed)

@@ -19,8 +19,8 @@ import json
 import os
 import re
 import tomllib
-from dataclasses import dataclass
-from typing import Any, Callable
+from dataclasses import dataclass, make_dataclass
+from typing import Any
 
 INF = math.inf
 _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
@@ -200,6 +200,30 @@ LAYER_SCHEMA: dict[str, F] = {
 NOT_PICTURE = tuple(k for k, f in SCHEMA["render"].items() if f.picture == "none")
 #: [render] keys that change only the finishing (the PNG), not the spectral sums.
 FINISHING = tuple(k for k, f in SCHEMA["render"].items() if f.picture == "finish")
+
+#: the Python type of a value of each field kind (the typed views' annotations)
+_PY_TYPE = {"float": float, "int": int, "bool": bool, "str": str, "choice": str, "path": str,
+            "vec2": list, "vec3": list, "ivec2": list}
+
+
+def _view(section: str, name: str, doc: str) -> type:
+    """A frozen dataclass with one field per key of ``SCHEMA[section]``, typed from the schema,
+    so a view cannot drift from the keys it views."""
+    fields = [(k, _PY_TYPE[f.kind] | None if f.none_ok else _PY_TYPE[f.kind])
+              for k, f in SCHEMA[section].items()]
+    cls = make_dataclass(name, fields, frozen=True)
+    cls.__doc__ = doc
+    return cls
+
+
+RenderSettings = _view("render", "RenderSettings",
+                       "The validated ``[render]`` table as a typed, read-only view: ``rs.passes``.")
+
+
+def render_settings(cfg: dict) -> "RenderSettings":
+    """The ``[render]`` table of a validated config as :class:`RenderSettings`."""
+    return RenderSettings(**cfg["render"])
+
 
 MAX_LAYERS = 16
 

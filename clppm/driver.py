@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Callable, Protocol
 
 from . import film
-from .config import ConfigError
+from .config import ConfigError, RenderSettings
 from .device import DeviceError
 
 
@@ -54,10 +54,10 @@ class Cadence:
     progress: bool = False
 
     @classmethod
-    def of(cls, rc: dict, out: str | None, checkpoint: str | None, **kw) -> "Cadence":
-        """From the config's ``[render]`` table and the call's options."""
-        return cls(out=out, checkpoint=checkpoint, checkpoint_every=int(rc["checkpoint_every"]),
-                   preview_every=int(rc["preview_every"]), **kw)
+    def of(cls, rc: RenderSettings, out: str | None, checkpoint: str | None, **kw) -> "Cadence":
+        """From the render settings (``config.render_settings``) and the call's options."""
+        return cls(out=out, checkpoint=checkpoint, checkpoint_every=int(rc.checkpoint_every),
+                   preview_every=int(rc.preview_every), **kw)
 
 
 class Interrupt:

@@ -46,7 +46,7 @@ from distributed import WorkerPlugin
 from . import checkpoint as ckpt
 from . import driver, film, paths, photonpass, ppm, progressive
 from . import config as C
-from .config import ConfigError
+from .config import ConfigError, render_settings
 from .device import DeviceError
 
 CONNECT_TIMEOUT = 5.0        # s: an unreachable scheduler fails this fast
@@ -181,7 +181,7 @@ def chunk_task(cfg: dict, key: str, cal: ppm.Calibration, cal_key: str, passes: 
     with plug.lock:
         t0 = time.perf_counter()
         ld = plug.scene(cfg, key, source).calibrated(cal, cal_key)
-        chunk = passes[0] // int(cfg["render"]["chunk_passes"])
+        chunk = passes[0] // int(render_settings(cfg).chunk_passes)
         res = ppm.run_chunk(ld.sc, cal, ld.points, chunk, passes, ld.acc, start)
         return ChunkDone(result=res, worker=get_worker().address, wall=time.perf_counter() - t0)
 
@@ -206,8 +206,9 @@ def _value(x):
 
 # ----------------------------------------------------------------------------------- client side
 def check_distributable(cfg: dict, how: str) -> None:
-    if cfg["render"]["radius"] != "global":
-        raise ConfigError(how, "render.radius", cfg["render"]["radius"],
+    radius = render_settings(cfg).radius
+    if radius != "global":
+        raise ConfigError(how, "render.radius", radius,
                           "the per-point radius makes every pass depend on all earlier ones; "
                           "a distributed render needs render.radius = \"global\" (--radius global)")
 
@@ -437,7 +438,7 @@ def render_distributed(cfg: dict, *, scheduler: str | None = None, devices=None,
         workers = check_workers(c, f"scheduler {scheduler}" if scheduler else "the cluster")
         job = _Job.start(c, cfg, source, resume, t_start, workers)
         run = DaskRun(job, job.reduction(resume), ckpath, on_chunk, where, workers)
-        cad = driver.Cadence.of(cfg["render"], out, ckpath, stop_after=stop_after, progress=progress)
+        cad = driver.Cadence.of(render_settings(cfg), out, ckpath, stop_after=stop_after, progress=progress)
         with c.as_current():
             return driver.drive(run, cad, t_start, resumed=bool(resume))
 
@@ -476,11 +477,11 @@ class _Job:
 
     @property
     def n_passes(self) -> int:
-        return int(self.cfg["render"]["passes"])
+        return int(render_settings(self.cfg).passes)
 
     @property
     def k(self) -> int:
-        return int(self.cfg["render"]["chunk_passes"])
+        return int(render_settings(self.cfg).chunk_passes)
 
     def reduction(self, resume: str | None) -> Reduction:
         """The calibration (new, or the checkpoint's) on every worker, and the sums so far."""

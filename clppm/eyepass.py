@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import structs as S
+from .config import render_settings
 from .camera import Camera, from_config
 from .light import Light
 from .device import Device, DeviceError, check_alloc, kernel_defines, launch
@@ -117,13 +118,13 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
     The kernel runs twice: it counts each ray's sample points and pieces, the counts become
     offsets by a prefix sum, and it runs again to store them there."""
     import pyopencl.cltypes as cltypes
-    rc = cfg["render"]
-    sch = sch or scheme(rc["method"], rc["spacing_um"])
+    rc = render_settings(cfg)
+    sch = sch or scheme(rc.method, rc.spacing_um)
     cam = from_config(cfg["camera"])
     rates = layer_rates(vol, sch.stat) if sch.kind == "extinction" else np.zeros(vol.nl, np.float32)
     eye = _EyeKernel(dev, vol, vbuf, eye_params(cfg, cam, sch, max_points), rates, cam)
     if geometry is None:
-        geometry = rc["estimator"] == "beam"
+        geometry = rc.estimator == "beam"
     counts, npoints, npieces = eye.count()
     if npoints >= 2**32 or npieces >= 2**32:
         raise DeviceError(f"{npoints} sample points / {npieces} path pieces exceed 32-bit indices; "
@@ -146,19 +147,19 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
 
 def eye_params(cfg: dict, cam: Camera, sch: Scheme, max_points: int) -> np.ndarray:
     """The kernel's ``EyeParams``: camera, sampling scheme, transmittance cut, voxels, light."""
-    rc = cfg["render"]
+    rc = render_settings(cfg)
     e = np.zeros(1, S.EYE_DTYPE)
     e["cam"], e["spp"] = cam.struct(), cam.spp
     e["scheme"] = 0 if sch.kind == "equal" else 1
     e["spacing"] = sch.spacing if sch.kind == "equal" else 1.0
-    e["od_cut"] = -math.log(rc["threshold"]) if rc["threshold"] > 0 else 1e30
-    e["merge"] = 1 if rc["merge"] == "voxel" else 0
+    e["od_cut"] = -math.log(rc.threshold) if rc.threshold > 0 else 1e30
+    e["merge"] = 1 if rc.merge == "voxel" else 0
     e["vox_dx"] = cfg["model"]["lateral_voxel_um"]
     e["vox_dz"] = cfg["model"]["voxel_um"]
     e["max_points"] = max_points
     e["max_len"] = 1e5
-    e["alpha"] = rc["roughness"]
-    e["seed_lo"], e["seed_hi"] = S.split_seed(rc["seed"])
+    e["alpha"] = rc.roughness
+    e["seed_lo"], e["seed_hi"] = S.split_seed(rc.seed)
     e["jitter"] = 1 if cam.spp > 1 else 0
     light_fields(e, Light.from_config(cfg))
     return e

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import colorimetry, image, paths
+from .config import render_settings
 from .bands import band_width
 from .light import Light
 
@@ -70,8 +71,8 @@ def develop(L: np.ndarray, cfg: dict, cam, wl, spectrum) -> RenderResult:
     xyz = tristimulus(L, wl)
     rgb = colorimetry.xyz_to_linear_srgb(xyz)
     Yw = float(tristimulus(white_reference(Light.from_config(cfg), cam, wl, spectrum)[None, :], wl)[0, 1])
-    rc = cfg["render"]
-    exposure = rc["exposure"] if rc["exposure"] is not None else (1.0 / Yw if Yw > 0 else 1.0)
+    rc = render_settings(cfg)
+    exposure = rc.exposure if rc.exposure is not None else (1.0 / Yw if Yw > 0 else 1.0)
     report = {"exposure": exposure, "white_reference_Y": Yw, "nonfinite_values_zeroed": nonfinite}
     return RenderResult(spectral=L, xyz=xyz, rgb=rgb, wl=np.asarray(wl), report=report,
                         exposure=exposure)
@@ -82,7 +83,7 @@ def common_report(cfg: dict, integrator: str, dev, passes_done: int, interrupted
     return {"clppm": __import__("clppm").__version__,
             "config": json.loads(json.dumps(cfg, default=str)),
             "integrator": integrator, "device": dev.info(),
-            "passes_done": passes_done, "passes_requested": cfg["render"]["passes"],
+            "passes_done": passes_done, "passes_requested": render_settings(cfg).passes,
             "interrupted": interrupted}
 
 

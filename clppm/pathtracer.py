@@ -39,7 +39,7 @@ from .bands import Bands, band_width
 from .camera import from_config
 from .light import Light
 from . import config as C
-from .config import ConfigError
+from .config import ConfigError, render_settings
 from .device import Device, check_alloc, kernel_defines, launch, open_device
 
 NBIN = 8
@@ -78,7 +78,7 @@ def check_scene(cfg: dict, source: str = "<config>") -> None:
     if L["position_mm"][2] <= 0:
         raise ConfigError(source, "light.position_mm", L["position_mm"],
                           "the path tracer needs the point light above the skin surface (z > 0)")
-    if not C.is_flat(cfg) and not cfg["render"]["pt_relief"]:
+    if not C.is_flat(cfg) and not render_settings(cfg).pt_relief:
         key, value = (("relief.kind", cfg["relief"]["kind"]) if cfg["relief"]["kind"] != "flat"
                       else ("papillae.amplitude_um", cfg["papillae"]["amplitude_um"]))
         raise ConfigError(source, key, value,
@@ -138,7 +138,7 @@ class PathTracer:
         self.dev, self.vol, self.cfg = dev, vol, cfg
         self.cam = cam = from_config(cfg["camera"])
         self.npix = cam.width * cam.height
-        self.nspp = int(cfg["render"]["pt_samples_per_pass"])
+        self.nspp = int(render_settings(cfg).pt_samples_per_pass)
         q, mf = dev.queue, cl.mem_flags
         self.kernel = cl.Kernel(build(dev, vol), "pt_pass")
         self.vbuf = volume.upload_volume(dev, vol)
@@ -148,12 +148,12 @@ class PathTracer:
         self.chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
         e = np.zeros(1, S.PT_DTYPE)
         e["cam"] = cam.struct()
-        rc, self.light = cfg["render"], Light.from_config(cfg)
+        rc, self.light = render_settings(cfg), Light.from_config(cfg)
         e["nspp"] = self.nspp
-        e["seed_lo"], e["seed_hi"] = S.split_seed(rc["seed"])
+        e["seed_lo"], e["seed_hi"] = S.split_seed(rc.seed)
         e["lx"], e["ly"], e["lz"] = self.light.position
-        e["alpha"] = rc["roughness"]
-        e["specular"] = 1 if rc["specular"] else 0
+        e["alpha"] = rc.roughness
+        e["specular"] = 1 if rc.specular else 0
         e["rr_threshold"], e["rr_m"], e["max_vertices"] = RR_THRESHOLD, RR_M, MAX_VERTICES
         e["nee_od"], e["nee_q_floor"] = NEE_OD, NEE_Q_FLOOR
         e["mnee_seeds"] = MNEE_SEEDS
@@ -333,11 +333,11 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
     t_start = time.perf_counter()
     cfg = progressive.apply_overrides(cfg, passes=passes, resolution=resolution, seed=seed)
     check_scene(cfg, source)
-    rc = cfg["render"]
+    rc = render_settings(cfg)
     w, h = cfg["camera"]["resolution"]
-    if w * h * rc["pt_samples_per_pass"] > 2**32:
-        raise ConfigError(source, "render.pt_samples_per_pass", rc["pt_samples_per_pass"],
-                          f"{w}x{h} pixels x {rc['pt_samples_per_pass']} exceeds the 2^32 path ids "
+    if w * h * rc.pt_samples_per_pass > 2**32:
+        raise ConfigError(source, "render.pt_samples_per_pass", rc.pt_samples_per_pass,
+                          f"{w}x{h} pixels x {rc.pt_samples_per_pass} exceeds the 2^32 path ids "
                           "of a pass")
     ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
     paths.check_outputs(out=out, checkpoint=ckpath)
@@ -369,7 +369,7 @@ class PTRun:
         self.tracer, self.timing, self.t_start = tracer, timing, t_start
         self.meta = run_identity(tracer.cfg, tracer.dev, tracer)
         self.p = 0
-        self.n_passes = int(tracer.cfg["render"]["passes"])
+        self.n_passes = int(render_settings(tracer.cfg).passes)
         self.device_name = tracer.dev.name
 
     @property

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import structs as S
+from .config import render_settings
 from .bands import Bands
 from .light import Light
 from .device import Device, kernel_defines, launch
@@ -154,11 +155,11 @@ class PhotonPass:
         volume_params(p, vol)
         self.light = light or Light.from_config(cfg)
         self.power_fraction = source_params(p, self.light, vol)
-        s = cfg["render"]["seed"] if seed is None else seed
+        s = render_settings(cfg).seed if seed is None else seed
         self.seed = int(s)
         p["seed_lo"], p["seed_hi"] = S.split_seed(s)
         p["fixed_band"] = self.band
-        sd = cfg["render"]["store_depth_um"]
+        sd = render_settings(cfg).store_depth_um
         if sd is not None:
             p["store_zmin"] = -sd
         self.p = p

@@ -24,6 +24,7 @@ import numpy as np
 
 from . import eyepass, hashgrid, photonpass, volume
 from .bands import Bands
+from .config import RenderSettings, render_settings
 from .device import Device, check_alloc, kernel_defines, launch
 
 #: pass index of the calibration photon pass (its photons set R0 and are then dropped)
@@ -54,6 +55,7 @@ class Scene:
     """One scene on one device: what every pass of a render shares."""
 
     cfg: dict
+    rs: RenderSettings               # cfg's [render] table, typed
     dev: Device
     vol: volume.Volume
     vbuf: volume.VolumeBuffers
@@ -81,11 +83,11 @@ class Scene:
 
     @property
     def global_radius(self) -> bool:
-        return self.cfg["render"]["radius"] == "global"
+        return self.rs.radius == "global"
 
     @property
     def beam(self) -> bool:
-        return self.cfg["render"]["estimator"] == "beam"
+        return self.rs.estimator == "beam"
 
     @property
     def dim(self) -> int:
@@ -137,7 +139,7 @@ class PointState:
 
 
 def device_needs(cfg: dict, vol: volume.Volume, eye_bytes: int, npix: int) -> dict:
-    target = int(cfg["render"]["photons"])
+    target = int(render_settings(cfg).photons)
     capacity = int(target * 1.2) + 4096
     from .config import bands_per_path
     rec = 32 + 4 * (bands_per_path(cfg) - 1)                   # photon record bytes
@@ -151,7 +153,7 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     """Volume on the device, eye pass, photon and grid buffers, kernels; memory checked first."""
     import pyopencl as cl
     from .camera import from_config
-    rc = cfg["render"]
+    rc = render_settings(cfg)
     timing = {}
     t0 = time.perf_counter()
     vol = volume.build(cfg, source)
@@ -161,17 +163,17 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     nrays = cam.width * cam.height * cam.spp
     check_alloc(dev, {**device_needs(cfg, vol, (nrays + 1) * 8 + nrays * 8, cam.width * cam.height)})
     t0 = time.perf_counter()
-    eye = eyepass.run(dev, vol, vbuf, cfg, eyepass.scheme(rc["method"], rc["spacing_um"]))
+    eye = eyepass.run(dev, vol, vbuf, cfg, eyepass.scheme(rc.method, rc.spacing_um))
     dev.queue.finish()
     timing["eye"] = time.perf_counter() - t0
     check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height))
-    target = int(rc["photons"])
+    target = int(rc.photons)
     capacity = int(target * 1.2) + 4096
     pp = photonpass.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf, bands=Bands.from_config(cfg))
-    pp.set_storage(rc["storage"], eye.cone_deg, rc["store_scale"], rc["store_min"])
-    pp.set_emission(rc["emission"])
+    pp.set_storage(rc.storage, eye.cone_deg, rc.store_scale, rc.store_min)
+    pp.set_emission(rc.emission)
     gclass = band_classes(vol.nb, pp.hero)
-    prg = dev.build("gather.cl", kernel_defines(vol, hero=pp.hero, estimator=rc["estimator"], gclass=gclass))
+    prg = dev.build("gather.cl", kernel_defines(vol, hero=pp.hero, estimator=rc.estimator, gclass=gclass))
     kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "gather_beam_points", "init_radius",
                                               "count_within", "photon_slabs", "photon_keys")}
     mf = cl.mem_flags
@@ -181,9 +183,9 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     vlay = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=depth_keys(vol.iface))
     zdeep = eye.zmin if eye.npoints else vol.z_top
     box = (vol.x0, vol.y0, vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy, zdeep, vol.z_top)
-    sc = Scene(cfg=cfg, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, kernels=kernels, hgtab=hgtab,
+    sc = Scene(cfg=cfg, rs=rc, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, kernels=kernels, hgtab=hgtab,
                layer_z=layer_z, vlay=vlay, gbufs=hashgrid.GridBuffers(dev), target=target, capacity=capacity,
-               box=box, hz=beam_cell_depth(eye) if rc["estimator"] == "beam" else None, gclass=gclass)
+               box=box, hz=beam_cell_depth(eye) if rc.estimator == "beam" else None, gclass=gclass)
     sc.timing.update(timing)
     return sc
 
@@ -291,7 +293,7 @@ def calibrate(sc: Scene) -> Calibration:
         return Calibration(R0=np.zeros(0, np.float32), store_zmin=None, first_search_mean=None)
     frac = 0.25 if sc.target >= 4 * 20_000 else 1.0
     n_cal = int(math.ceil(sc.target * frac))
-    K = float(sc.cfg["render"]["initial_photons"]) * n_cal / sc.target
+    K = float(sc.rs.initial_photons) * n_cal / sc.target
     info = sc.pp.run_pass(CAL_PASS, n_cal, tallies=photonpass.Tallies(sc.vol.nb, sc.vol.nl))
     n = min(info["stored"], sc.capacity)
     x0, y0, x1, y1, zdeep, ztop = sc.box
@@ -350,7 +352,7 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
              tallies: photonpass.Tallies) -> dict:
     """Photon pass p, grid, gather into ``acc``; returns the pass's counts."""
     q = sc.dev.queue
-    rc = sc.cfg["render"]
+    rc = sc.rs
     t0 = time.perf_counter()
     info = sc.pp.run_pass(p, sc.target, tallies=tallies)
     n = min(info["stored"], sc.capacity)
@@ -359,7 +361,7 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
     if sc.npts == 0:
         return info
     t0 = time.perf_counter()
-    alpha = float(rc["alpha"])
+    alpha = float(rc.alpha)
     if sc.global_radius:
         scale = radius_scale(p, alpha, sc.dim)
         med, rmax = float(np.median(cal.R0)) * scale, float(cal.R0.max()) * scale

@@ -16,6 +16,7 @@ import numpy as np
 
 from . import checkpoint as ckpt
 from . import config as C
+from .config import render_settings
 from . import driver, film, paths, photonpass, ppm
 from .device import Device, open_device
 from .film import RenderResult
@@ -34,8 +35,9 @@ def apply_overrides(cfg: dict, method=None, passes=None, photons=None, resolutio
         cfg = C.override(cfg, "render", "passes", int(passes))
     if photons is not None:
         cfg = C.override(cfg, "render", "photons", int(photons))
-        if cfg["render"]["initial_photons"] > cfg["render"]["photons"]:
-            cfg = C.override(cfg, "render", "initial_photons", cfg["render"]["photons"])
+        rs = render_settings(cfg)
+        if rs.initial_photons > rs.photons:
+            cfg = C.override(cfg, "render", "initial_photons", rs.photons)
     if resolution is not None:
         cfg = C.override(cfg, "camera", "resolution", [int(resolution[0]), int(resolution[1])])
     if seed is not None:
@@ -58,15 +60,15 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     See ``clppm render --help``."""
     t_start = time.perf_counter()
     cfg = apply_overrides(cfg, method, passes, photons, resolution, seed, spacing, spp)
-    rc = cfg["render"]
+    rc = render_settings(cfg)
     ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
     paths.check_outputs(out=out, checkpoint=ckpath)
     dev = dev or open_device(device)
     if resume:
         ckpt.load(resume)                       # fail fast on a missing or corrupt file
-        driver.check_resume_passes(resume, int(rc["passes"]), "--passes" if passes is not None else "render.passes")
+        driver.check_resume_passes(resume, int(rc.passes), "--passes" if passes is not None else "render.passes")
     driver.say(progress, f"building the volume and the eye pass ({cfg['camera']['resolution'][0]}x"
-                         f"{cfg['camera']['resolution'][1]}, method {rc['method']}) on {dev.name}...")
+                         f"{cfg['camera']['resolution'][1]}, method {rc.method}) on {dev.name}...")
     sc = ppm.setup(cfg, dev, source)
     driver.say(progress, f"{sc.eye.npoints} sample points; " + (f"resuming {resume.split('/')[-1]}..." if resume
                          else "calibrating the first photon search..."))
@@ -101,7 +103,7 @@ class PPMRun:
 
     @property
     def n_passes(self) -> int:
-        return int(self.sc.cfg["render"]["passes"])
+        return int(self.sc.rs.passes)
 
     @property
     def device_name(self) -> str:
@@ -151,7 +153,7 @@ class PPMRun:
             self.on_pass(p, {"pt_R": self.points.R, "pt_N": self.points.N, "pt_M": self.points.M,
                              "emitted": info["emitted"], "radius_scale": info.get("radius_scale", 1.0)})
         self.p = p + 1
-        if self.p % int(self.sc.cfg["render"]["chunk_passes"]) == 0 or self.p == self.n_passes:
+        if self.p % int(self.sc.rs.chunk_passes) == 0 or self.p == self.n_passes:
             self.total.add(self.chunk)
             self.chunk.clear()
 
@@ -198,23 +200,22 @@ def run_identity(cfg: dict, dev: Device, eye) -> dict:
 def finish(sc: ppm.Scene, pix: np.ndarray, pairs: int, emitted_total: int, passes_done: int,
            timing: dict, stats: dict, t_start: float, interrupted: bool) -> RenderResult:
     """Pixel x band sums -> spectral radiance (the film does the rest) and the run report."""
-    cfg, vol, eye, pp = sc.cfg, sc.vol, sc.eye, sc.pp
-    rc = cfg["render"]
+    cfg, vol, eye, pp, rc = sc.cfg, sc.vol, sc.eye, sc.pp, sc.rs
     cam = eye.camera
     bands = pp.bands
     acc = pix.reshape(cam.height * cam.width, vol.nb)
     P = cfg["light"]["power_w"] * pp.power_fraction
-    scale = P / max(passes_done if rc["radius"] == "global" else emitted_total, 1)
+    scale = P / max(passes_done if rc.radius == "global" else emitted_total, 1)
     L = acc * (scale * 1e12 / bands.dl / cam.spp)
-    if rc["specular"]:
+    if rc.specular:
         L = L + specular_radiance(cfg, eye, bands)
     res = film.develop(L, cfg, cam, vol.wl, bands.spectrum)
     per_layer = eye.per_layer(vol.nl)
     res.report = {
         **film.common_report(cfg, "ppm", sc.dev, passes_done, interrupted),
-        "method": rc["method"], "scheme": eye.scheme.label(),
+        "method": rc.method, "scheme": eye.scheme.label(),
         "photons_emitted": emitted_total, "photons_stored": stats["stored"],
-        "stored_per_pass": rc["photons"], "store_zmin_um": None if pp.p["store_zmin"][0] < -1e37
+        "stored_per_pass": rc.photons, "store_zmin_um": None if pp.p["store_zmin"][0] < -1e37
         else float(pp.p["store_zmin"][0]),
         "sample_points": eye.npoints, "path_pieces": eye.npieces,
         "eye_rays": eye.nrays, "eye_rays_hit": int(eye.ray_hit.sum()),
