@@ -92,6 +92,9 @@ def render_bench(argv=None) -> int:
 
 
 SLAB = "mua=10,mus=90,g=0.75,n=1.4,d=0.02"
+# sizes: the 10 mm forearm (81 bands) at RES for the render and the path tracer; the whole run
+# takes ~3 minutes per CPU device on a 2-core machine
+RES, RENDER_PHOTONS, RENDER_PASSES, FOREARM_PHOTONS = (160, 120), 200_000, 4, 200_000
 COLS = [("photons/s slab", "photon_slab", "{:.3g}"), ("photons/s forearm", "photon_forearm", "{:.3g}"),
         ("grid build photons/s", "grid_build", "{:.3g}"), ("grid gather pairs/s", "grid_pairs_s", "{:.3g}"),
         ("candidates/pair", "grid_cand_per_pair", "{:.2f}"), ("render gather pairs/s", "render_pairs_s", "{:.3g}"),
@@ -115,8 +118,8 @@ def measure(spec: str, repeat: int = 3) -> dict:
     dev = device.open_device(spec)
     out = {"device": device.describe(dev.device)}
     for key, cfg, n in (("photon_slab", config.slab_config(SLAB), 200_000),
-                        ("photon_forearm", tiny.tiny_config(size_mm=10.0, resolution=(80, 60),
-                                                            step_nm=5.0), 100_000)):
+                        ("photon_forearm", tiny.tiny_config(size_mm=10.0, resolution=RES,
+                                                            step_nm=5.0), FOREARM_PHOTONS)):
         pp = photonpass.PhotonPass(dev, volume.build(cfg), cfg)
         out[key] = n / _best(lambda: pp.trace(n), repeat)
     rng = np.random.default_rng(1)
@@ -146,14 +149,14 @@ def measure(spec: str, repeat: int = 3) -> dict:
     pairs = int(res["r"].count.sum())
     out["grid_pairs_s"] = pairs / t
     out["grid_cand_per_pair"] = float(res["r"].ncand.sum()) / max(pairs, 1)
-    cfg = tiny.tiny_config(size_mm=10.0, resolution=(80, 60), step_nm=5.0, photons=100_000)
-    cfg = config.override(cfg, "render", "passes", 4)
+    cfg = tiny.tiny_config(size_mm=10.0, resolution=RES, step_nm=5.0, photons=RENDER_PHOTONS)
+    cfg = config.override(cfg, "render", "passes", RENDER_PASSES)
     progressive.render(config.override(cfg, "render", "passes", 1), dev=dev)     # warm-up
     r = progressive.render(cfg, dev=dev).report
     out["render_s_per_pass"] = sum(r["seconds_per_pass"].values())
     out["render_seconds_per_pass"] = r["seconds_per_pass"]
     out["render_pairs_s"] = r["gather_pairs"] / max(r["seconds"]["gather"], 1e-9)
-    flat = tiny.tiny_config("forearm_flat.toml", size_mm=10.0, resolution=(80, 60), step_nm=5.0)
+    flat = tiny.tiny_config("forearm_flat.toml", size_mm=10.0, resolution=RES, step_nm=5.0)
     pathtracer.render_pt(flat, passes=1, dev=dev)                                 # warm-up
     out["pt_paths_s"] = pathtracer.render_pt(flat, passes=2, dev=dev).report["paths_per_second"]
     out["kernels"] = device.launched(dev.device)
