@@ -9,6 +9,7 @@ A checkpoint is the pass index plus that state: photon pass p draws its random n
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -70,7 +71,7 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     driver.say(progress, f"building the volume and the eye pass ({cfg['camera']['resolution'][0]}x"
                          f"{cfg['camera']['resolution'][1]}, method {rc.method}) on {dev.name}...")
     sc = ppm.setup(cfg, dev, source)
-    driver.say(progress, f"{sc.eye.npoints} sample points; " + (f"resuming {resume.split('/')[-1]}..." if resume
+    driver.say(progress, f"{sc.eye.npoints} sample points; " + (f"resuming {os.path.basename(resume)}..." if resume
                          else "calibrating the first photon search..."))
     run = PPMRun.start(sc, run_identity(cfg, dev, sc.eye), resume, t_start, on_pass)
     cad = driver.Cadence.of(rc, out, ckpath, snapshot_every=snapshot_every, on_snapshot=on_snapshot,
