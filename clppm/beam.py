@@ -1,0 +1,133 @@
+"""The beam estimator's gather on the device: its layouts (issue 20).
+
+``render.layout`` chooses how the (eye-ray piece, photon) pairs are found and summed; both
+layouts find the same pairs and add the same 64-bit fixed-point term per pair and band, so
+they give the same image (byte-identical under PoCL, tests/test_layouts.py):
+
+* ``"gather"``: a work item per pixel and band class walks its eye rays' pieces and queries
+  the photon grid (kernels/gather.cl, ``gather_beam``).
+* ``"scatter"``: the design card's atomic flux accumulation (kernels/scatter.cl): a grid over
+  the eye-ray pieces (each piece filed in every cell its query box overlaps: the cells the
+  gather's query would visit), then a work item per stored photon tests the pieces of its own
+  cell and adds its terms into per point x band 64-bit fixed-point accumulators with
+  ``atom_add`` (order-independent, so deterministic); a finishing kernel per pixel and band
+  class then does the gather's per-point float sums in the same point order.  Needs
+  ``cl_khr_int64_base_atomics``; without it the gather runs (:func:`layout`).
+
+``"auto"`` (the default) picks per device type by measurement (``bench/gather.py``,
+docs/gather.md): :data:`AUTO`.
+
+The host side of ``clppm.ppm`` calls :func:`run` where the beam gather runs; everything here
+keeps its state on the :class:`clppm.ppm.Scene` (attribute ``_beam``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: render.layout = "auto": the layout per OpenCL device type (bench/gather.py, docs/gather.md)
+AUTO = {"cpu": "gather", "gpu": "scatter", "accelerator": "gather", "other": "gather"}
+
+
+def class_tables(vol, gclass: int, hg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The gather's per-class tables: hgc[L][g] = three float16 rows (hg's 1 + g^2, 2g,
+    (1 - g^2)/(4 pi) of the bands g + gclass k, k < nb / gclass; lanes beyond: 1, 0, 0) and
+    mutc[L][g] = mu_t of those bands (lanes beyond: 0); the same float32 values as
+    ``hgtab`` and ``optics``, regrouped."""
+    nl, nb = vol.nl, vol.nb
+    nbc = nb // gclass
+    hg = np.asarray(hg, np.float32).reshape(nl, nb, 4)
+    opt = np.asarray(vol.optics_table(), np.float32).reshape(nl, nb, 4)
+    hgc = np.zeros((nl, gclass, 3, 16), np.float32)
+    hgc[:, :, 0, :] = 1.0
+    mutc = np.zeros((nl, gclass, 16), np.float32)
+    k = min(nbc, 16)
+    for g in range(gclass):
+        b = g + gclass * np.arange(k)
+        hgc[:, g, 0, :k] = hg[:, b, 0]
+        hgc[:, g, 1, :k] = hg[:, b, 1]
+        hgc[:, g, 2, :k] = hg[:, b, 2]
+        mutc[:, g, :k] = opt[:, b, 3]
+    return hgc, mutc
+
+
+class _State:
+    """Per scene: the class tables on the device and the scatter layout's buffers."""
+
+    def __init__(self, sc):
+        import pyopencl as cl
+        from .ppm import hg_table
+        mf = cl.mem_flags
+        hgc, mutc = class_tables(sc.vol, sc.gclass, hg_table(sc.vol))
+        self.hgc = cl.Buffer(sc.dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hgc)
+        self.mutc = cl.Buffer(sc.dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=mutc)
+        self.scatter = None
+
+
+def state(sc) -> _State:
+    s = getattr(sc, "_beam", None)
+    if s is None or getattr(s, "gclass", None) != sc.gclass:
+        s = _State(sc)
+        s.gclass = sc.gclass
+        sc._beam = s
+    return s
+
+
+def gather(sc, grid, sslab, extra, st, acc, alpha: float, scale: float, pass_scale: float) -> None:
+    """The beam gather: a work item per pixel and band class (kernels/gather.cl), then each
+    point's count, radius update and the pixels' pair counts (gather_beam_points)."""
+    q, e = sc.dev.queue, sc.eye
+    bs = state(sc)
+    st.M.fill(0)
+    sw = weights16(sc, grid, extra)
+    kg = sc.kernels["gather_beam"]
+    kg(q, (_round(sc.npix), sc.gclass), local(kg, q, 64) + (1,), grid.params, sc.pp.pbuf,
+       sc.vbuf.iface, sc.vbuf.heights, grid.cell_start.data, grid.spos_w.data,
+       grid.sdir_b.data, sslab.data, sc.vlay, extra, sc.hgtab, sc.vbuf.optics, bs.hgc, bs.mutc, sw.data,
+       e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, st.R.data,
+       st.N.data, st.M.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp),
+       np.int32(sc.global_radius), np.float32(scale), np.float64(pass_scale))
+    points(sc, st, acc, alpha)
+
+
+def weights16(sc, grid, extra):
+    """Per sorted photon: its band weights in class order, one float16 (photon_weights16)."""
+    import pyopencl as cl
+    q = sc.dev.queue
+    sw = sc.gbufs.get("sw16", max(grid.n, 1) * 16, np.float32)
+    k = sc.kernels.get("photon_weights16")
+    if k is None:
+        prg = sc.dev.build("gather.cl", _defines(sc))
+        k = sc.kernels["photon_weights16"] = cl.Kernel(prg, "photon_weights16")
+    if grid.n:
+        k(q, (_round(grid.n),), local(k, q, 64), grid.spos_w.data, grid.sdir_b.data, extra,
+          np.uint32(grid.n), sw.data)
+    return sw
+
+
+def _defines(sc) -> dict:
+    from . import transport
+    from .ppm import ESTIMATORS
+    return {**transport.defines(sc.vol, sc.pp.hero), "ESTIMATOR": ESTIMATORS[sc.cfg["render"]["estimator"]],
+            "GCLASS": sc.gclass}
+
+
+def points(sc, st, acc, alpha: float) -> None:
+    q, e = sc.dev.queue, sc.eye
+    kp = sc.kernels["gather_beam_points"]
+    kp(q, (_round(sc.npix),), local(kp, q, 64), e.ray_start.data, st.R.data,
+       st.N.data, st.M.data, acc.pairs.data, np.int32(sc.npix),
+       np.int32(e.camera.spp), np.float32(alpha), np.int32(sc.global_radius))
+
+
+def local(kernel, q, wg: int) -> tuple[int]:
+    from .device import local_size
+    return (local_size(kernel, q.device, wg),)
+
+
+def _round(n: int, wg: int = 64) -> int:
+    return max(wg, (n + wg - 1) // wg * wg)
+
+
+def run(sc, grid, sslab, extra, st, acc, alpha: float, scale: float, pass_scale: float) -> None:
+    """The beam gather of one pass in the scene's layout (:func:`layout`)."""
+    gather(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
