@@ -128,6 +128,130 @@ def _round(n: int, wg: int = 64) -> int:
     return max(wg, (n + wg - 1) // wg * wg)
 
 
+def supports_scatter(sc) -> str | None:
+    """None when the scene's device and bands allow the scatter layout, else why not."""
+    ext = sc.dev.device.extensions.split()
+    if "cl_khr_int64_base_atomics" not in ext:
+        return "the device has no cl_khr_int64_base_atomics"
+    if sc.vol.nb // max(sc.gclass, 1) != 9 or sc.pp.hero != 9:
+        return "the scatter layout needs 9 bands per path in classes of 9 (bands_per_path = 9)"
+    return None
+
+
+def device_kind(dev) -> str:
+    import pyopencl as cl
+    t = dev.device.type
+    if t & cl.device_type.GPU:
+        return "gpu"
+    if t & cl.device_type.CPU:
+        return "cpu"
+    if t & cl.device_type.ACCELERATOR:
+        return "accelerator"
+    return "other"
+
+
+def layout(sc) -> str:
+    """The layout this scene's passes use: render.layout, "auto" resolved per device type
+    (:data:`AUTO`); "scatter" falls back to "gather" where :func:`supports_scatter` says no."""
+    lay = sc.cfg["render"].get("layout", "auto")
+    if lay == "auto":
+        lay = AUTO.get(device_kind(sc.dev), "gather")
+    if lay == "scatter" and supports_scatter(sc) is not None:
+        lay = "gather"
+    return lay
+
+
 def run(sc, grid, sslab, extra, st, acc, alpha: float, scale: float, pass_scale: float) -> None:
     """The beam gather of one pass in the scene's layout (:func:`layout`)."""
-    gather(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
+    if layout(sc) == "scatter":
+        scatter(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
+    else:
+        gather(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
+
+
+class _Scatter:
+    """The scatter layout's per-scene state: its kernels, each piece's point and optical depth."""
+
+    def __init__(self, sc, bs: _State):
+        import pyopencl as cl
+        import pyopencl.array as cla
+        q, e = sc.dev.queue, sc.eye
+        prg = sc.dev.build("scatter.cl", _defines(sc))
+        self.k = {n: cl.Kernel(prg, n) for n in ("piece_points", "piece_od", "piece_cells",
+                                                  "scatter_beam", "scatter_finish")}
+        npc = max(e.npieces, 1)
+        self.piece_pt = cla.zeros(q, npc, np.uint32)
+        self.od = cla.zeros(q, npc * sc.vol.nb, np.float32)
+        self.pinfo = cla.zeros(q, npc, _f4())
+        if e.npoints:
+            k = self.k["piece_points"]
+            k(q, (_round(e.npoints),), local(k, q, 64), e.pt_piece.data, np.uint32(e.npoints),
+              self.piece_pt.data)
+        if e.nrays and e.npieces:
+            k = self.k["piece_od"]
+            k(q, (_round(e.nrays), sc.gclass), local(k, q, 64) + (1,), e.ray_start.data,
+              e.pt_piece.data, e.geo.data, bs.mutc, np.uint32(e.nrays), self.od.data)
+
+    def nbytes(self) -> int:
+        return self.piece_pt.nbytes + self.od.nbytes + self.pinfo.nbytes
+
+
+def _f4():
+    import pyopencl.cltypes as cltypes
+    return cltypes.float4
+
+
+def scatter_state(sc) -> _Scatter:
+    bs = state(sc)
+    if bs.scatter is None:
+        bs.scatter = _Scatter(sc, bs)
+    return bs.scatter
+
+
+def scatter(sc, grid, sslab, extra, st, acc, alpha: float, scale: float, pass_scale: float) -> None:
+    """The atomic flux accumulation layout (kernels/scatter.cl): the piece grid over the
+    photon grid's cells, a work item per stored photon adding its pairs' terms into per point
+    x band fixed-point sums (atom_add), the gather's per-point float sums per pixel and band
+    class, then the points' counts and radius update (gather_beam_points)."""
+    import pyopencl as cl
+    from . import hashgrid
+    q, e = sc.dev.queue, sc.eye
+    bs = state(sc)
+    ss = scatter_state(sc)
+    gp = grid.params
+    cxyz = int(gp["nx"]) * int(gp["ny"]) * int(gp["nz"])
+    npc = e.npieces
+    gr = np.int32(sc.global_radius)
+    sw = weights16(sc, grid, extra)
+    pstart = sc.gbufs.get("pstart", cxyz + 1, np.uint32)
+    pstart.fill(0)
+    kc = ss.k["piece_cells"]
+    common = (gp, sc.pp.pbuf, sc.vbuf.iface, sc.vbuf.heights, sc.vlay, e.geo.data, ss.piece_pt.data,
+              st.R.data, np.uint32(npc), gr, np.float32(scale))
+    plist = sc.gbufs.get("plist", 1, np.uint32)
+    if npc:
+        kc(q, (_round(npc),), local(kc, q, 64), *common, np.int32(0), pstart.data, plist.data,
+           ss.pinfo.data)
+    hashgrid._scan(sc.dev)(pstart, allocator=sc.gbufs.pool)
+    total = int(pstart[cxyz:cxyz + 1].get()[0])
+    plist = sc.gbufs.get("plist", max(total, 1), np.uint32)
+    cursor = sc.gbufs.get("pcursor", cxyz + 1, np.uint32)
+    cl.enqueue_copy(q, cursor.data, pstart.data, byte_count=4 * (cxyz + 1))
+    if npc:
+        kc(q, (_round(npc),), local(kc, q, 64), *common, np.int32(1), cursor.data, plist.data,
+           ss.pinfo.data)
+    pacc = sc.gbufs.get("pacc", max(sc.npts, 1) * sc.vol.nb, np.int64)
+    pacc.fill(0)
+    st.M.fill(0)
+    ks = ss.k["scatter_beam"]
+    if grid.n:
+        ks(q, (_round(grid.n),), local(ks, q, 64), gp, sc.pp.pbuf, grid.cell_start.data,
+           grid.spos_w.data, grid.sdir_b.data, sslab.data, sw.data, bs.hgc, bs.mutc, pstart.data,
+           plist.data, ss.pinfo.data, e.geo.data, ss.piece_pt.data, ss.od.data, np.uint32(grid.n),
+           pacc.data, st.M.data)
+    kf = ss.k["scatter_finish"]
+    kf(q, (_round(sc.npix), sc.gclass), local(kf, q, 64) + (1,), e.ray_start.data, e.pt_pos.data,
+       st.R.data, pacc.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp), gr,
+       np.float32(scale), np.float64(pass_scale))
+    points(sc, st, acc, alpha)
+    bs.entries = total                                     # piece-cell entries (bench)
