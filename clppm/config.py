@@ -200,7 +200,8 @@ LAYER_SCHEMA: dict[str, F] = {
 #: [render] keys that never change the accumulated picture: how long to run and how often to
 #: save.  A checkpoint resumes, a worker's scene is reused, and a cached reference is found
 #: whatever they are.
-NOT_PICTURE = ("passes", "preview_every", "checkpoint_every")
+NOT_PICTURE = ("passes", "preview_every", "checkpoint_every",
+               "layout")   # the beam gather's layouts give the same bytes (tests/test_layouts.py)
 #: [render] keys that change only the finishing (the PNG), not the spectral sums.
 FINISHING = ("exposure",)
 
