@@ -69,7 +69,25 @@ def _candidates(sc, cal, st, info, ppm, transport, flat: bool) -> int | None:
     return int(acc.pairs.get().astype(np.int64).sum())
 
 
+def _tree_kernels() -> str:
+    """Make ``clppm.kernels`` this worker's tree's kernels/ (an editable install maps it to the
+    installed tree's folder whatever ``PYTHONPATH`` says: the base would compile this tree's
+    kernels).  Returns the kernel folder in use."""
+    import importlib.util
+    import clppm
+    tree = os.path.dirname(os.path.dirname(os.path.abspath(clppm.__file__)))
+    kdir = os.path.join(tree, "kernels")
+    spec = importlib.util.spec_from_file_location("clppm.kernels", os.path.join(kdir, "__init__.py"),
+                                                  submodule_search_locations=[kdir])
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["clppm.kernels"] = mod
+    spec.loader.exec_module(mod)
+    from clppm.device import kernel_dir
+    return str(kernel_dir())
+
+
 def worker(a) -> dict:
+    kdir = _tree_kernels()
     import numpy as np
     from clppm import config as C, ppm, progressive, transport
     from clppm.device import open_device
@@ -100,7 +118,12 @@ def worker(a) -> dict:
     pix, pairs = acc.host()
     assert np.array_equal(pix, first[0]), "the same photons gave other bytes"
     npairs = int(pairs.astype(np.int64).sum())
-    out = {"device": dev.device.name.strip(), "platform": dev.device.platform.name.strip(),
+    try:
+        from clppm import beam as _beam
+        lay = _beam.layout(sc)
+    except ImportError:                     # a tree before the layouts
+        lay = "gather"
+    out = {"device": dev.device.name.strip(), "kernels": kdir, "layout_used": lay, "platform": dev.device.platform.name.strip(),
            "setup_s": setup_s, "photon_s": photon_s,
            "grid_s": {"best": min(grid_s), "median": statistics.median(grid_s)},
            "gather_s": {"best": min(gather_s), "median": statistics.median(gather_s)},
@@ -108,7 +131,7 @@ def worker(a) -> dict:
            "npts": sc.npts, "npieces": sc.eye.npieces,
            "private_mem": _private_mem(sc),
            "hash": hashlib.sha1(pix.tobytes()).hexdigest()[:16]}
-    if a.candidates:
+    if a.candidates and lay == "gather":     # the scatter tests the same cells' photons
         for flat in (True, False):
             c = _candidates(sc, cal, st, info, ppm, transport, flat)
             if c is not None:

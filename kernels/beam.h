@@ -100,4 +100,25 @@
         }                                                                                     \
     }
 
+/* Row iy of a piece's query box: the cells in x that can hold a photon within R of the axis.
+ * The row's y range lies dy from the piece's y range [ya, yb], so such a photon lies within
+ * sqrt(R^2 - dy^2) of the piece's x range [xa, xb] (the disc's chord; a grazing piece's disc
+ * projects within R of its axis too).  Padded by Rp (R (1 + GRID_R_PAD)) and 1e-2 um plus 1e-5
+ * of the magnitudes, far above the rounding of the positions (~1e-3 um at 1e4 um) and of the
+ * cell boundaries.  Returns (first, last) cell in x, last < first for an empty row. */
+inline int2 beam_row_x(const GridParams gp, int iy, int cx0, int cx1, float xa, float xb, float ya,
+                       float yb, float Rp)
+{
+    const float pad = 1e-2f + 1e-5f * (fabs(xa) + fabs(xb) + fabs(ya) + fabs(yb) + Rp);
+    const float rlo = iy <= 0 ? -INFINITY : gp.lo_y + (float)iy * gp.h;
+    const float rhi = iy >= gp.ny - 1 ? INFINITY : gp.lo_y + (float)(iy + 1) * gp.h;
+    const float dy = fmax(fmax(rlo - yb, ya - rhi) - pad, 0.0f);
+    const float hw = sqrt(fmax(Rp * Rp - dy * dy, 0.0f)) + pad;
+    return (int2)(max(cx0, grid_axis(xa - hw, gp.lo_x, gp.inv_h, gp.nx)),
+                  min(cx1, grid_axis(xb + hw, gp.lo_x, gp.inv_h, gp.nx)));
+}
+
+#define BEAM_ROW_X(iy) beam_row_x(gp, (iy), c0.x, c1.x, fmin(s0.x, e.x), fmax(s0.x, e.x),     \
+                                  fmin(s0.y, e.y), fmax(s0.y, e.y), Rp)
+
 #endif

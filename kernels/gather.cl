@@ -491,10 +491,16 @@ __kernel void gather_beam(const GridParams gp,
 #ifdef BAND16
                     const float16 mut16 = mutc[Lk * GCLASS + g];
 #endif
-                    for (int iz = c0.z; iz <= c1.z; ++iz)
                     for (int iy = c0.y; iy <= c1.y; ++iy) {
-                        const uint row = grid_cell_index(gp, c0.x, iy, iz) + cls0;
-                        const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
+#ifndef ROWS_FULL
+                    const int2 xr = BEAM_ROW_X(iy);     /* the disc's chord over the row */
+#else
+                    const int2 xr = (int2)(c0.x, c1.x);
+#endif
+                    if (xr.y < xr.x) continue;
+                    for (int iz = c0.z; iz <= c1.z; ++iz) {
+                        const uint row = grid_cell_index(gp, xr.x, iy, iz) + cls0;
+                        const uint jb = cell_start[row], je = cell_start[row + (uint)(xr.y - xr.x) + 1u];
 #ifdef COUNT_CANDIDATES         /* bench/gather.py: the photons tested, in place of the pairs */
                         M += je - jb;
                         continue;
@@ -562,6 +568,7 @@ __kernel void gather_beam(const GridParams gp,
 #endif
                             ++M;
                         }
+                    }
                     }
                 }
 #ifdef BAND16

@@ -130,12 +130,14 @@ __kernel void piece_cells(const GridParams gp, __constant const Params* P,
     }
     BEAM_PIECE
     if (fill) pinfo[k] = (float4)(tb_r.x, tb_r.y, R, (float)conform);
+    for (int iy = c0.y; iy <= c1.y; ++iy) {
+    const int2 xr = BEAM_ROW_X(iy);             /* the disc's chord over the row (beam.h) */
     for (int iz = c0.z; iz <= c1.z; ++iz)
-    for (int iy = c0.y; iy <= c1.y; ++iy)
-    for (int ix = c0.x; ix <= c1.x; ++ix) {
+    for (int ix = xr.x; ix <= xr.y; ++ix) {
         const uint c = grid_cell_index(gp, ix, iy, iz);
         const uint slot = atomic_inc(&cursor[c]);
         if (fill) plist[slot] = k;
+    }
     }
 }
 
