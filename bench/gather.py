@@ -42,7 +42,11 @@ ROOT = os.path.dirname(HERE)
 def _private_mem(sc) -> dict:
     import pyopencl as cl
     out = {}
-    for name, k in sc.kernels.items():
+    ks = dict(sc.kernels)
+    bs = getattr(sc, "_beam", None)
+    if bs is not None and getattr(bs, "scatter", None) is not None:
+        ks.update(bs.scatter.k)
+    for name, k in ks.items():
         if name.startswith("gather") or name.startswith("scatter"):
             out[name] = int(k.get_work_group_info(cl.kernel_work_group_info.PRIVATE_MEM_SIZE,
                                                   sc.dev.device))

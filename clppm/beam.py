@@ -178,7 +178,10 @@ class _Scatter:
         q, e = sc.dev.queue, sc.eye
         prg = sc.dev.build("scatter.cl", _defines(sc))
         self.k = {n: cl.Kernel(prg, n) for n in ("piece_points", "piece_od", "piece_cells",
-                                                  "scatter_beam", "scatter_finish")}
+                                                  "scatter_beam", "scatter_finish",
+                                                  "point_pixels")}
+        self.spots = None                # bench/spots.py: per pixel the largest pair (float bits)
+        self.pt_pix = cla.zeros(q, max(e.npoints, 1), np.uint32)
         npc = max(e.npieces, 1)
         self.piece_pt = cla.zeros(q, npc, np.uint32)
         self.od = cla.zeros(q, npc * sc.vol.nb, np.float32)
@@ -194,6 +197,16 @@ class _Scatter:
 
     def nbytes(self) -> int:
         return self.piece_pt.nbytes + self.od.nbytes + self.pinfo.nbytes
+
+    def measure_spots(self, sc) -> None:
+        """bench/spots.py: from now on each pass records per pixel its largest single pair
+        (``self.spots``, float bits; clear it before a pass)."""
+        import pyopencl.array as cla
+        q, e = sc.dev.queue, sc.eye
+        k = self.k["point_pixels"]
+        k(q, (_round(sc.npix),), local(k, q, 64), e.ray_start.data, np.int32(sc.npix),
+          np.int32(e.camera.spp), self.pt_pix.data)
+        self.spots = cla.zeros(q, max(sc.npix, 1), np.uint32)
 
 
 def _f4():
@@ -248,7 +261,8 @@ def scatter(sc, grid, sslab, extra, st, acc, alpha: float, scale: float, pass_sc
         ks(q, (_round(grid.n),), local(ks, q, 64), gp, sc.pp.pbuf, grid.cell_start.data,
            grid.spos_w.data, grid.sdir_b.data, sslab.data, sw.data, bs.hgc, bs.mutc, pstart.data,
            plist.data, ss.pinfo.data, e.geo.data, ss.piece_pt.data, ss.od.data, np.uint32(grid.n),
-           pacc.data, st.M.data)
+           pacc.data, st.M.data, np.int32(ss.spots is not None), ss.pt_pix.data, e.pt_pos.data,
+           (ss.spots if ss.spots is not None else ss.pt_pix).data)
     kf = ss.k["scatter_finish"]
     kf(q, (_round(sc.npix), sc.gclass), local(kf, q, 64) + (1,), e.ray_start.data, e.pt_pos.data,
        st.R.data, pacc.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp), gr,

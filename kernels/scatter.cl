@@ -151,7 +151,12 @@ __kernel void scatter_beam(const GridParams gp, __constant const Params* P,
                            __global const float4* geo, __global const uint* piece_pt,
                            __global const float* od,           /* piece_od */
                            const uint n, volatile __global long* acc,   /* [npts][NB] */
-                           volatile __global uint* pt_M)
+                           volatile __global uint* pt_M,
+                           /* bench/spots.py only (spots != 0): per pixel the largest single
+                            * pair's share, f_i x its fixed-point terms summed over the bands,
+                            * as float bits (positive floats order as their bits) */
+                           const int spots, __global const uint* pt_pix,
+                           __global const float4* pt_pos, volatile __global uint* pix_max)
 {
     const uint j = get_global_id(0);
     if (j >= n) return;
@@ -206,7 +211,23 @@ __kernel void scatter_beam(const GridParams gp, __constant const Params* P,
         if (x.s7) atom_add(ai + 7 * GCLASS, x.s7);
         if (x.s8) atom_add(ai + 8 * GCLASS, x.s8);
         atomic_inc(&pt_M[i]);
+        if (spots) {
+            const float16 xf = convert_float16(x);
+            const float sx = xf.s0 + xf.s1 + xf.s2 + xf.s3 + xf.s4 + xf.s5 + xf.s6 + xf.s7 + xf.s8;
+            const float c = pt_pos[i].w / (PI_F * R2) * INV_FIX * sx;
+            atomic_max(&pix_max[pt_pix[i]], as_uint(c));
+        }
     }
+}
+
+/* bench/spots.py: the pixel of each sample point */
+__kernel void point_pixels(__global const uint* ray_start, const int npix, const int spp,
+                           __global uint* pt_pix)
+{
+    const int pix = get_global_id(0);
+    if (pix >= npix) return;
+    const uint i0 = ray_start[(uint)pix * (uint)spp], i1 = ray_start[(uint)(pix + 1) * (uint)spp];
+    for (uint i = i0; i < i1; ++i) pt_pix[i] = (uint)pix;
 }
 
 /* per pixel and band class: gather_beam's per-point float sums, in the same order */
