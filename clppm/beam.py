@@ -61,6 +61,21 @@ class _State:
         self.hgc = cl.Buffer(sc.dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hgc)
         self.mutc = cl.Buffer(sc.dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=mutc)
         self.scatter = None
+        self.pslab = None
+
+    def piece_slabs(self, sc):
+        """Per eye-ray piece: its layer-conforming depth (kernel piece_slabs), once per scene."""
+        import pyopencl as cl
+        import pyopencl.array as cla
+        if self.pslab is None:
+            q, e = sc.dev.queue, sc.eye
+            self.pslab = cla.zeros(q, max(e.npieces, 1), _f4())
+            if e.npieces:
+                prg = sc.dev.build("gather.cl", _defines(sc))
+                k = cl.Kernel(prg, "piece_slabs")
+                k(q, (_round(e.npieces),), local(k, q, 64), sc.pp.pbuf, sc.vbuf.iface,
+                  sc.vbuf.heights, e.geo.data, np.uint32(e.npieces), self.pslab.data)
+        return self.pslab
 
 
 def state(sc) -> _State:
@@ -83,6 +98,7 @@ def gather(sc, grid, sslab, extra, st, acc, alpha: float, scale: float, pass_sca
     kg(q, (_round(sc.npix), sc.gclass), local(kg, q, 64) + (1,), grid.params, sc.pp.pbuf,
        sc.vbuf.iface, sc.vbuf.heights, grid.cell_start.data, grid.spos_w.data,
        grid.sdir_b.data, sslab.data, sc.vlay, extra, sc.hgtab, sc.vbuf.optics, bs.hgc, bs.mutc, sw.data,
+       bs.piece_slabs(sc).data,
        e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, st.R.data,
        st.N.data, st.M.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp),
        np.int32(sc.global_radius), np.float32(scale), np.float64(pass_scale))
@@ -239,7 +255,8 @@ def scatter(sc, grid, sslab, extra, st, acc, alpha: float, scale: float, pass_sc
     pstart = sc.gbufs.get("pstart", cxyz + 1, np.uint32)
     pstart.fill(0)
     kc = ss.k["piece_cells"]
-    common = (gp, sc.pp.pbuf, sc.vbuf.iface, sc.vbuf.heights, sc.vlay, e.geo.data, ss.piece_pt.data,
+    common = (gp, sc.pp.pbuf, sc.vbuf.iface, sc.vbuf.heights, sc.vlay, e.geo.data,
+              bs.piece_slabs(sc).data, ss.piece_pt.data,
               st.R.data, np.uint32(npc), gr, np.float32(scale))
     plist = sc.gbufs.get("plist", 1, np.uint32)
     if npc:

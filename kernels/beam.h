@@ -4,8 +4,10 @@
  * expressions (the same float bits per pair: the layouts must give the same image).
  *
  * Names they expect in scope:
- *   BEAM_PIECE: P, iface, heights, vlay (kernel args), gp (GridParams), s0, d (float3), len,
- *     Lk (the piece's layer), R; declares vert, inv_dz, wax, conform, tb_r, c0, c1.
+ *   BEAM_PIECE_SLAB: P, iface, heights, s0, d, len, Lk; declares vert, conform, tb_r.
+ *   BEAM_PIECE: iface, vlay (kernel args), gp (GridParams), s0, d (float3), len, Lk (the
+ *     piece's layer), R, pslab_k (float4: piece_slabs' (tb_r, conform)); declares vert, inv_dz,
+ *     wax, conform, tb_r, e, Rp, c0, c1.
  *   BEAM_PAIR: s0, d, len, Lk, vert, inv_dz, conform, tb_r, R, R2, Rwin, P, p (the photon's
  *     float4 position and weight), bl (its band + 256 layer), tb_p (float2: its layer at its
  *     column, read only when conform); declares ts, wl, wwin; `continue`s when the photon is
@@ -19,22 +21,31 @@
     if (vert && (IF_VAR(Lk) >= 0 || (Lk + 1 <= NL && IF_VAR(Lk + 1) >= 0))) {                \
         conform = 1;                                                                          \
         tb_r = layer_slab(P, iface, heights, s0 + 0.5f * len * d, Lk);                        \
-        zpad = fmax(IF_ZMAX(Lk) - IF_ZMIN(Lk), IF_ZMAX(Lk + 1) - IF_ZMIN(Lk + 1)) + 1.0f;     \
     }
+#define BEAM_ZPAD_ (conform ? fmax(IF_ZMAX(Lk) - IF_ZMIN(Lk), IF_ZMAX(Lk + 1) - IF_ZMIN(Lk + 1)) + 1.0f : 0.0f)
 #else
 #define BEAM_CONFORM_SLAB_
+#define BEAM_ZPAD_ 0.0f
 #endif
 
-/* the piece's disc axis, its layer-conforming depth and its query box in cells c0..c1 */
+/* the piece's layer-conforming depth (gather.cl): whether it measures depth in its layer's
+ * own coordinates and the layer's top and bottom at the ray's column (kernel piece_slabs, once
+ * per scene: it needs no R); declares conform, tb_r */
+#define BEAM_PIECE_SLAB                                                                       \
+    const int vert = fabs(d.z) >= 0.5f;                                                       \
+    int conform = 0;                                                                          \
+    float2 tb_r = (float2)(0.0f);                                                             \
+    BEAM_CONFORM_SLAB_
+
+/* the piece's disc axis and its query box in cells c0..c1, given conform and tb_r (stored
+ * per piece by piece_slabs: pslab = (tb_r, conform)) */
 #define BEAM_PIECE                                                                            \
     const int vert = fabs(d.z) >= 0.5f;                                                       \
     const float inv_dz = vert ? 1.0f / d.z : 0.0f;                                            \
     const float wax = vert ? fabs(inv_dz) : 1.0f;       /* 1 / |d . axis| */                  \
-    /* layer-conforming depth (gather.cl): the layer at the ray's column */                   \
-    int conform = 0;                                                                          \
-    float2 tb_r = (float2)(0.0f);                                                             \
-    float zpad = 0.0f;                                                                        \
-    BEAM_CONFORM_SLAB_                                                                        \
+    const int conform = pslab_k.z != 0.0f;                                                    \
+    const float2 tb_r = pslab_k.xy;                                                           \
+    const float zpad = BEAM_ZPAD_;                                                            \
     const float3 e = s0 + len * d;                                                            \
     const float Rp = R * (1.0f + GRID_R_PAD);                                                 \
     const float zp = vert ? 1e-3f + 1e-6f * fabs(s0.z) + zpad : Rp;                           \

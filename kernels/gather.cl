@@ -421,6 +421,23 @@ __kernel void photon_weights16(__global const float4* spos_w, __global const flo
 #endif
 }
 
+/* Per eye-ray piece, once per scene: its layer-conforming depth (BEAM_PIECE_SLAB):
+ * (top, bottom of its layer at the ray's column, conform, 0).  Read by both layouts' queries
+ * instead of evaluating the height field per piece and band class. */
+__kernel void piece_slabs(__constant const Params* P, __constant const float4* iface,
+                          __global const float* heights, __global const float4* geo,
+                          const uint npieces, __global float4* pslab)
+{
+    const uint k = get_global_id(0);
+    if (k >= npieces) return;
+    const float4 g0 = geo[2 * k], g1 = geo[2 * k + 1];
+    const float3 s0 = g0.xyz, d = g1.xyz;
+    const float len = g0.w;
+    const int Lk = (int)g1.w;
+    BEAM_PIECE_SLAB
+    pslab[k] = (float4)(tb_r.x, tb_r.y, (float)conform, 0.0f);
+}
+
 __kernel void gather_beam(const GridParams gp,
                           __constant const Params* P,       /* the volume: columns, sides */
                           __constant const float4* iface,
@@ -436,6 +453,7 @@ __kernel void gather_beam(const GridParams gp,
                           __global const float16* hgc,      /* [NL][GCLASS][3]: hgtab's x, y, z by class */
                           __global const float16* mutc,     /* [NL][GCLASS]: mu_t by class (band g + GCLASS k) */
                           __global const float16* sw16,     /* photon_weights16: band weights in class order */
+                          __global const float4* pslab,     /* piece_slabs */
                           __global const uint* ray_start,
                           __global const float4* pt_pos,    /* xyz, tw */
                           __global const uint* pt_piece,    /* [npts+1] */
@@ -486,6 +504,12 @@ __kernel void gather_beam(const GridParams gp,
                 const float len = g0.w;
                 const int Lk = (int)g1.w;
                 if (R > 0.0f && len > 0.0f) {
+#ifndef PROF_SLAB_INLINE
+                    const float4 pslab_k = pslab[k];
+#else                                   /* timing only: the height field per piece and class */
+                    float4 pslab_k;
+                    { BEAM_PIECE_SLAB pslab_k = (float4)(tb_r.x, tb_r.y, (float)conform, 0.0f); }
+#endif
                     BEAM_PIECE
                     __global const float4* mut_k = optics + Lk * NB;
 #ifdef BAND16

@@ -111,6 +111,7 @@ __kernel void piece_od(__global const uint* ray_start, __global const uint* pt_p
 __kernel void piece_cells(const GridParams gp, __constant const Params* P,
                           __constant const float4* iface, __global const float* heights,
                           __constant const float4* vlay, __global const float4* geo,
+                          __global const float4* pslab,       /* piece_slabs (gather.cl) */
                           __global const uint* piece_pt, __global const float* pt_R,
                           const uint npieces, const int global_radius, const float radius_scale,
                           const int fill, volatile __global uint* cursor, __global uint* plist,
@@ -128,6 +129,7 @@ __kernel void piece_cells(const GridParams gp, __constant const Params* P,
         if (fill) pinfo[k] = (float4)(0.0f, 0.0f, 0.0f, 0.0f);
         return;
     }
+    const float4 pslab_k = pslab[k];
     BEAM_PIECE
     if (fill) pinfo[k] = (float4)(tb_r.x, tb_r.y, R, (float)conform);
     for (int iy = c0.y; iy <= c1.y; ++iy) {
