@@ -557,7 +557,12 @@ __kernel void gather_beam(const GridParams gp,
 #endif
                                 __global const float16* hh = hgc + ((bl >> 8) * GCLASS + g) * 3;
                                 const float16 q = hh[0] + hh[1] * cw;
+#ifdef EXACT_RSQRT                      /* tests on implementations whose native_rsqrt differs
+                                         * between vector widths (Intel's: up to 0.9 % per pixel) */
+                                const float16 rq = rsqrt(q);
+#else
                                 const float16 rq = native_rsqrt(q);
+#endif
                                 const float16 T = exp_neg16(od16 + mut16 * ts);
 #ifdef PROF_NOSAT
                                 acc16 += convert_long16(fmin(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f));
@@ -585,7 +590,11 @@ __kernel void gather_beam(const GridParams gp,
                                 const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin;
                                 const float4 h = hg[b];
                                 const float q = h.x + h.y * cw;
+#ifdef EXACT_RSQRT
+                                const float rq = rsqrt(q);
+#else
                                 const float rq = native_rsqrt(q);
+#endif
                                 const float T = exp_neg(od[k] + mut_k[b].w * ts);
                                 acc[k] = add_sat(acc[k], (long)fmin(h.z * rq * rq * rq * w * T * FIX, 9.0e18f));
                             }
