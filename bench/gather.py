@@ -184,7 +184,7 @@ def main(argv=None):
     ap.add_argument("--candidates", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--layout", dest="layout_one", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--device", default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--base", default=None, help="a checkout of the older code to compare with")
+    ap.add_argument("--base", default=None, help="checkouts of older code to compare with (comma-separated)")
     ap.add_argument("--devices", default=None, help="comma-separated device specs (default: all)")
     ap.add_argument("--layouts", default="", help="comma-separated render.layout values of this tree")
     ap.add_argument("--config", default=os.path.join(ROOT, "configs", "forearm.toml"))
@@ -202,7 +202,9 @@ def main(argv=None):
     else:
         from clppm.device import list_devices
         specs = [f"{p}:{d}" for p, d, _, _ in list_devices()]
-    trees = [("this", ROOT)] + ([("base", os.path.abspath(a.base))] if a.base else [])
+    trees = [("this", ROOT)]
+    for b in (a.base.split(",") if a.base else []):     # several: base, base2, ...
+        trees.append(("base" if len(trees) == 1 else f"base{len(trees)}", os.path.abspath(b)))
     layouts = [x for x in a.layouts.split(",") if x] or [None]
     rows = []
     for spec in specs:
@@ -216,7 +218,7 @@ def main(argv=None):
     print(table(rows))
     os.makedirs(os.path.dirname(a.out), exist_ok=True)
     with open(a.out, "w") as f:
-        json.dump({"config": a.config, "res": a.res, "reps": a.reps, "rows": rows}, f, indent=1)
+        json.dump({"config": a.config, "res": a.res, "reps": a.reps, "trees": trees, "rows": rows}, f, indent=1)
     return 0
 
 
