@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import numpy as np
 
-#: render.layout = "auto": the layout per OpenCL device type (bench/gather.py, docs/gather.md)
-AUTO = {"cpu": "gather", "gpu": "scatter", "accelerator": "gather", "other": "gather"}
+#: render.layout = "auto": the layout per OpenCL device type (bench/gather.py, docs/gather.md).
+#: CPU: the gather, faster under PoCL and Intel's runtime (measured).  GPU and others: not
+#: measured (no GPU was lent); the gather until a GPU run of bench/gather.py says otherwise.
+AUTO = {"cpu": "gather", "gpu": "gather", "accelerator": "gather", "other": "gather"}
 
 
 def class_tables(vol, gclass: int, hg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -191,7 +193,11 @@ class _Scatter:
     def __init__(self, sc, bs: _State):
         import pyopencl as cl
         import pyopencl.array as cla
+        from .device import check_alloc
         q, e = sc.dev.queue, sc.eye
+        check_alloc(sc.dev, {"scatter: per point x band sums": max(e.npoints, 1) * sc.vol.nb * 8,
+                             "scatter: per piece x band optical depths": max(e.npieces, 1) * sc.vol.nb * 4,
+                             "scatter: piece grid entries (estimate)": max(e.npieces, 1) * 4 * 40})
         prg = sc.dev.build("scatter.cl", _defines(sc))
         self.k = {n: cl.Kernel(prg, n) for n in ("piece_points", "piece_od", "piece_cells",
                                                   "scatter_beam", "scatter_finish",
