@@ -42,17 +42,26 @@ ROOT = os.path.dirname(HERE)
 def _private_mem(sc) -> dict:
     import pyopencl as cl
     out = {}
-    for name, k in sc.kernels.items():
+    ks = dict(sc.kernels)
+    bs = getattr(sc, "_beam", None)
+    if bs is not None and getattr(bs, "scatter", None) is not None:
+        ks.update(bs.scatter.k)
+    for name, k in ks.items():
         if name.startswith("gather") or name.startswith("scatter"):
             out[name] = int(k.get_work_group_info(cl.kernel_work_group_info.PRIVATE_MEM_SIZE,
                                                   sc.dev.device))
     return out
 
 
-def _candidates(sc, cal, st, info, ppm, transport, flat: bool) -> int | None:
-    """Photons tested by the beam gather's queries (this tree only), with flat or cubic cells."""
+def _candidates(sc, cal, st, info, ppm, photonpass, flat: bool) -> int | None:
+    """Photons tested by the beam gather's queries (trees with device.kernel_defines), with flat
+    or cubic cells."""
     import pyopencl as cl
     import numpy as np
+    try:
+        from clppm.device import kernel_defines
+    except ImportError:                     # a tree before kernel_defines
+        return None
     if not hasattr(ppm, "photon_slabs") or not sc.beam:
         return None
     prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", count_candidates=True))
@@ -68,10 +77,32 @@ def _candidates(sc, cal, st, info, ppm, transport, flat: bool) -> int | None:
     return int(acc.pairs.get().astype(np.int64).sum())
 
 
+def _tree_kernels() -> str:
+    """Make ``clppm.kernels`` this worker's tree's kernels/ (an editable install maps it to the
+    installed tree's folder whatever ``PYTHONPATH`` says: the base would compile this tree's
+    kernels).  Returns the kernel folder in use."""
+    import importlib.util
+    import clppm
+    tree = os.path.dirname(os.path.dirname(os.path.abspath(clppm.__file__)))
+    kdir = os.path.join(tree, "kernels")
+    spec = importlib.util.spec_from_file_location("clppm.kernels", os.path.join(kdir, "__init__.py"),
+                                                  submodule_search_locations=[kdir])
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["clppm.kernels"] = mod
+    spec.loader.exec_module(mod)
+    from clppm.device import kernel_dir
+    return str(kernel_dir())
+
+
 def worker(a) -> dict:
+    kdir = _tree_kernels()
     import numpy as np
-    from clppm import config as C, photonpass, ppm, progressive
+    from clppm import config as C, ppm, progressive
     from clppm.device import open_device
+    try:
+        from clppm import photonpass
+    except ImportError:                     # a tree before the photon pass's module had its name
+        from clppm import transport as photonpass
     cfg = C.load(a.config)
     cfg = progressive.apply_overrides(cfg, resolution=tuple(a.res))
     if a.layout and "layout" in C.SCHEMA.get("render", {}):
@@ -99,7 +130,12 @@ def worker(a) -> dict:
     pix, pairs = acc.host()
     assert np.array_equal(pix, first[0]), "the same photons gave other bytes"
     npairs = int(pairs.astype(np.int64).sum())
-    out = {"device": dev.device.name.strip(), "platform": dev.device.platform.name.strip(),
+    try:
+        from clppm import beam as _beam
+        lay = _beam.layout(sc)
+    except ImportError:                     # a tree before the layouts
+        lay = "gather"
+    out = {"device": dev.device.name.strip(), "kernels": kdir, "layout_used": lay, "platform": dev.device.platform.name.strip(),
            "setup_s": setup_s, "photon_s": photon_s,
            "grid_s": {"best": min(grid_s), "median": statistics.median(grid_s)},
            "gather_s": {"best": min(gather_s), "median": statistics.median(gather_s)},
@@ -107,9 +143,9 @@ def worker(a) -> dict:
            "npts": sc.npts, "npieces": sc.eye.npieces,
            "private_mem": _private_mem(sc),
            "hash": hashlib.sha1(pix.tobytes()).hexdigest()[:16]}
-    if a.candidates:
+    if a.candidates and lay == "gather":     # the scatter tests the same cells' photons
         for flat in (True, False):
-            c = _candidates(sc, cal, st, info, ppm, transport, flat)
+            c = _candidates(sc, cal, st, info, ppm, photonpass, flat)
             if c is not None:
                 out["candidates_per_pair_" + ("flat" if flat else "cubic")] = c / max(npairs, 1)
     return out
@@ -156,7 +192,7 @@ def main(argv=None):
     ap.add_argument("--candidates", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--layout", dest="layout_one", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--device", default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--base", default=None, help="a checkout of the older code to compare with")
+    ap.add_argument("--base", default=None, help="checkouts of older code to compare with (comma-separated)")
     ap.add_argument("--devices", default=None, help="comma-separated device specs (default: all)")
     ap.add_argument("--layouts", default="", help="comma-separated render.layout values of this tree")
     ap.add_argument("--config", default=os.path.join(ROOT, "configs", "forearm.toml"))
@@ -174,7 +210,9 @@ def main(argv=None):
     else:
         from clppm.device import list_devices
         specs = [f"{p}:{d}" for p, d, _, _ in list_devices()]
-    trees = [("this", ROOT)] + ([("base", os.path.abspath(a.base))] if a.base else [])
+    trees = [("this", ROOT)]
+    for b in (a.base.split(",") if a.base else []):     # several: base, base2, ...
+        trees.append(("base" if len(trees) == 1 else f"base{len(trees)}", os.path.abspath(b)))
     layouts = [x for x in a.layouts.split(",") if x] or [None]
     rows = []
     for spec in specs:
@@ -188,7 +226,7 @@ def main(argv=None):
     print(table(rows))
     os.makedirs(os.path.dirname(a.out), exist_ok=True)
     with open(a.out, "w") as f:
-        json.dump({"config": a.config, "res": a.res, "reps": a.reps, "rows": rows}, f, indent=1)
+        json.dump({"config": a.config, "res": a.res, "reps": a.reps, "trees": trees, "rows": rows}, f, indent=1)
     return 0
 
 

@@ -141,6 +141,13 @@ SCHEMA: dict[str, dict[str, F]] = {
                        doc="beam: each photon integrated along its point's path cell, a horizontal "
                            "disc exact in depth; layer: own-layer photons over the sphere within the "
                            "layer; clip: all photons, sphere clipped at the surface; sphere: the paper"),
+        "layout": F("choice", "auto", choices=("auto", "gather", "scatter"),
+                     doc="beam estimator: how photon-ray pairs are found and summed (same pairs, "
+                         "same fixed-point sums): gather, a work item per pixel querying the photon "
+                         "grid; scatter, a work item per photon adding into per-point sums with "
+                         "64-bit atomics (needs cl_khr_int64_base_atomics and 9 bands per path, "
+                         "else gather); auto: per device type, the faster by measurement "
+                         "(docs/gather.md)", picture="none"),
         "store_depth_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e6,
                             doc="store photons only this deep (default: all)"),
         "bands_per_path": F("int", 0, lo=0, hi=512,
@@ -195,8 +202,9 @@ LAYER_SCHEMA: dict[str, F] = {
 }
 
 #: [render] keys that never change the accumulated picture (``picture="none"`` in the schema):
-#: how long to run and how often to save.  A checkpoint resumes, a worker's scene is reused, and
-#: a cached reference is found whatever they are.
+#: how long to run, how often to save, and the beam gather's layout (its layouts give the same
+#: bytes, tests/test_layouts.py).  A checkpoint resumes, a worker's scene is reused, and a cached
+#: reference is found whatever they are.
 NOT_PICTURE = tuple(k for k, f in SCHEMA["render"].items() if f.picture == "none")
 #: [render] keys that change only the finishing (the PNG), not the spectral sums.
 FINISHING = tuple(k for k, f in SCHEMA["render"].items() if f.picture == "finish")

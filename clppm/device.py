@@ -242,10 +242,12 @@ def global_size(n: int, want: int = 64) -> int:
     return max(want, (int(n) + want - 1) // want * want)
 
 
-def launch(kernel, queue, n: int, want: int = 64) -> tuple[tuple[int], tuple[int]]:
+def launch(kernel, queue, n: int, want: int = 64, rows: int | None = None) -> tuple[tuple, tuple]:
     """The (global, local) sizes to run ``kernel`` over ``n`` work items: ``kernel(queue,
-    *launch(kernel, queue, n), *args)``; the local size from :func:`local_size`."""
-    return (global_size(n, want),), (local_size(kernel, queue.device, want),)
+    *launch(kernel, queue, n), *args)``; the local size from :func:`local_size`.  With ``rows``,
+    a 2-D range of ``rows`` rows of ``n`` (a work group within one row)."""
+    g, ls = global_size(n, want), local_size(kernel, queue.device, want)
+    return ((g,), (ls,)) if rows is None else ((g, int(rows)), (ls, 1))
 
 
 def launched(device) -> list[dict]:
@@ -284,7 +286,7 @@ ESTIMATORS = {"sphere": 0, "clip": 1, "layer": 2, "beam": 3}
 
 def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator: str | None = None,
                    gclass: int | None = None, pt_fp64: bool | None = None,
-                   count_candidates: bool = False) -> dict:
+                   count_candidates: bool = False, exact_rsqrt: bool = False) -> dict:
     """Every ``-D`` switch of clppm's kernels, assembled in this one place (as MCX-CL does).
 
     From the volume: NB bands, NL layers, FLAT (no relief or papillae: the flat code paths);
@@ -292,7 +294,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     path carries, when more than one (spectral.h).  FAST_MATH: the compiler's relaxed math,
     when CLPPM_FAST_MATH=1.  A pass's own: ESTIMATOR (gather.cl: sphere, clip, layer, beam),
     GCLASS (the beam gather's band classes), PT_FP64 (pt.cl: double-precision sums),
-    COUNT_CANDIDATES (gather.cl: count the photons a query visits, for bench/gather.py)."""
+    COUNT_CANDIDATES (gather.cl: count the photons a query visits, for bench/gather.py),
+    EXACT_RSQRT (gather.cl: rsqrt for native_rsqrt, to compare layouts off PoCL to float rounding)."""
     if vol is None:
         return {"NB": int(nb)} if nb is not None else {}
     d = {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
@@ -306,6 +309,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
         d["PT_FP64"] = bool(pt_fp64)
     if count_candidates:
         d["COUNT_CANDIDATES"] = 1
+    if exact_rsqrt:
+        d["EXACT_RSQRT"] = 1
     return d
 
 

@@ -190,15 +190,6 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     return sc
 
 
-def _local(sc, name: str, q) -> tuple[int]:
-    from .device import local_size
-    return (local_size(sc.kernels[name], q.device, 64),)
-
-
-def _round(n: int, wg: int = 64) -> int:
-    return max(wg, (n + wg - 1) // wg * wg)
-
-
 def depth_keys(iface: np.ndarray) -> np.ndarray:
     """Per layer L (kernel photon_keys): the mean heights of its top and bottom interface and
     1 where its photons are filed at their layer-conforming depth (an interface of L varies
@@ -396,20 +387,9 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
 
 def gather_beam(sc: Scene, grid: hashgrid.Grid, sslab, extra, st: PointState, acc: Accumulators,
                 alpha: float, scale: float, pass_scale: float) -> None:
-    """The beam gather: a work item per pixel and band class (kernels/gather.cl), then each
-    point's count, radius update and the pixels' pair counts (gather_beam_points)."""
-    q, e = sc.dev.queue, sc.eye
-    st.M.fill(0)
-    sc.kernels["gather_beam"](q, (_round(sc.npix), sc.gclass), _local(sc, "gather_beam", q) + (1,), grid.params, sc.pp.pbuf,
-                              sc.vbuf.iface, sc.vbuf.heights, grid.cell_start.data, grid.spos_w.data,
-                              grid.sdir_b.data, sslab.data, sc.vlay, extra, sc.hgtab, sc.vbuf.optics,
-                              e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, st.R.data,
-                              st.N.data, st.M.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp),
-                              np.int32(sc.global_radius), np.float32(scale), np.float64(pass_scale))
-    sc.kernels["gather_beam_points"](q, (_round(sc.npix),), _local(sc, "gather_beam_points", q), e.ray_start.data, st.R.data,
-                                     st.N.data, st.M.data, acc.pairs.data, np.int32(sc.npix),
-                                     np.int32(e.camera.spp), np.float32(alpha),
-                                     np.int32(sc.global_radius))
+    """The beam gather (issue 20: clppm/beam.py, its layouts)."""
+    from . import beam                                      # issue 20
+    beam.run(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
 
 
 def band_classes(nb: int, hero: int) -> int:

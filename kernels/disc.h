@@ -71,13 +71,18 @@ inline float side_half_width(float d, float R) {
 /* Beyond this distance from a side the window is the whole disc (side_half_width reaches R). */
 inline float window_reach(float R) { return 0.5f * R / DISC_KAPPA; }
 
+/* The area of the disc of radius R within the window |u.x| < hx, |u.y| < hy (window_at's). */
+inline float window_area(float hx, float hy, float R) {
+    return (hx < R || hy < R) ? 4.0f * R * R * quarter_area(hx / R, hy / R) : PI_F * R * R;
+}
+
 /* The window of a disc of radius R whose centre lies s.x, s.y from the nearest x and y side. */
 inline DiscWindow window_at(float2 s, float R) {
     DiscWindow w;
     w.hx = side_half_width(s.x, R);
     w.hy = side_half_width(s.y, R);
     w.cut = w.hx < R || w.hy < R;
-    w.area = w.cut ? 4.0f * R * R * quarter_area(w.hx / R, w.hy / R) : PI_F * R * R;
+    w.area = window_area(w.hx, w.hy, R);
     return w;
 }
 

@@ -37,6 +37,7 @@
 #include "grid.h"
 #include "spectral.h"
 #include "disc.h"
+#include "beam.h"
 
 #define FIX 4294967296.0f               /* 2^32 per unit of weight x phase */
 #define INV_FIX (1.0f / 4294967296.0f)
@@ -51,6 +52,22 @@
 #define GCLASS 1
 #endif
 #define NBC (NB / GCLASS)
+
+/* The beam gather's band math on one vector of 16 lanes (9 used) when a photon carries the 9
+ * bands of its class (the default: 81 bands, 9 per path): the same float operations per band
+ * as the scalar loop, lane by lane (exp_neg16 is exp_neg's expression), so the same bits. */
+#if NBC == 9 && HERO_C == 9 && !defined(BAND_SCALAR)
+#define BAND16 1
+inline float16 exp_neg16(float16 x) {
+    const float16 y = fmax(x, 0.0f) * 1.44269504088896f;
+    const float16 n = floor(y);
+    const float16 t = (y - n - 0.5f) * 0.693147180559945f;
+    const float16 p = 1.0f - t * (1.0f - t * (0.5f - t * (1.0f / 6.0f - t * (1.0f / 24.0f
+                    - t * (1.0f / 120.0f - t * (1.0f / 720.0f))))));
+    const float16 r = as_float16((127 - convert_int16(n)) << 23) * (p * 0.707106781186548f);
+    return select(r, (float16)(0.0f), isless(y, (float16)(126.0f)) == 0);
+}
+#endif
 
 /* Volume of the sphere (centre height z, radius R) between the planes slab.x (top) and slab.y
  * (bottom): integral of pi (R^2 - u^2) du over the part of [-R, R] inside the slab. */
@@ -386,6 +403,41 @@ __kernel void photon_keys(__constant const Params* P, __constant const float4* i
     kpos[j] = (float4)(p.x, p.y, z, (float)((((int)dir_b[j].w) & 255) % GCLASS));
 }
 
+/* Per sorted photon: its HERO_C band weights in class order (lane k: band g + GCLASS k, the
+ * member c = k - kh mod NBC, c = 0 the hero's p.w), lanes from NBC on 0: what gather_beam's
+ * band math reads per pair as one vector (BAND16). */
+__kernel void photon_weights16(__global const float4* spos_w, __global const float4* sdir_b,
+                               __global const float* sextra, const uint n, __global float* sw16)
+{
+    const uint j = get_global_id(0);
+    if (j >= n) return;
+#ifdef BAND16
+    const int kh = ((int)sdir_b[j].w & 255) / GCLASS;
+    __global float* o = sw16 + (size_t)j * 16;
+    for (int k = 0; k < 16; ++k) {
+        const int c = k >= kh ? k - kh : k - kh + NBC;
+        o[k] = k >= NBC ? 0.0f : c == 0 ? spos_w[j].w : sextra[(size_t)j * (HERO_C - 1) + c - 1];
+    }
+#endif
+}
+
+/* Per eye-ray piece, once per scene: its layer-conforming depth (BEAM_PIECE_SLAB):
+ * (top, bottom of its layer at the ray's column, conform, 0).  Read by both layouts' queries
+ * instead of evaluating the height field per piece and band class. */
+__kernel void piece_slabs(__constant const Params* P, __constant const float4* iface,
+                          __global const float* heights, __global const float4* geo,
+                          const uint npieces, __global float4* pslab)
+{
+    const uint k = get_global_id(0);
+    if (k >= npieces) return;
+    const float4 g0 = geo[2 * k], g1 = geo[2 * k + 1];
+    const float3 s0 = g0.xyz, d = g1.xyz;
+    const float len = g0.w;
+    const int Lk = (int)g1.w;
+    BEAM_PIECE_SLAB
+    pslab[k] = (float4)(tb_r.x, tb_r.y, (float)conform, 0.0f);
+}
+
 __kernel void gather_beam(const GridParams gp,
                           __constant const Params* P,       /* the volume: columns, sides */
                           __constant const float4* iface,
@@ -398,6 +450,10 @@ __kernel void gather_beam(const GridParams gp,
                           __global const float* sextra,     /* HERO_C-1 band weights per photon */
                           __global const float4* hgtab,     /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
                           __global const float4* optics,    /* [NL*NB]: ..., mut (um^-1) in .w */
+                          __global const float16* hgc,      /* [NL][GCLASS][3]: hgtab's x, y, z by class */
+                          __global const float16* mutc,     /* [NL][GCLASS]: mu_t by class (band g + GCLASS k) */
+                          __global const float16* sw16,     /* photon_weights16: band weights in class order */
+                          __global const float4* pslab,     /* piece_slabs */
                           __global const uint* ray_start,
                           __global const float4* pt_pos,    /* xyz, tw */
                           __global const uint* pt_piece,    /* [npts+1] */
@@ -419,8 +475,12 @@ __kernel void gather_beam(const GridParams gp,
     for (int s = 0; s < spp; ++s) {
         const uint r = (uint)pix * (uint)spp + (uint)s;
         const uint i0 = ray_start[r], i1 = ray_start[r + 1];
+#ifdef BAND16
+        float16 od16 = (float16)(0.0f);
+#else
         float od[NBC];                  /* optical depth from the entry to the piece's start */
         for (int k = 0; k < NBC; ++k) od[k] = 0.0f;
+#endif
         for (uint i = i0; i < i1; ++i) {
             const float4 pp = pt_pos[i];
             const float R = global_radius ? pt_R[i] * radius_scale : pt_R[i];
@@ -429,8 +489,13 @@ __kernel void gather_beam(const GridParams gp,
              * depth: the ray drifts sideways with depth (outwards at the sides, ~0.1 per unit
              * depth), so a window placed at the sample point would reach past the side */
             const float Rwin = window_reach(R);
+#ifdef BAND16
+            long16 acc16 = (long16)(0);
+            const uint16 lane = (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+#else
             long acc[NBC];
             for (int k = 0; k < NBC; ++k) acc[k] = 0;
+#endif
             uint M = 0;
             const uint k0 = pt_piece[i], k1 = pt_piece[i + 1];
             for (uint k = k0; k < k1; ++k) {
@@ -439,33 +504,27 @@ __kernel void gather_beam(const GridParams gp,
                 const float len = g0.w;
                 const int Lk = (int)g1.w;
                 if (R > 0.0f && len > 0.0f) {
-                    const int vert = fabs(d.z) >= 0.5f;
-                    const float inv_dz = vert ? 1.0f / d.z : 0.0f;
-                    const float wax = vert ? fabs(inv_dz) : 1.0f;       /* 1 / |d . axis| */
-                    /* layer-conforming depth (see above): the layer at the ray's column */
-                    int conform = 0;
-                    float2 tb_r = (float2)(0.0f);
-                    float zpad = 0.0f;
-#ifndef FLAT
-                    if (vert && (IF_VAR(Lk) >= 0 || (Lk + 1 <= NL && IF_VAR(Lk + 1) >= 0))) {
-                        conform = 1;
-                        tb_r = layer_slab(P, iface, heights, s0 + 0.5f * len * d, Lk);
-                        zpad = fmax(IF_ZMAX(Lk) - IF_ZMIN(Lk), IF_ZMAX(Lk + 1) - IF_ZMIN(Lk + 1)) + 1.0f;
-                    }
+#ifndef PROF_SLAB_INLINE
+                    const float4 pslab_k = pslab[k];
+#else                                   /* timing only: the height field per piece and class */
+                    float4 pslab_k;
+                    { BEAM_PIECE_SLAB pslab_k = (float4)(tb_r.x, tb_r.y, (float)conform, 0.0f); }
 #endif
-                    const float3 e = s0 + len * d;
-                    const float Rp = R * (1.0f + GRID_R_PAD);
-                    const float zp = vert ? 1e-3f + 1e-6f * fabs(s0.z) + zpad : Rp;
-                    float zlo = fmin(s0.z, e.z) - zp, zhi = fmax(s0.z, e.z) + zp;
-                    query_depth_keys(vlay, conform ? Lk : -1, tb_r, s0.z, e.z, &zlo, &zhi);
-                    const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, zlo);
-                    const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, zhi);
-                    const int4 c0 = grid_coords(gp, lo), c1 = grid_coords(gp, hi);
+                    BEAM_PIECE
                     __global const float4* mut_k = optics + Lk * NB;
-                    for (int iz = c0.z; iz <= c1.z; ++iz)
+#ifdef BAND16
+                    const float16 mut16 = mutc[Lk * GCLASS + g];
+#endif
                     for (int iy = c0.y; iy <= c1.y; ++iy) {
-                        const uint row = grid_cell_index(gp, c0.x, iy, iz) + cls0;
-                        const uint jb = cell_start[row], je = cell_start[row + (uint)(c1.x - c0.x) + 1u];
+#ifndef ROWS_FULL
+                    const int2 xr = BEAM_ROW_X(iy);     /* the disc's chord over the row */
+#else
+                    const int2 xr = (int2)(c0.x, c1.x);
+#endif
+                    if (xr.y < xr.x) continue;
+                    for (int iz = c0.z; iz <= c1.z; ++iz) {
+                        const uint row = grid_cell_index(gp, xr.x, iy, iz) + cls0;
+                        const uint jb = cell_start[row], je = cell_start[row + (uint)(xr.y - xr.x) + 1u];
 #ifdef COUNT_CANDIDATES         /* bench/gather.py: the photons tested, in place of the pairs */
                         M += je - jb;
                         continue;
@@ -474,42 +533,48 @@ __kernel void gather_beam(const GridParams gp,
                             const float4 p = spos_w[j];
                             const float4 dd = sdir_b[j];
                             const int bl = (int)dd.w;
-                            float pz = p.z, wl = 1.0f;
 #ifndef FLAT
-                            if (conform) {
-                                if ((bl >> 8) != Lk) continue;
-                                const float2 tb_p = sslab[j];
-                                if (tb_p.y > -1e29f && tb_r.y > -1e29f) {
-                                    wl = (tb_r.x - tb_r.y) / fmax(tb_p.x - tb_p.y, 1e-3f);
-                                    pz = tb_r.x - (tb_p.x - p.z) * wl;
-                                } else {
-                                    pz = tb_r.x - (tb_p.x - p.z);
-                                }
-                            }
+                            const float2 tb_p = conform ? sslab[j] : (float2)(0.0f);
 #endif
-                            float ts, rho2, qx, qy;
-                            if (vert) {
-                                ts = (pz - s0.z) * inv_dz;
-                                qx = s0.x + ts * d.x - p.x; qy = s0.y + ts * d.y - p.y;
-                                rho2 = qx * qx + qy * qy;
-                            } else {
-                                const float3 v = p.xyz - s0;
-                                ts = dot(v, d);
-                                const float3 q = v - ts * d;
-                                rho2 = dot(q, q);
-                                qx = q.x; qy = q.y;
-                            }
-                            if (!(ts >= 0.0f && ts < len && rho2 < R2)) continue;
-                            float wwin = 1.0f;                  /* pi R^2 / the window's area */
-                            if (P->lateral != 0) {
-                                const float2 sd = side_distances(P, s0.xy + ts * d.xy);
-                                if (fmin(sd.x, sd.y) < Rwin) {
-                                    const DiscWindow dw = window_at(sd, R);
-                                    if (fabs(qx) >= dw.hx || fabs(qy) >= dw.hy) continue;
-                                    wwin = PI_F * R2 / dw.area;
-                                }
-                            }
+                            BEAM_PAIR
+#ifdef PROF_NOBANDS
+                            ++M; continue;
+#endif
                             const float cw = dot(dd.xyz, d);                   /* w_eye = -d */
+#ifdef BAND16
+                            {
+                                /* the photon's weights in class order: lane k holds member
+                                 * c = k - kh (mod 9) (c = 0: the hero's p.w); lanes 9-15: 0 */
+#ifdef PROF_SHUFFLE
+                                const uint kh = (uint)((bl & 255) / GCLASS);
+                                const float8 wx = vload8(j, sextra);
+                                const float16 wc = (float16)(p.w, wx, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f);
+                                const uint16 rot = select(select(lane - kh, lane + 9u - kh, lane < kh),
+                                                          (uint16)(15u), lane > 8u);
+                                const float16 w = shuffle(wc, rot) * wax * wl * wwin;
+#else
+                                const float16 w = sw16[j] * wax * wl * wwin;
+#endif
+                                __global const float16* hh = hgc + ((bl >> 8) * GCLASS + g) * 3;
+                                const float16 q = hh[0] + hh[1] * cw;
+#ifdef EXACT_RSQRT                      /* tests on implementations whose native_rsqrt differs
+                                         * between vector widths (Intel's: up to 0.9 % per pixel) */
+                                const float16 rq = rsqrt(q);
+#else
+                                const float16 rq = native_rsqrt(q);
+#endif
+                                const float16 T = exp_neg16(od16 + mut16 * ts);
+#ifdef PROF_NOSAT
+                                acc16 += convert_long16(fmin(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f));
+#else
+                                /* add_sat for the nonnegative terms (fmin maps NaN to 9e18):
+                                 * the sum of two values in [0, 2^63) does not wrap as ulong */
+                                acc16 = as_long16(min(as_ulong16(acc16) + as_ulong16(convert_long16(
+                                            fmin(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f))),
+                                            (ulong16)(0x7fffffffffffffffUL)));
+#endif
+                            }
+#else
                             const float wk = p.w * wax * wl * wwin;
                             __global const float4* hg = hgtab + (bl >> 8) * NB;
 #if HERO_C == NBC                       /* the photon carries every band of the class */
@@ -525,16 +590,30 @@ __kernel void gather_beam(const GridParams gp,
                                 const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin;
                                 const float4 h = hg[b];
                                 const float q = h.x + h.y * cw;
+#ifdef EXACT_RSQRT
+                                const float rq = rsqrt(q);
+#else
                                 const float rq = native_rsqrt(q);
+#endif
                                 const float T = exp_neg(od[k] + mut_k[b].w * ts);
                                 acc[k] = add_sat(acc[k], (long)fmin(h.z * rq * rq * rq * w * T * FIX, 9.0e18f));
                             }
+#endif
                             ++M;
                         }
                     }
+                    }
                 }
+#ifdef BAND16
+                od16 += mutc[Lk * GCLASS + g] * len;
+#else
                 for (int k = 0; k < NBC; ++k) od[k] += optics[Lk * NB + g + GCLASS * k].w * len;
+#endif
             }
+#ifdef BAND16
+            long acc[16];
+            vstore16(acc16, 0, acc);
+#endif
             if (R > 0.0f) {
                 const float f = pp.w / (PI_F * R2) * INV_FIX;
                 for (int k = 0; k < NBC; ++k)

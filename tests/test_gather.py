@@ -5,7 +5,8 @@ cells, photons at their z and a work item per pixel over all bands, the layout o
 aa94d29.  Both sum the same (pair, band) terms in 64-bit fixed point, so every pixel and band
 must agree exactly, and so must the photons found per sample point; on the relief forearm
 (layer-conforming depth in five layers), on a flat slab, and at the model's open sides (the
-disc's window).  The candidate counts show the layout is not vacuous: it tests fewer photons."""
+disc's window).  The candidate counts show the layout is not vacuous: it tests fewer photons.
+Exact under PoCL; elsewhere with rsqrt for native_rsqrt in both and to 2e-5 (_exact)."""
 from __future__ import annotations
 
 import numpy as np
@@ -28,10 +29,30 @@ def _cfg(path: str):
     return cfg
 
 
+def _pocl(sc) -> bool:
+    return "Portable Computing Language" in sc.dev.device.platform.name
+
+
+def _exact(sc: ppm.Scene) -> ppm.Scene:
+    """Off PoCL: the scene with rsqrt in place of native_rsqrt (EXACT_RSQRT).  Intel's
+    native_rsqrt differs between the 16-lane band vector and the plain layout's scalar band loop
+    (which its compiler vectorises across work items): up to 0.9 % per pixel, an
+    implementation-defined precision, not a layout difference."""
+    if _pocl(sc):
+        return sc
+    import copy
+    prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=sc.gclass,
+                                                   exact_rsqrt=True))
+    p = copy.copy(sc)
+    p.kernels = {**sc.kernels, "gather_beam": cl.Kernel(prg, "gather_beam")}
+    return p
+
+
 def _plain(sc: ppm.Scene) -> ppm.Scene:
     """The same scene with the plain layout: cubic cells, z keys, one class of all bands."""
     import copy
-    prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=1))
+    prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=1,
+                                                   exact_rsqrt=not _pocl(sc)))
     p = copy.copy(sc)
     p.kernels = {**sc.kernels, **{k: cl.Kernel(prg, k) for k in ("gather_beam", "gather_beam_points",
                                                                   "photon_keys")}}
@@ -71,12 +92,15 @@ def scene(request, dev):
 def test_layouts_agree_per_pixel_and_band(scene):
     name, sc, cal = scene
     assert sc.beam and sc.gclass == 9 and sc.hz is not None
-    pix, pairs, M = _pass(sc, cal, p=1)
+    pix, pairs, M = _pass(_exact(sc), cal, p=1)
     ref_pix, ref_pairs, ref_M = _pass(_plain(sc), cal, p=1)
     assert pairs.sum() > 100 * sc.npix                     # not vacuous
     assert np.array_equal(M, ref_M)
     assert np.array_equal(pairs, ref_pairs)
-    assert np.array_equal(pix, ref_pix)
+    if _pocl(sc):
+        assert np.array_equal(pix, ref_pix)
+    else:   # the band vector's and the scalar loop's FMA contractions: 3e-6 measured on Intel
+        assert np.allclose(pix, ref_pix, rtol=2e-5, atol=0)
     # the image's top and bottom rows lie on the model's open sides (the view fits the 2 mm
     # in its 21 rows), where the disc's window is cut: they are compared too, and have light
     img = pix.reshape(sc.eye.camera.height, sc.eye.camera.width, -1).sum(-1)
