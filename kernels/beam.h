@@ -16,6 +16,43 @@
 #ifndef CLPPM_BEAM_H
 #define CLPPM_BEAM_H
 
+/* A photon of a layer-conforming layer is filed at the depth key phi_key of its fraction phi of
+ * the layer (photon_keys); a piece queries the key range of its phi range. */
+#define PHI_LO (-0.5f)
+#define PHI_HI 1.5f
+inline float phi_key(float4 vz, float phi) {
+    return vz.x - clamp(phi, PHI_LO, PHI_HI) * (vz.x - vz.y);
+}
+
+/* The depth-key range of a piece's query (photon_keys).  A conforming piece of a virtual layer
+ * L accepts photons of L whose conformed depth tb_r.x - phi (tb_r.x - tb_r.y) lies in its depth
+ * range [za, zb] (padded: 1e-2 um plus 1e-5 of the magnitudes, far above the rounding of
+ * either side's phi, which share the subtraction top - z), so phi in [(tb_r.x - zb)/H,
+ * (tb_r.x - za)/H]; a layer at most 1e-2 um thick at the ray's column takes every phi.  Any
+ * other query keeps its z range, widened by the largest shift of a virtual photon's key from
+ * its z (vlay[NL].z) where it reaches the virtual layers' z span (vlay[NL].xy). */
+inline void query_depth_keys(__constant const float4* vlay, int L, float2 tb_r, float za, float zb,
+                             float* lo, float* hi) {
+#ifndef FLAT
+    const float4 vz = L >= 0 ? vlay[L] : (float4)(0.0f);
+    if (vz.z != 0.0f) {
+        const float H = tb_r.x - tb_r.y;
+        const float pad = 1e-2f + 1e-5f * (fabs(tb_r.x) + fabs(za) + fabs(H));
+        float pa = PHI_LO, pb = PHI_HI;
+        if (H > 1e-2f) {
+            pa = (tb_r.x - (fmax(za, zb) + pad)) / H;
+            pb = (tb_r.x - (fmin(za, zb) - pad)) / H;
+        }
+        const float kpad = 1e-3f + 1e-5f * (fabs(vz.x) + fabs(vz.y));
+        *hi = phi_key(vz, pa) + kpad;
+        *lo = phi_key(vz, pb) - kpad;
+        return;
+    }
+    const float4 span = vlay[NL];
+    if (*hi >= span.x && *lo <= span.y) { *lo -= span.z; *hi += span.z; }
+#endif
+}
+
 #ifndef FLAT
 #define BEAM_CONFORM_SLAB_                                                                    \
     if (vert && (IF_VAR(Lk) >= 0 || (Lk + 1 <= NL && IF_VAR(Lk + 1) >= 0))) {                \

@@ -324,41 +324,6 @@ __kernel void count_within(const GridParams gp,
  * T(t*) is per band, from the optical depth at the piece's start plus mu_t of the piece's layer.
  * Phase: the photon's layer's g (the scattering happens at the photon). */
 
-#define PHI_LO (-0.5f)
-#define PHI_HI 1.5f
-inline float phi_key(float4 vz, float phi) {
-    return vz.x - clamp(phi, PHI_LO, PHI_HI) * (vz.x - vz.y);
-}
-
-/* The depth-key range of a piece's query (photon_keys).  A conforming piece of a virtual layer
- * L accepts photons of L whose conformed depth tb_r.x - phi (tb_r.x - tb_r.y) lies in its depth
- * range [za, zb] (padded: 1e-2 um plus 1e-5 of the magnitudes, far above the rounding of
- * either side's phi, which share the subtraction top - z), so phi in [(tb_r.x - zb)/H,
- * (tb_r.x - za)/H]; a layer at most 1e-2 um thick at the ray's column takes every phi.  Any
- * other query keeps its z range, widened by the largest shift of a virtual photon's key from
- * its z (vlay[NL].z) where it reaches the virtual layers' z span (vlay[NL].xy). */
-inline void query_depth_keys(__constant const float4* vlay, int L, float2 tb_r, float za, float zb,
-                             float* lo, float* hi) {
-#ifndef FLAT
-    const float4 vz = L >= 0 ? vlay[L] : (float4)(0.0f);
-    if (vz.z != 0.0f) {
-        const float H = tb_r.x - tb_r.y;
-        const float pad = 1e-2f + 1e-5f * (fabs(tb_r.x) + fabs(za) + fabs(H));
-        float pa = PHI_LO, pb = PHI_HI;
-        if (H > 1e-2f) {
-            pa = (tb_r.x - (fmax(za, zb) + pad)) / H;
-            pb = (tb_r.x - (fmin(za, zb) - pad)) / H;
-        }
-        const float kpad = 1e-3f + 1e-5f * (fabs(vz.x) + fabs(vz.y));
-        *hi = phi_key(vz, pa) + kpad;
-        *lo = phi_key(vz, pb) - kpad;
-        return;
-    }
-    const float4 span = vlay[NL];
-    if (*hi >= span.x && *lo <= span.y) { *lo -= span.z; *hi += span.z; }
-#endif
-}
-
 /* Top and bottom of each stored photon's layer at its own column (layer_slab), once per pass
  * instead of once per (piece, candidate): the beam gather's layer-conforming depth reads it. */
 __kernel void photon_slabs(__constant const Params* P, __constant const float4* iface,

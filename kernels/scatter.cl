@@ -37,35 +37,6 @@
 #error "scatter.cl: 9 bands per photon, all of one class of 9 (NB / GCLASS == 9)"
 #endif
 
-#define PHI_LO (-0.5f)
-#define PHI_HI 1.5f
-/* phi_key and query_depth_keys: gather.cl's, verbatim (the query's depth-key range) */
-inline float phi_key(float4 vz, float phi) {
-    return vz.x - clamp(phi, PHI_LO, PHI_HI) * (vz.x - vz.y);
-}
-
-inline void query_depth_keys(__constant const float4* vlay, int L, float2 tb_r, float za, float zb,
-                             float* lo, float* hi) {
-#ifndef FLAT
-    const float4 vz = L >= 0 ? vlay[L] : (float4)(0.0f);
-    if (vz.z != 0.0f) {
-        const float H = tb_r.x - tb_r.y;
-        const float pad = 1e-2f + 1e-5f * (fabs(tb_r.x) + fabs(za) + fabs(H));
-        float pa = PHI_LO, pb = PHI_HI;
-        if (H > 1e-2f) {
-            pa = (tb_r.x - (fmax(za, zb) + pad)) / H;
-            pb = (tb_r.x - (fmin(za, zb) - pad)) / H;
-        }
-        const float kpad = 1e-3f + 1e-5f * (fabs(vz.x) + fabs(vz.y));
-        *hi = phi_key(vz, pa) + kpad;
-        *lo = phi_key(vz, pb) - kpad;
-        return;
-    }
-    const float4 span = vlay[NL];
-    if (*hi >= span.x && *lo <= span.y) { *lo -= span.z; *hi += span.z; }
-#endif
-}
-
 #include "beam.h"
 
 inline float16 exp_neg16(float16 x) {
