@@ -16,6 +16,17 @@
 #ifndef CLPPM_BEAM_H
 #define CLPPM_BEAM_H
 
+/* exp_neg (common.h) on 16 lanes: both layouts' band math on one vector, the same bits per lane. */
+inline float16 exp_neg16(float16 x) {
+    const float16 y = fmax(x, 0.0f) * 1.44269504088896f;
+    const float16 n = floor(y);
+    const float16 t = (y - n - 0.5f) * 0.693147180559945f;
+    const float16 p = 1.0f - t * (1.0f - t * (0.5f - t * (1.0f / 6.0f - t * (1.0f / 24.0f
+                    - t * (1.0f / 120.0f - t * (1.0f / 720.0f))))));
+    const float16 r = as_float16((127 - convert_int16(n)) << 23) * (p * 0.707106781186548f);
+    return select(r, (float16)(0.0f), isless(y, (float16)(126.0f)) == 0);
+}
+
 /* A photon of a layer-conforming layer is filed at the depth key phi_key of its fraction phi of
  * the layer (photon_keys); a piece queries the key range of its phi range. */
 #define PHI_LO (-0.5f)

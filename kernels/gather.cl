@@ -55,18 +55,10 @@
 
 /* The beam gather's band math on one vector of 16 lanes (9 used) when a photon carries the 9
  * bands of its class (the default: 81 bands, 9 per path): the same float operations per band
- * as the scalar loop, lane by lane (exp_neg16 is exp_neg's expression), so the same bits. */
+ * as the scalar loop, lane by lane (exp_neg16, kernels/beam.h, is exp_neg's expression), so the
+ * same bits. */
 #if NBC == 9 && HERO_C == 9 && !defined(BAND_SCALAR)
 #define BAND16 1
-inline float16 exp_neg16(float16 x) {
-    const float16 y = fmax(x, 0.0f) * 1.44269504088896f;
-    const float16 n = floor(y);
-    const float16 t = (y - n - 0.5f) * 0.693147180559945f;
-    const float16 p = 1.0f - t * (1.0f - t * (0.5f - t * (1.0f / 6.0f - t * (1.0f / 24.0f
-                    - t * (1.0f / 120.0f - t * (1.0f / 720.0f))))));
-    const float16 r = as_float16((127 - convert_int16(n)) << 23) * (p * 0.707106781186548f);
-    return select(r, (float16)(0.0f), isless(y, (float16)(126.0f)) == 0);
-}
 #endif
 
 /* Volume of the sphere (centre height z, radius R) between the planes slab.x (top) and slab.y

@@ -39,16 +39,6 @@
 
 #include "beam.h"
 
-inline float16 exp_neg16(float16 x) {
-    const float16 y = fmax(x, 0.0f) * 1.44269504088896f;
-    const float16 n = floor(y);
-    const float16 t = (y - n - 0.5f) * 0.693147180559945f;
-    const float16 p = 1.0f - t * (1.0f - t * (0.5f - t * (1.0f / 6.0f - t * (1.0f / 24.0f
-                    - t * (1.0f / 120.0f - t * (1.0f / 720.0f))))));
-    const float16 r = as_float16((127 - convert_int16(n)) << 23) * (p * 0.707106781186548f);
-    return select(r, (float16)(0.0f), isless(y, (float16)(126.0f)) == 0);
-}
-
 __kernel void piece_points(__global const uint* pt_piece, const uint npts, __global uint* piece_pt)
 {
     const uint i = get_global_id(0);
