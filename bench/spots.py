@@ -40,7 +40,7 @@ def seeds_of(s: str) -> list[int]:
 
 
 def one_seed(dev, cfg, passes: int) -> dict:
-    from clppm import beam, ppm, transport
+    from clppm import beam, ppm, photonpass
     sc = ppm.setup(cfg, dev)
     if beam.layout(sc) != "scatter":
         raise SystemExit(f"the scatter layout is not available here: {beam.supports_scatter(sc)}")
@@ -53,7 +53,7 @@ def one_seed(dev, cfg, passes: int) -> dict:
     top = np.zeros(sc.npix, np.float64)
     for p in range(passes):
         ss.spots.fill(0)
-        info = ppm.run_pass(sc, cal, st, p, acc, transport.Tallies(sc.vol.nb, sc.vol.nl))
+        info = ppm.run_pass(sc, cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
         scale = 1.0 / max(info["emitted"], 1) if sc.global_radius else 1.0
         m = ss.spots.get().view(np.float32).astype(np.float64) * scale
         top = np.maximum(top, m)

@@ -111,14 +111,23 @@ def qmc_shift(seed: int, pass_index: int) -> tuple[int, int, int]:
 
 
 def storage_importance(vol: Volume) -> np.ndarray:
-    """(NL*NB, 2) float32 for importance-driven storage: the optical depth of a vertical path
-    from the surface to the nominal top of each layer, per band, and that top's z (um)."""
+    """(NL*NB + 2*NL, 2) float32 for importance-driven storage (kernels/photon.cl): per layer and
+    band the optical depth of a vertical path from the surface to the layer's nominal top and
+    that top's z (um); then per layer the bound's extremes over the bands: (least optical depth
+    at the top, least mu_t), (the top's z, least g, or -1 where some g < 0)."""
     depth = vol.layer_depths()[:-1]
     od = np.zeros((vol.nl, vol.nb))
     for L in range(1, vol.nl):
         od[L] = od[L - 1] + vol.mut[L - 1] * vol.thickness[L - 1]
-    t = np.stack([od, np.broadcast_to(-depth[:, None], od.shape)], -1)
-    return np.ascontiguousarray(t.reshape(-1, 2), np.float32)
+    t = np.stack([od, np.broadcast_to(-depth[:, None], od.shape)], -1).reshape(-1, 2)
+    g = vol.g.astype(np.float64)
+    gmin = np.where(g.min(1) >= 0, g.min(1), -1.0)
+    # float32 rounding of the per-band entries could put a band's od or mu_t below a bound taken
+    # in float64: take the extremes of the float32 values the kernel reads
+    od32, mut32 = od.astype(np.float32), vol.mut.astype(np.float32)
+    b = np.stack([np.stack([od32.min(1), mut32.min(1)], -1),
+                  np.stack([-depth.astype(np.float32), gmin.astype(np.float32)], -1)], 1).reshape(-1, 2)
+    return np.ascontiguousarray(np.concatenate([t, b]), np.float32)
 
 
 class PhotonPass:

@@ -75,29 +75,66 @@ inline int reenter(Track* t, VOLUME_ARGS, Rng* rng) {
 }
 
 /* Importance-driven storage (Peter & Pietrek 1998, in direction and depth instead of position).
- * A stored event of band b at depth z travelling along w counts, for an eye ray, as much as
- * HG(g, w . w_eye) T_b(z): most events travel away from the eye (the phase function of skin,
- * g = 0.73-0.85, peaks 20-50x above its mean) or lie where the eye rays' transmittance has
- * died, or carry little weight (absorbed on the way).  Storing each event with probability q
- * and weight 1/q is unbiased for any q > 0; with
- * q proportional to that importance the stored events become near-equal contributors, and the
- * budget of stored events per pass buys many more independent paths.  The importance is
- * bounded by taking the most favourable eye direction within the cone around +z (half angle
- * from the eye pass), relative to the phase function's peak, times the transmittance of a
- * vertical eye ray down to z in the hero band (imp = optical depth at the layer's nominal
- * top, that top's z), times the hero's weight.  Only a kept event computes its band weights
- * (spectral.h).  q never falls below store_qmin, which bounds the weight of a stored event. */
-inline float store_probability(__constant const Params* P, float3 d, float g, float a_h, float2 imp,
-                               float mut, float z) {
+ * A stored event travelling along w at depth z counts, for an eye ray, as much as
+ * sum_j F_j HG(g_j, w . w_eye) T_j(z) over the bands j it carries: most events travel away from
+ * the eye (the phase function of skin, g = 0.73-0.85, peaks 20-50x above its mean) or lie where
+ * the eye rays' transmittance has died, or carry little weight (absorbed on the way).  Storing
+ * each event with probability q and weight 1/q is unbiased for any q > 0; with q proportional
+ * to that importance the stored events become near-equal contributors, and the budget of stored
+ * events per pass buys many more independent paths.  The importance is bounded per band by the
+ * most favourable eye direction within the cone around +z (half angle from the eye pass),
+ * relative to the band's phase-function peak (hrel_j), times the transmittance T_j of a vertical
+ * eye ray down to z (imp = optical depth at the layer's nominal top, that top's z), times the
+ * band's weight a_j = F_j pi_j / s_j (its balance-heuristic share times its albedo product:
+ * a_h = W / W0 for one band per path, and sum_j a_j = A when the bands agree):
+ *
+ *     I = sum_j a_j hrel_j T_j,   q = clamp(store_scale I, store_qmin, 1).
+ *
+ * Every band enters, not the hero alone: a path whose hero is strongly absorbed (577 nm, the
+ * haemoglobin peak) while a band it carries is not (620 nm) had a hero-only I near 0, so q fell
+ * to store_qmin, and the carried band's F_j / q made single photons 10^3 times the median
+ * photon's contribution (bench/spots.py; issue 20).  With I over all bands every stored photon
+ * obeys F_j / q hrel_j T_j <= s_j / (pi_j store_scale) for every band it carries
+ * (tests/test_photonpass.py checks it). */
+/* the cosine within the eye cone closest to d (the most favourable eye direction) */
+inline float cone_cos(__constant const Params* P, float3 d) {
     const float c = d.z;
-    const float ce = c >= P->store_cos ? 1.0f
-                     : c * P->store_cos + sqrt(fmax(0.0f, 1.0f - c * c)) * P->store_sin;
-    const float ag = fabs(g);
+    return c >= P->store_cos ? 1.0f : c * P->store_cos + sqrt(fmax(0.0f, 1.0f - c * c)) * P->store_sin;
+}
+
+/* HG(g, ce) / max HG(g, .) */
+inline float hg_rel(float g, float ce) {
     const float a = 1.0f + g * g - 2.0f * g * ce;
-    const float omg = 1.0f - ag;
-    const float hrel = omg * omg * omg / (a * sqrt(a));          /* HG(g, ce) / max HG(g, .) */
-    const float T = exp_neg(imp.x + mut * fmax(0.0f, imp.y - z));
-    return clamp(P->store_scale * hrel * a_h * T, P->store_qmin, 1.0f);
+    const float omg = 1.0f - fabs(g);
+    return omg * omg * omg / (a * sqrt(a));
+}
+
+/* An upper bound of I for the event's layer, from per-layer extremes over all bands
+ * (store_imp[NL*NB + 2L]: the least optical depth at the layer's top and the least mu_t;
+ * [NL*NB + 2L + 1]: the top's z and the least g, or -1 when some g < 0) and the largest albedo
+ * product: sum_j a_j <= max_j A_j (the balance weights sum to 1), hrel_j <= hrel(g_min) (HG
+ * toward a fixed cosine below 1 falls as g grows), T_j <= exp(-(od_min + mu_min dz)).  An event
+ * whose uniform exceeds clamp(store_scale U) is not stored whatever q is, so I is computed only
+ * for the others (most events are dropped): the same decisions as computing q for every event. */
+inline float store_bound(__global const float2* store_imp, int L, float ce, float amax, float z) {
+    const float2 m = store_imp[NL * NB + 2 * L], zg = store_imp[NL * NB + 2 * L + 1];
+    const float hrel = zg.y >= 0.0f ? hg_rel(zg.y, ce) : 1.0f;
+    return 1.001f * hrel * exp_neg(m.x + m.y * fmax(0.0f, zg.x - z)) * amax;
+}
+
+inline float store_probability(__constant const Params* P, float ce, int L, int h, const float* F,
+                               __global const float2* band_spi, __global const float4* optics,
+                               __global const float2* store_imp, float z) {
+    float I = 0.0f;
+    for (int j = 0; j < HERO_C; ++j) {
+        const int bj = sw_band(h, j);
+        const float4 op = optics[L * NB + bj];
+        const float2 imp = store_imp[L * NB + bj];
+        const float2 spi = band_spi[bj];
+        const float T = exp_neg(imp.x + op.w * fmax(0.0f, imp.y - z));
+        I += spi.x > 0.0f ? F[j] * (spi.y / spi.x) * hg_rel(op.y, ce) * T : 0.0f;
+    }
+    return clamp(P->store_scale * I, P->store_qmin, 1.0f);
 }
 
 __kernel void photon_pass(VOLUME_ARGS,
@@ -206,15 +243,25 @@ __kernel void photon_pass(VOLUME_ARGS,
             if (W > 0 && op.x < 1.0f) {
                 if (P->capacity > 0u && t.pos.z > P->store_zmin) {
                     const float a_h = (float)W * (1.0f / W0F);
+                    float F[HERO_C];
                     float q = 1.0f;
                     int keep = 1;
                     if (P->store_rule == 1) {
-                        q = store_probability(P, t.dir, op.y, a_h, store_imp[t.L * NB + b], op.w, t.pos.z);
-                        keep = rng_u01(&srng) <= q;
+                        const float u = rng_u01(&srng);
+                        const float ce = cone_cos(P, t.dir);
+#ifndef STORE_EXACT                     /* tests: q for every event (the same decisions) */
+                        keep = u <= clamp(P->store_scale * store_bound(store_imp, t.L, ce, sw_amax(&sw, a_h), t.pos.z),
+                                          P->store_qmin, 1.0f);
+#endif
+                        if (keep) {
+                            sw_weights(&sw, a_h, band_spi, F);
+                            q = store_probability(P, ce, t.L, b, F, band_spi, optics, store_imp, t.pos.z);
+                            keep = u <= q;
+                        }
+                    } else {
+                        sw_weights(&sw, a_h, band_spi, F);
                     }
                     if (keep) {
-                        float F[HERO_C];
-                        sw_weights(&sw, a_h, band_spi, F);
                         const float iq = 1.0f / q;
                         for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
                         uint i = atomic_inc(store_count);

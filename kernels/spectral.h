@@ -114,6 +114,17 @@ inline void sw_scale(Spectral* w, float m) {
 #endif
 }
 
+/* the largest albedo product of the bands carried (a_h: the hero's, for one band per path) */
+inline float sw_amax(const Spectral* w, float a_h) {
+#if HERO_C > 1
+    float m = w->A[0];
+    for (int j = 1; j < HERO_C; ++j) m = fmax(m, w->A[j]);
+    return m;
+#else
+    return a_h;
+#endif
+}
+
 /* F_j of a stored event (see above); a_h is the hero's albedo product (its fixed-point weight) */
 inline void sw_weights(const Spectral* w, float a_h, __global const float2* band_spi, float* F) {
 #if HERO_C > 1
