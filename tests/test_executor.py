@@ -141,6 +141,24 @@ def test_two_workers_give_the_in_process_bytes(work, cfg, reference, client):
     assert st["pass_index"] == PASSES and not st["held"]
 
 
+def test_two_workers_in_the_scatter_layout_give_the_in_process_gather_bytes(work, dev, client):
+    """The atomic scatter layout (render.layout = "scatter", clppm/beam.py) on the cluster: the
+    tiny scene with 9 bands, all carried by every path (the layout's condition), rendered by
+    two workers in the scatter layout gives the in-process gather's EXR bytes."""
+    from clppm import beam
+    text = CONFIG.replace("start_nm = 450.0\nstop_nm = 650.0\nstep_nm = 50.0",
+                          "start_nm = 420.0\nstop_nm = 740.0\nstep_nm = 40.0")
+    assert text != CONFIG
+    (work / "nine.toml").write_text(text)
+    nine = C.load(str(work / "nine.toml"))
+    gat, sca = (C.override(nine, "render", "layout", v) for v in ("gather", "scatter"))
+    sc = ppm.setup(sca, dev)
+    assert beam.layout(sc) == "scatter", beam.supports_scatter(sc)
+    progressive.render(gat, dev=dev, out=str(work / "nine_ref" / "g.exr"))
+    executor.render_distributed(sca, client=client, out=str(work / "nine_two" / "s.exr"))
+    assert (work / "nine_two" / "s.exr").read_bytes() == (work / "nine_ref" / "g.exr").read_bytes()
+
+
 def test_stopped_run_resumes_to_the_same_bytes(work, cfg, reference, client):
     out = work / "stop" / "s.exr"
     ck = ckpt.default_path(str(out))
