@@ -146,6 +146,9 @@ def markdown(res: tuple, ref, runs: list) -> str:
             lines.append(f"- {r['mode']} {r['method']}, {m['passes']} passes, Y per square by ring: "
                          + "; ".join(f"{k} ({v['squares']}) {100 * v['mean']:+.2f} % mean, {100 * v['rms']:.2f} % RMS"
                                      for k, v in g.items()))
+            if "seed_Y_max" in m:
+                lines.append(f"- {r['mode']} {r['method']}, {m['passes']} passes, worst square of each seed "
+                             f"(1, 2, ...): " + ", ".join(f"{100 * v:.2f} %" for v in m["seed_Y_max"]))
     return "\n".join(lines)
 
 

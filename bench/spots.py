@@ -1,4 +1,4 @@
-"""Bright single-photon spots (issue 20, point 5): the tail only, measured, not changed.
+"""Bright single-photon spots (issue 20, point 5): the tail of single photons' contributions.
 
 Some seeds show a 2x2-pixel spot many times its surroundings: one stored photon whose storage
 weight 1/q meets a forward-peaked phase value toward the eye.  Per seed, this renders
@@ -13,6 +13,12 @@ one pair, where it is, and how many pixels one pair holds more than 10 %, 25 %, 
 
 A pair is one photon with one eye-ray sample point; with one ray per pixel a photon meets a
 ray at one depth, so this is the photon's share up to the rare ray that crosses its depth twice.
+
+``--photons-tail`` measures the cause instead, on the stored photons of ``--passes`` photon
+passes (seed 1): per photon and carried band j the largest contribution it can make toward the
+eye cone, X_j = F_j/q HG_j(the cone's most favourable cosine) T_j(vertical eye ray to its
+depth), and prints the quantiles of X = sum_j X_j over its median, the hero band's share, and
+the 12 largest photons (hero band, the band that holds X, layer, depth).
 """
 from __future__ import annotations
 
@@ -76,6 +82,52 @@ def one_seed(dev, cfg, passes: int) -> dict:
             "pixels_over_50pct": int((share > 0.50).sum()), "npix": int(sc.npix)}
 
 
+def photon_tail(dev, cfg, passes: int) -> dict:
+    """Per stored photon: X_j (see the module docstring), over ``passes`` photon passes."""
+    import math
+    import pyopencl as cl
+    from clppm import ppm, photonpass
+    sc = ppm.setup(cfg, dev)
+    cal = ppm.calibrate(sc)
+    ppm.prepare(sc, cal)
+    pp, vol = sc.pp, sc.vol
+    NB, C = vol.nb, pp.hero
+    parts = []
+    for p in range(passes):
+        n = pp.run_pass(p, sc.target, photonpass.Tallies(vol.nb, vol.nl))["stored"]
+        pw = np.empty((n, 4), np.float32); db = np.empty((n, 4), np.float32)
+        ex = np.empty((n, max(C - 1, 1)), np.float32)
+        for a, b in ((pw, pp.pos_w), (db, pp.dir_b), (ex, pp.extra)):
+            cl.enqueue_copy(dev.queue, a, b)
+        parts.append((pw, db, ex[:, :C - 1]))
+    pw, db, ex = (np.concatenate([q[i] for q in parts]) for i in range(3))
+    code = db[:, 3].astype(int)
+    h, L = code & 255, code >> 8
+    F = np.concatenate([pw[:, 3:4], ex], 1).astype(np.float64)
+    bands = (h[:, None] + np.arange(C)[None] * (NB // C)) % NB
+    imp = photonpass.storage_importance(vol)[:vol.nl * NB].reshape(vol.nl, NB, 2).astype(np.float64)
+    opt = vol.optics_table().reshape(vol.nl, NB, 4).astype(np.float64)
+    g, mut = opt[L[:, None], bands, 1], opt[L[:, None], bands, 3]
+    z = pw[:, 2:3].astype(np.float64)
+    T = np.exp(-(imp[L[:, None], bands, 0] + mut * np.maximum(0, imp[L[:, None], bands, 1] - z)))
+    c = db[:, 2].astype(np.float64)
+    cs, sn = float(pp.p["store_cos"][0]), float(pp.p["store_sin"][0])
+    ce = np.where(c >= cs, 1.0, c * cs + np.sqrt(np.maximum(0, 1 - c * c)) * sn)[:, None]
+    X = F * (1 - g * g) / (4 * math.pi) / (1 + g * g - 2 * g * ce) ** 1.5 * T
+    Xs = X.sum(1)
+    med = float(np.median(Xs))
+    qs = [0.9, 0.99, 0.999, 0.9999, 1.0]
+    top = np.argsort(Xs)[::-1][:12]
+    wl = vol.wl
+    return {"photons": int(len(Xs)), "passes": passes,
+            "quantiles_over_median": {str(q): float(np.quantile(Xs, q) / med) for q in qs},
+            "hero_share_mean": float(np.mean(X[:, 0] / np.maximum(Xs, 1e-300))),
+            "top": [{"X_over_median": float(Xs[i] / med), "hero_nm": float(wl[h[i]]),
+                     "holding_nm": float(wl[bands[i, np.argmax(X[i])]]),
+                     "holding_share": float(X[i].max() / Xs[i]), "hero_share": float(X[i, 0] / Xs[i]),
+                     "layer": int(L[i]), "z_um": float(z[i, 0])} for i in top]}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default=os.path.join(ROOT, "configs", "forearm.toml"))
@@ -84,11 +136,27 @@ def main(argv=None) -> int:
     ap.add_argument("--passes", type=int, default=None, help="default: the config's")
     ap.add_argument("--photons", type=int, default=None, help="stored photons per pass (default: the config's)")
     ap.add_argument("--device", default=None)
+    ap.add_argument("--photons-tail", action="store_true", help="the stored photons' largest contributions (the cause)")
     ap.add_argument("--out", default=os.path.join(ROOT, "out", "bench_spots.json"))
     a = ap.parse_args(argv)
     from clppm import config as C, progressive
     from clppm.device import open_device
     dev = open_device(a.device)
+    if a.photons_tail:
+        cfg = progressive.apply_overrides(C.load(a.config), resolution=tuple(a.res), photons=a.photons)
+        r = photon_tail(dev, cfg, a.passes or 2)
+        print(f"{r['photons']} stored photons, {r['passes']} passes; X / median X at quantiles: "
+              + ", ".join(f"{q}: {v:.0f}" for q, v in r["quantiles_over_median"].items())
+              + f"; the hero band's mean share of X {r['hero_share_mean']:.2f}")
+        print("| X / median | hero nm | X held by (nm) | its share | hero's share | layer | z um |")
+        print("|---:|---:|---:|---:|---:|---:|---:|")
+        for t in r["top"]:
+            print(f"| {t['X_over_median']:.0f} | {t['hero_nm']:.0f} | {t['holding_nm']:.0f} | "
+                  f"{t['holding_share']:.2f} | {t['hero_share']:.3f} | {t['layer']} | {t['z_um']:.1f} |")
+        os.makedirs(os.path.dirname(a.out), exist_ok=True)
+        with open(a.out, "w") as f:
+            json.dump(r, f, indent=1)
+        return 0
     base = progressive.apply_overrides(C.load(a.config), resolution=tuple(a.res), photons=a.photons)
     base = C.override(base, "render", "layout", "scatter")
     passes = a.passes or int(base["render"]["passes"])

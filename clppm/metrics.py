@@ -182,7 +182,8 @@ def accuracy_of_seeds(images: list, ref) -> dict:
         noise = float(np.sqrt(np.mean(d * d) / 2))
         resid = m["block_Y_rms"] ** 2 - noise ** 2 / n - ref.error["block_Y_rms"] ** 2
         m.update(one_Y_rms=one["block_Y_rms"], one_Y_max=one["block_Y_max"], noise_Y_rms=noise,
-                 bias_Y_rms=float(np.sqrt(max(resid, 0.0))))
+                 bias_Y_rms=float(np.sqrt(max(resid, 0.0))),
+                 seed_Y_max=[float(accuracy(x, s, sq)["block_Y_max"]) for x, s in images])
         rel = np.mean([x[..., 1] for x, _ in images], 0)[ref.mask] / Yr - 1
         se = square_standard_errors(images, ref)[ref.mask]
         m.update(beyond(rel, se, BIAS_BOUND))

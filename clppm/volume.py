@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -157,7 +158,7 @@ def generated_relief(nx, ny, dx, dy, depth, spacing, width, seed, periodic):
     h = np.zeros((ny, nx))
     xs = (np.arange(nx) + 0.5) * dx
     period = (nx * dx, ny * dy) if periodic else None
-    for j0 in range(0, ny, 256):
+    def rows(j0):
         j1 = min(ny, j0 + 256)
         y = ((np.arange(j0, j1) + 0.5) * dy)[:, None] * np.ones((1, nx))
         x = np.ones((j1 - j0, 1)) * xs[None, :]
@@ -165,6 +166,11 @@ def generated_relief(nx, ny, dx, dy, depth, spacing, width, seed, periodic):
         e2 = _worley_edges(x, y, spacing / 3.0, seed + 1, period)
         h[j0:j1] = -depth * np.exp(-(e1 / (0.5 * width)) ** 2) \
                    - 0.4 * depth * np.exp(-(e2 / (0.4 * width)) ** 2)
+
+    # blocks of rows are independent and numpy releases the GIL on them: one thread per core
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 8))) as ex:
+        list(ex.map(rows, range(0, ny, 256)))
     return h - h.max()
 
 
