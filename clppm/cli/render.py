@@ -50,11 +50,29 @@ def _check_render_paths(a, cfg) -> None:
     check_resume_passes(a.resume, passes, "--passes" if a.passes is not None else "render.passes")
 
 
+def _import_renderers() -> None:
+    """Import the renderers (pyopencl, numpy's and colour's native modules) with SIGINT and
+    SIGTERM blocked: the handlers raise, and an exception inside a native module's init aborts
+    the process (nanobind: "Critical nanobind error", exit -6) instead of exiting 130 / 143.  A
+    signal sent meanwhile is delivered as soon as the mask is restored, before the output lock."""
+    sigs = {signal.SIGINT, signal.SIGTERM}
+    try:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    except (AttributeError, ValueError, OSError):     # no pthread_sigmask, or not the main thread
+        old = None
+    try:
+        from .. import pathtracer, progressive  # noqa: F401
+    finally:
+        if old is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 def cmd_render(a) -> int:
     from .. import paths
     from ..driver import interrupt_signal
     cfg = _render_config(a)
     _check_render_paths(a, cfg)
+    _import_renderers()
     with paths.OutputLock(a.output):
         paths.check_checkpoint_free(a.output, a.resume, a.force)
         if a.integrator == "pt":
