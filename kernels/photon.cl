@@ -95,7 +95,9 @@ inline int reenter(Track* t, VOLUME_ARGS, Rng* rng) {
  * to store_qmin, and the carried band's F_j / q made single photons 10^3 times the median
  * photon's contribution (bench/spots.py; issue 20).  With I over all bands every stored photon
  * obeys F_j / q hrel_j T_j <= s_j / (pi_j store_scale) for every band it carries
- * (tests/test_photonpass.py checks it). */
+ * (tests/test_spectral.py checks it); store_probability below computes q, store_bound a
+ * per-layer upper bound of it. */
+
 /* the cosine within the eye cone closest to d (the most favourable eye direction) */
 inline float cone_cos(__constant const Params* P, float3 d) {
     const float c = d.z;
