@@ -47,12 +47,15 @@ BIN_LABELS = ["1", "2", "3", "4", "5-8", "9-16", "17-64", "65+"]
 STATS = ["vertices", "nee_made", "nee_blocked", "paths_cut"]
 SCHEME = "path tracer: NEE through the flat interfaces, one band per path"
 SCHEME_RELIEF = ("path tracer: manifold NEE through the smooth height-field interfaces "
-                 "(Newton from the flat seed and several more, distinct solutions summed), one band per path")
+                 "(the flat-seeded solution, the others by unbiased specular manifold sampling), "
+                 "one band per path")
+# kernels/pt.cl pix_mnee, in this order (NMNEE)
 MNEE_STATS = ["solves", "solved", "newton_iterations", "continued", "vertex_above_smooth_surface",
-              "solutions"]
-# Seeds per connection beyond the flat one (relief): the light paths through a furrow or over a
-# papilla can be several (caustics); every distinct one found is added (docs/relief.md)
-MNEE_SEEDS = 8
+              "solutions", "found", "other_solutions", "recurrence_trials", "clamped"]
+# Random trials of specular manifold sampling per connection (relief): the light paths through a
+# furrow or over a papilla can be several (caustics); a trial that finds one other than the
+# flat-seeded solution adds it weighted by its trial count to recur (docs/relief.md)
+MNEE_TRIALS = 1
 FLAT_REF = "configs/forearm_flat.toml"
 
 
@@ -156,7 +159,7 @@ class PathTracer:
         e["specular"] = 1 if rc.specular else 0
         e["rr_threshold"], e["rr_m"], e["max_vertices"] = RR_THRESHOLD, RR_M, MAX_VERTICES
         e["nee_od"], e["nee_q_floor"] = NEE_OD, NEE_Q_FLOOR
-        e["mnee_seeds"] = MNEE_SEEDS
+        e["mnee_trials"] = MNEE_TRIALS
         self.e = e
         self.ebuf = cl.Buffer(dev.ctx, mf.READ_ONLY, S.PT_DTYPE.itemsize)
         nb = vol.nb
@@ -225,7 +228,7 @@ def run_identity(cfg: dict, dev: Device, tracer: PathTracer) -> dict:
     keep = json.loads(json.dumps(cfg, default=str))
     keep["render"] = {k: v for k, v in keep["render"].items() if k not in C.NOT_PICTURE}
     return {"integrator": "pt", "config": keep, "device": dev.name, "npix": tracer.npix,
-            "nb": tracer.vol.nb, "nbin": NBIN, **({} if tracer.vol.flat else {"mnee_seeds": MNEE_SEEDS})}
+            "nb": tracer.vol.nb, "nbin": NBIN, **({} if tracer.vol.flat else {"mnee": ["sms", MNEE_TRIALS]})}
 
 
 def band_scale(light: Light, bands: Bands) -> np.ndarray:
@@ -306,19 +309,27 @@ def _finish(tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_start,
 
 
 def mnee_report(tot: list[int]) -> dict:
-    """The run report's solver statistics: success rate, iterations, failures."""
+    """The run report's solver statistics: success rate, iterations, failures, clamping."""
     d = dict(zip(MNEE_STATS, tot))
-    n, ok = d["solves"], d["solved"]
-    d["success_rate"] = ok / n if n else None
-    d["failed_share"] = (n - ok) / n if n else None
-    d["mean_iterations"] = d["newton_iterations"] / n if n else None
-    d["continued_share"] = d["continued"] / n if n else None
-    d["mean_solutions"] = d["solutions"] / n if n else None
-    d["seeds_per_connection"] = 1 + MNEE_SEEDS
+    n = d["solves"]
+
+    def share(k):
+        return d[k] / n if n else None
+    d["success_rate"] = share("found")                 # at least one light path found
+    d["flat_seeded_rate"] = share("solved")
+    d["failed_share"] = (n - d["found"]) / n if n else None
+    d["mean_iterations"] = share("newton_iterations")
+    d["continued_share"] = share("continued")
+    d["mean_solutions"] = share("solutions")
+    d["other_solution_share"] = share("other_solutions")
+    d["clamped_share"] = d["clamped"] / d["other_solutions"] if d["other_solutions"] else 0.0
+    d["trials_per_connection"] = MNEE_TRIALS + (d["recurrence_trials"] / n if n else 0.0)
     d["method"] = ("Newton on the landing constraint over the ray's momentum at the vertex, "
                    "ray differentials for the Jacobian, step halving, seeded by the flat solution; "
-                   "where that fails, continuation from the flat surfaces; then Newton from "
-                   f"{MNEE_SEEDS} more seeds around it, every distinct solution added (docs/relief.md)")
+                   "where that fails, continuation from the flat surfaces; the other solutions by "
+                   f"specular manifold sampling, unbiased: {MNEE_TRIALS} random trial(s) per connection, "
+                   "a solution found weighted by the trials until it recurs (capped at 64: clamped) "
+                   "(docs/relief.md)")
     return d
 
 
@@ -457,25 +468,26 @@ def connect_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, 
 
 
 def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mode: int = 0,
-               seeds: np.ndarray | None = None) -> dict:
+               seeds: np.ndarray | None = None, trials: int = MNEE_TRIALS, salt: int = 0) -> dict:
     """Run the kernel's manifold connection (relief builds) for vertices ``verts`` (n, 4: x, y, z
     um, a layer guess) to the light at ``light_um``; mode as connect_probe.  Returns ok,
     iterations, halvings, G, the factor (band 0), the Fresnel product, cos theta_v, cos theta_a,
     u, wsel, the vertex's layer, the landing error, and the chain's points (n, 8: x, y, z,
     layer, upward normal, 0; vertex first, the light's height last).  ``seeds`` (n, 2): Newton
     on the surfaces from these momenta instead of the flat seed (no continuation).  Without
-    seeds also ``all_factor`` and ``solutions``: the render's connection, every distinct solution
-    of the flat seed and the MNEE_SEEDS more summed (band 0, isotropic phase function x 4 pi)."""
+    seeds also ``all_factor``, ``solutions``, ``trials`` and ``clamped``: one sample of the
+    render's connection (specular manifold sampling with ``trials`` random trials, random stream
+    (vertex index, ``salt``); band 0, isotropic phase function x 4 pi)."""
     assert not vol.flat
     pr = _Probe(dev, vol, verts, light_um, 20, 8)
     n = pr.n
     sd = np.ascontiguousarray(seeds if seeds is not None else np.zeros((n, 2)), pr.real)
     out, pts = pr.run("t_mnee", pr.buffer(vol.smooth.reshape(-1)), np.int32(mode), np.uint32(n),
                       pr.vbuf, pr.obuf, pr.qbuf, np.int32(seeds is not None), pr.buffer(sd),
-                      np.int32(MNEE_SEEDS), smooth_first=True)
+                      np.int32(trials), np.uint32(salt), smooth_first=True)
     npts = out[:, 12].astype(int)
     keys = ["ok", "iters", "halvings", "G", "factor", "F", "cos_v", "cos_a", "ux", "uy", "wsel",
-            "layer", "npts", "err", "built", "why", "all_factor", "solutions"]
+            "layer", "npts", "err", "built", "why", "all_factor", "solutions", "trials", "clamped"]
     r = {k: out[:, j] for j, k in enumerate(keys)}
     r["continued"] = r["ok"] >= 2
     r["ok"] = (r["ok"] % 2) > 0

@@ -73,10 +73,13 @@ typedef struct {
     int max_vertices;           /* safety bound per path (counted as cut) */
     float nee_od;               /* NEE roulette: optical depth straight up beyond which ... */
     float nee_q_floor;          /* ... the connection is made with probability exp(nee_od - od) */
-    int mnee_seeds;             /* relief: seeds beyond the flat one per connection (mnee.h) */
+    int mnee_trials;            /* relief: random trials of manifold sampling per connection */
 } PtParams;
 
 #define MAXE (4 * NL + 8)       /* chain events; a longer chain (R^4 smaller) counts as blocked */
+#define NMNEE 10                /* solver counts per pixel (clppm/pathtracer.py MNEE_STATS) */
+/* Counts of specular manifold sampling over a pixel's connections (relief builds) */
+typedef struct { uint found, other, trials, clamped; } SmsStat;
 #define NBIN 8                  /* contribution by vertex index: 1, 2, 3, 4, 5-8, 9-16, 17-64, 65+ */
 
 /* The chain tables (host, clppm/pathtracer.py chain_tables): r0[i] normal-incidence Fresnel R
@@ -341,47 +344,87 @@ inline float connect_mnee(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift,
     return mnee_factor(T, ch, shift, b, P, optics, dirL);
 }
 
-#define MN_MAXSOL 8             /* distinct solutions kept per connection */
+#ifdef PT_FP64
+#define MN_SAME 1e-6            /* two converged momenta closer than this are one solution */
+#else
+#define MN_SAME 1e-4f
+#endif
+#define MN_SMS_SIGMA 0.2        /* momentum spread of the random seeds around the flat seed */
+#define MN_SMS_CAP 64           /* trials to a solution's recurrence, then clamped (counted) */
 
-/* Every light path through the chain that the flat seed (with continuation) and nseeds more
- * seeds around it find (Newton on the surfaces from each), distinct ones summed, each with its
- * own phase function value for the path direction wdir: the several-seeds estimator (bias: the
- * solutions no seed reaches; docs/relief.md).  *nsol: distinct solutions found. */
-inline float connect_mnee_all(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift, int b,
-                              float g, float4 wdir, int nseeds,
+/* One random trial: Newton on the surfaces from a seed u0 + N(0, sigma^2) in each component of
+ * the momentum (Box-Muller; full support, so every solution's basin has a chance). */
+inline int sms_trial(const Chain* ch, real4 v, int Ls, real u0x, real u0y, real4 l, Rng* rng,
+                     __constant const Params* P, __constant const float4* iface,
+                     __constant const float* layer_n, __global const float* smooth,
+                     real* ux, real* uy, Trace* T, MneeStat* st) {
+    const float r = MN_SMS_SIGMA * sqrt(2.0f * neg_log_u01(rng_u01(rng)));
+    const float ph = 2.0f * PI_F * rng_u01(rng);
+    *ux = u0x + (real)(r * cos(ph)); *uy = u0y + (real)(r * sin(ph));
+    MneeStat s2;
+    s2.iters = 0; s2.halvings = 0; s2.cont = 0; s2.traces = MN_BUDGET - MN_SEED_BUDGET;
+    const int ok = mnee_newton(ch, v, Ls, ux, uy, l, 1, P, iface, layer_n, smooth, T, &s2);
+    st->iters += s2.iters;
+    return ok;
+}
+
+inline int same_solution(real ax, real ay, real bx, real by) {
+    return fabs(ax - bx) + fabs(ay - by) < MN_SAME;
+}
+
+/* The number of random trials until the solution a recurs (its estimate of 1/p(a), p the chance
+ * that a trial finds a), at most MN_SMS_CAP. */
+inline int sms_recurrence(const Chain* ch, real4 v, int Ls, real u0x, real u0y, real4 l, Rng* rng,
+                          real ax, real ay, __constant const Params* P, __constant const float4* iface,
+                          __constant const float* layer_n, __global const float* smooth,
+                          MneeStat* st, SmsStat* ss) {
+    for (int n = 1; n < MN_SMS_CAP; ++n) {
+        real bx, by;
+        Trace T;
+        ss->trials++;
+        if (sms_trial(ch, v, Ls, u0x, u0y, l, rng, P, iface, layer_n, smooth, &bx, &by, &T, st)
+            && same_solution(ax, ay, bx, by)) return n;
+    }
+    ss->clamped++;
+    return MN_SMS_CAP;
+}
+
+/* Every light path through the chain, by specular manifold sampling (Zeltner, Georgiev & Jakob
+ * 2020, unbiased variant), each with its own phase function value for the path direction wdir.
+ * The flat-seeded solution x0 (Newton, continuation: mnee_solve) is added as it is.  The others
+ * by ntrials random trials (sms_trial): a trial that finds a solution x other than x0 adds f(x)
+ * times the number of further trials until x recurs, an estimate of 1/p(x); so the expected sum
+ * is that of f over every solution other than x0 that a trial can reach (any: the seeds have full
+ * support), whatever their number.  Bias only from the cap (counted: ss->clamped). */
+inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift, int b,
+                              float g, float4 wdir, int ntrials, Rng* rng,
                               __constant const Params* P, __constant const float4* iface,
                               __constant const float* layer_n, __global const float4* optics,
-                              __global const float* smooth, MneeStat* st, int* nsol) {
+                              __global const float* smooth, MneeStat* st, SmsStat* ss, int* nsol) {
     const real4 l = R4((real)lpos.x, (real)lpos.y, (real)lpos.z);
     real u0x, u0y;
     mnee_seed(ch, v, l, P, iface, layer_n, smooth, &u0x, &u0y);
-    real sx[MN_MAXSOL], sy[MN_MAXSOL];
-    int ns = 0;
     float c = 0.0f;
     Trace T;
     float4 dl;
-    real ux = u0x, uy = u0y;
-    if (mnee_solve(ch, v, Ls, &ux, &uy, l, P, iface, layer_n, smooth, &T, st)) {
-        sx[0] = ux; sy[0] = uy; ns = 1;
+    real sx = u0x, sy = u0y;
+    const int have0 = mnee_solve(ch, v, Ls, &sx, &sy, l, P, iface, layer_n, smooth, &T, st);
+    if (have0) {
         const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
         if (f > 0.0f) c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz));
     }
-    for (int j = 0; j < nseeds && ns < MN_MAXSOL; ++j) {
-        /* rings of momentum offsets 0.1 and 0.25, golden-angle directions */
-        const real rad = (j & 1) ? (real)0.25 : (real)0.1;
-        const real ph = (real)2.39996322972865 * (real)j;
-        ux = u0x + rad * cos(ph); uy = u0y + rad * sin(ph);
-        MneeStat s2;
-        s2.iters = 0; s2.halvings = 0; s2.cont = 0; s2.traces = MN_BUDGET - MN_SEED_BUDGET;
-        if (!mnee_newton(ch, v, Ls, &ux, &uy, l, 1, P, iface, layer_n, smooth, &T, &s2)) continue;
-        st->iters += s2.iters;
-        int dup = 0;
-        for (int q = 0; q < ns; ++q) dup |= fabs(sx[q] - ux) + fabs(sy[q] - uy) < (real)1e-6;
-        if (dup) continue;
-        sx[ns] = ux; sy[ns] = uy; ns++;
+    int ns = have0;
+    for (int j = 0; j < ntrials; ++j) {
+        real ax, ay;
+        if (!sms_trial(ch, v, Ls, u0x, u0y, l, rng, P, iface, layer_n, smooth, &ax, &ay, &T, st)) continue;
+        if (have0 && same_solution(ax, ay, sx, sy)) continue;
+        ss->other++; ns++;
         const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
-        if (f > 0.0f) c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz));
+        if (!(f > 0.0f)) continue;
+        const int n = sms_recurrence(ch, v, Ls, u0x, u0y, l, rng, ax, ay, P, iface, layer_n, smooth, st, ss);
+        c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz)) * (float)n / (float)ntrials;
     }
+    ss->found += ns > 0;
     *nsol = ns;
     return c;
 }
@@ -494,7 +537,7 @@ __kernel void pt_pass(VOLUME_ARGS,
                       __global ulong* pix_stats,        /* [npix * 4] vertices, NEE made, blocked, cut */
                       __global double* pix_bins,        /* [npix * NBIN] value by vertex index */
                       __global const float* smooth,     /* Volume.smooth (relief builds) */
-                      __global ulong* pix_mnee)         /* [npix * 6] clppm/pathtracer.py MNEE_STATS */
+                      __global ulong* pix_mnee)         /* [npix * NMNEE] clppm/pathtracer.py MNEE_STATS */
 {
     const uint gid = (uint)get_global_id(0);
     if (gid >= E->count) return;
@@ -504,6 +547,7 @@ __kernel void pt_pass(VOLUME_ARGS,
     const float3 lpos = (float3)(E->lx, E->ly, E->lz);
     ulong nvert = 0, nmade = 0, nblock = 0, ncut = 0;
     ulong m_try = 0, m_ok = 0, m_it = 0, m_cont = 0, m_mis = 0, m_sol = 0;
+    SmsStat ss = {0u, 0u, 0u, 0u};
     double bins[NBIN];
     for (int i = 0; i < NBIN; ++i) bins[i] = 0.0;
     const int nimg = P->lateral == 2 ? 1 : 0;           /* periodic: images -1..1 in x and y */
@@ -588,9 +632,9 @@ __kernel void pt_pass(VOLUME_ARGS,
                                     const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
                                     MneeStat ms;
                                     int nsol;
-                                    c += connect_mnee_all(&ch, vr, Ls, (float4)(lpos - (float3)(sh, 0.0f), 0.0f), sh, b,
-                                                          op.y, (float4)(t.dir, 0.0f), E->mnee_seeds, P, iface, layer_n, optics,
-                                                          smooth, &ms, &nsol);
+                                    c += connect_mnee_sms(&ch, vr, Ls, (float4)(lpos - (float3)(sh, 0.0f), 0.0f), sh, b,
+                                                          op.y, (float4)(t.dir, 0.0f), E->mnee_trials, &rng, P, iface,
+                                                          layer_n, optics, smooth, &ms, &ss, &nsol);
                                     m_try++; m_ok += (ulong)ms.ok; m_it += (ulong)ms.iters;
                                     m_cont += (ulong)ms.cont; m_sol += (ulong)nsol;
                                 }
@@ -665,8 +709,9 @@ __kernel void pt_pass(VOLUME_ARGS,
     }
     __global ulong* st = pix_stats + (size_t)pix * 4;
     st[0] += nvert; st[1] += nmade; st[2] += nblock; st[3] += ncut;
-    __global ulong* sm = pix_mnee + (size_t)pix * 6;
+    __global ulong* sm = pix_mnee + (size_t)pix * NMNEE;
     sm[0] += m_try; sm[1] += m_ok; sm[2] += m_it; sm[3] += m_cont; sm[4] += m_mis; sm[5] += m_sol;
+    sm[6] += ss.found; sm[7] += ss.other; sm[8] += ss.trials; sm[9] += ss.clamped;
     for (int i = 0; i < NBIN; ++i) pix_bins[(size_t)pix * NBIN + i] += bins[i];
 }
 
@@ -727,14 +772,15 @@ __kernel void t_connect(VOLUME_ARGS, __constant const float* chain, const float4
 
 #ifndef FLAT
 /* For each vertex (xyz; its layer is found on the smooth surfaces): the chain (mode as t_connect)
- * connected through the height fields.  out[i * 16 + ...] = ok, Newton iterations, halvings, G,
+ * connected through the height fields.  out[i * 20 + ...] = ok, Newton iterations, halvings, G,
  * factor (band 0), Fresnel product, cos theta_v, cos theta_a, u_x, u_y, selection probability,
- * vertex layer, number of points, landing error, chain built; pts[(i * (MAXE + 2) + j) * 8 + ...]
+ * vertex layer, number of points, landing error, chain built, why, one sample of the render's
+ * connection (salt), its solutions, trials and clamped; pts[(i * (MAXE + 2) + j) * 8 + ...]
  * = x, y, z, layer of the segment ending there (-1 air), upward normal there (0 at the ends). */
 __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const float* smooth,
                      const float4 light, const int mode, const uint n, __global const float4* verts,
                      __global real* out, __global real* pts, const int use_seeds,
-                     __global const real* seeds, const int mnee_seeds) {
+                     __global const real* seeds, const int mnee_trials, const uint salt) {
     const uint i = (uint)get_global_id(0);
     if (i >= n) return;
     __global real* o = out + (size_t)i * 20;
@@ -764,15 +810,18 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
                          smooth, &dl, &ms, &T);
     }
     if (use_seeds == 0) {
-        /* the render's connection: every distinct solution of the flat seed and MNEE seeds
-         * (isotropic phase function, times 4 pi: the sum of the factors) */
+        /* the render's connection, one sample of it with the random stream (i, salt):
+         * specular manifold sampling (isotropic phase function, times 4 pi: the sum of the factors) */
         MneeStat s3;
+        SmsStat ss = {0u, 0u, 0u, 0u};
         int nsol;
         Chain c2 = ch;
-        o[16] = 4 * PI_F * connect_mnee_all(&c2, v, Ls, (float4)(light.xyz, 0.0f), (float2)(0.0f), 0, 0.0f,
-                                            (float4)(0.0f, 0.0f, 1.0f, 0.0f), mnee_seeds, P, iface, layer_n,
-                                            optics, smooth, &s3, &nsol);
-        o[17] = nsol;
+        Rng r2;
+        rng_init(&r2, i, salt, 7u, 12345u, 0u);
+        o[16] = 4 * PI_F * connect_mnee_sms(&c2, v, Ls, (float4)(light.xyz, 0.0f), (float2)(0.0f), 0, 0.0f,
+                                            (float4)(0.0f, 0.0f, 1.0f, 0.0f), mnee_trials, &r2, P, iface,
+                                            layer_n, optics, smooth, &s3, &ss, &nsol);
+        o[17] = nsol; o[18] = ss.trials; o[19] = ss.clamped;
     }
     o[0] = ms.ok + 2 * ms.cont; o[1] = ms.iters; o[2] = ms.halvings; o[15] = T.why;
     o[13] = sqrt(T.c[0] * T.c[0] + T.c[1] * T.c[1]);
