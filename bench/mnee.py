@@ -78,7 +78,11 @@ def main(argv=None) -> int:
            "manifold_all_runs": pt.mnee_report(tot)}
     print(f"cost per path, relief / flat (best of {a.repeat}): {ratio:.2f}x; "
           f"solver success {out['manifold_all_runs']['success_rate']:.5f} over {tot[0]} connections, "
-          f"{out['manifold_all_runs']['mean_iterations']:.2f} Newton iterations per connection")
+          f"{out['manifold_all_runs']['mean_iterations']:.2f} Newton iterations per connection; "
+          f"flat-seeded {out['manifold_all_runs']['flat_seeded_rate']:.5f}, other solutions "
+          f"{out['manifold_all_runs']['other_solution_share']:.4f} per connection, clamped "
+          f"{out['manifold_all_runs']['clamped_share']:.4f} of them, trials "
+          f"{out['manifold_all_runs']['trials_per_connection']:.3f} per connection")
     os.makedirs(os.path.join(ROOT, "out", "bench"), exist_ok=True)
     with open(os.path.join(ROOT, "out", "bench", "mnee.json"), "w") as f:
         json.dump(out, f, indent=1, default=str)

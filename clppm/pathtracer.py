@@ -51,7 +51,7 @@ SCHEME_RELIEF = ("path tracer: manifold NEE through the smooth height-field inte
                  "one band per path")
 # kernels/pt.cl pix_mnee, in this order (NMNEE)
 MNEE_STATS = ["solves", "solved", "newton_iterations", "continued", "vertex_above_smooth_surface",
-              "solutions", "found", "other_solutions", "recurrence_trials", "clamped"]
+              "solutions", "found", "other_solutions", "random_trials", "clamped"]
 # Random trials of specular manifold sampling per connection (relief): the light paths through a
 # furrow or over a papilla can be several (caustics); a trial that finds one other than the
 # flat-seeded solution adds it weighted by its trial count to recur (docs/relief.md)
@@ -323,12 +323,13 @@ def mnee_report(tot: list[int]) -> dict:
     d["mean_solutions"] = share("solutions")
     d["other_solution_share"] = share("other_solutions")
     d["clamped_share"] = d["clamped"] / d["other_solutions"] if d["other_solutions"] else 0.0
-    d["trials_per_connection"] = MNEE_TRIALS + (d["recurrence_trials"] / n if n else 0.0)
+    d["trials_per_connection"] = share("random_trials")
     d["method"] = ("Newton on the landing constraint over the ray's momentum at the vertex, "
                    "ray differentials for the Jacobian, step halving, seeded by the flat solution; "
                    "where that fails, continuation from the flat surfaces; the other solutions by "
-                   f"specular manifold sampling, unbiased: {MNEE_TRIALS} random trial(s) per connection, "
-                   "a solution found weighted by the trials until it recurs (capped at 64: clamped) "
+                   f"specular manifold sampling, unbiased: {MNEE_TRIALS} random trial(s) per connection "
+                   "(8 where the flat-seeded solve fails), a solution found weighted by the trials "
+                   "until it recurs (capped at 256: clamped) "
                    "(docs/relief.md)")
     return d
 

@@ -350,7 +350,8 @@ inline float connect_mnee(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift,
 #define MN_SAME 1e-4f
 #endif
 #define MN_SMS_SIGMA 0.2        /* momentum spread of the random seeds around the flat seed */
-#define MN_SMS_CAP 64           /* trials to a solution's recurrence, then clamped (counted) */
+#define MN_SMS_CAP 256          /* trials to a solution's recurrence, then clamped (counted) */
+#define MN_SMS_NOFLAT 8         /* random trials where the flat-seeded solve fails */
 
 /* One random trial: Newton on the surfaces from a seed u0 + N(0, sigma^2) in each component of
  * the momentum (Box-Muller; full support, so every solution's basin has a chance). */
@@ -395,7 +396,9 @@ inline int sms_recurrence(const Chain* ch, real4 v, int Ls, real u0x, real u0y, 
  * by ntrials random trials (sms_trial): a trial that finds a solution x other than x0 adds f(x)
  * times the number of further trials until x recurs, an estimate of 1/p(x); so the expected sum
  * is that of f over every solution other than x0 that a trial can reach (any: the seeds have full
- * support), whatever their number.  Bias only from the cap (counted: ss->clamped). */
+ * support), whatever their number.  Where the flat-seeded solve fails, MN_SMS_NOFLAT trials
+ * instead (the number is fixed by the vertex, so the estimate stays unbiased).  Bias only from
+ * the cap (counted: ss->clamped). */
 inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift, int b,
                               float g, float4 wdir, int ntrials, Rng* rng,
                               __constant const Params* P, __constant const float4* iface,
@@ -414,8 +417,10 @@ inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 sh
         if (f > 0.0f) c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz));
     }
     int ns = have0;
+    if (!have0 && ntrials > 0) ntrials = max(ntrials, MN_SMS_NOFLAT);
     for (int j = 0; j < ntrials; ++j) {
         real ax, ay;
+        ss->trials++;
         if (!sms_trial(ch, v, Ls, u0x, u0y, l, rng, P, iface, layer_n, smooth, &ax, &ay, &T, st)) continue;
         if (have0 && same_solution(ax, ay, sx, sy)) continue;
         ss->other++; ns++;
@@ -556,6 +561,10 @@ __kernel void pt_pass(VOLUME_ARGS,
         const int b = (int)((E->band0 + (uint)s + hb) % (uint)NB);
         Rng rng;
         rng_init(&rng, pix * (uint)E->nspp + (uint)s, E->pass_, 5u, E->seed_lo, E->seed_hi);
+#ifndef FLAT
+        Rng mrng;   /* the connections' own stream: their trials leave the walk's decisions as they are */
+        rng_init(&mrng, pix * (uint)E->nspp + (uint)s, E->pass_, 10u, E->seed_lo, E->seed_hi);
+#endif
         const float jx = rng_u01(&rng), jy = rng_u01(&rng);
         Track t;
         t.pos = camera_pos(&E->cam).xyz;
@@ -633,7 +642,7 @@ __kernel void pt_pass(VOLUME_ARGS,
                                     MneeStat ms;
                                     int nsol;
                                     c += connect_mnee_sms(&ch, vr, Ls, (float4)(lpos - (float3)(sh, 0.0f), 0.0f), sh, b,
-                                                          op.y, (float4)(t.dir, 0.0f), E->mnee_trials, &rng, P, iface,
+                                                          op.y, (float4)(t.dir, 0.0f), E->mnee_trials, &mrng, P, iface,
                                                           layer_n, optics, smooth, &ms, &ss, &nsol);
                                     m_try++; m_ok += (ulong)ms.ok; m_it += (ulong)ms.iters;
                                     m_cont += (ulong)ms.cont; m_sol += (ulong)nsol;
@@ -805,6 +814,7 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
         real ux = seeds[2 * i], uy = seeds[2 * i + 1];
         ms.iters = 0; ms.halvings = 0; ms.cont = 0; ms.traces = 0;
         ms.ok = mnee_newton(&ch, v, Ls, &ux, &uy, l, 1, P, iface, layer_n, smooth, &T, &ms);
+        if (ms.ok) f = mnee_factor(&T, &ch, (float2)(0.0f), 0, P, optics, &dl);
     } else {
         f = connect_mnee(&ch, v, Ls, (float4)(light.xyz, 0.0f), (float2)(0.0f), 0, P, iface, layer_n, optics,
                          smooth, &dl, &ms, &T);
