@@ -52,7 +52,6 @@ def main(argv=None) -> int:
         c = C.load(os.path.join(ROOT, "configs", f"{name}.toml"))
         c["camera"]["resolution"] = [w, h]
         c["render"]["pt_samples_per_pass"] = a.spp
-        c["render"]["pt_relief"] = True
         c["render"]["passes"] = a.passes
         c["render"]["checkpoint_every"] = 0
         c["render"]["specular"] = False

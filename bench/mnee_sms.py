@@ -28,7 +28,7 @@ def main(argv=None) -> int:
     dev = open_device(a.device)
     c = C.load(os.path.join(ROOT, "configs", "forearm.toml"))
     c["camera"]["resolution"] = [8, 6]
-    c["render"].update(pt_samples_per_pass=a.spp, pt_relief=True, specular=False)
+    c["render"].update(pt_samples_per_pass=a.spp, specular=False)
     vol = volume.build(c)
     sums, groups = {}, {}
     for K in (0, 1, 2):

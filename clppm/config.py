@@ -171,10 +171,6 @@ SCHEMA: dict[str, dict[str, F]] = {
                        doc="importance storage: the smallest storage probability (bounds weights)"),
         "pt_samples_per_pass": F("int", 16, lo=1, hi=4096,
                                  doc="path tracer (--integrator pt): eye paths per pixel per pass"),
-        "pt_relief": F("bool", False,
-                       doc="path tracer on a relief scene (manifold next-event estimation): "
-                           "experimental, it still misses some light paths (docs/relief.md), so it "
-                           "is never used as a reference"),
     },
 }
 

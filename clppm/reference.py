@@ -89,6 +89,7 @@ class Reference:
     info: dict = field(default_factory=dict)
     cached: bool = False
     path: str = ""
+    pixels_xyz: np.ndarray | None = None   # (2, H, W, 3) the halves at full resolution (per-pixel analyses)
 
     @property
     def block(self) -> int:
@@ -108,11 +109,9 @@ def kernel_hash(names=None) -> str:
 
 
 def pt_possible(cfg: dict) -> bool:
-    """Whether the path tracer is a reference for the scene (flat, point light above the
-    surface): its relief connection is experimental (render.pt_relief) and never one."""
+    """Whether the path tracer is a reference for the scene (a point light above the surface;
+    relief through manifold next-event estimation, docs/relief.md)."""
     from .pathtracer import check_scene
-    if not C.is_flat(cfg):
-        return False
     try:
         check_scene(cfg, "<reference>")
     except Exception:
@@ -149,7 +148,7 @@ def reference_key(cfg: dict, spec: RefSpec) -> str:
     kernels = None
     if spec.integrator == "pt":           # the path tracer reads none of PPM's settings or kernels
         c["render"] = {k: c["render"][k] for k in ("specular", "roughness", "pt_samples_per_pass")}
-        kernels = ("pt.cl", "common.h")
+        kernels = ("pt.cl", "common.h") if C.is_flat(cfg) else ("pt.cl", "common.h", "mnee.h", "surface.h")
     blob = json.dumps({"config": c, "spec": spec.as_dict(), "clppm": clppm.__version__,
                        "kernels": kernel_hash(kernels)}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
@@ -177,7 +176,8 @@ def load_reference(cache_dir: str, key: str):
     return Reference(key=key, spec=spec, xyz=arrays["xyz"], rgb=arrays["rgb"],
                      halves_xyz=arrays["halves_xyz"], spectral=arrays["spectral"], wl=arrays["wl"],
                      mask=arrays["mask"].astype(bool), exposure=float(meta["exposure"]),
-                     error=meta["error"], info=meta.get("info", {}), cached=True, path=npz)
+                     error=meta["error"], info=meta.get("info", {}), cached=True, path=npz,
+                     pixels_xyz=arrays.get("pixels_xyz"))
 
 
 def _save(cache_dir: str, ref: Reference) -> None:
@@ -185,7 +185,8 @@ def _save(cache_dir: str, ref: Reference) -> None:
     npz, js = _paths(cache_dir, ref.key)
     tmp = npz + f".{os.getpid()}.tmp.npz"
     np.savez_compressed(tmp, xyz=ref.xyz, rgb=ref.rgb, halves_xyz=ref.halves_xyz,
-                        spectral=ref.spectral.astype(np.float32), wl=ref.wl, mask=ref.mask)
+                        spectral=ref.spectral.astype(np.float32), wl=ref.wl, mask=ref.mask,
+                        **({} if ref.pixels_xyz is None else {"pixels_xyz": ref.pixels_xyz}))
     os.replace(tmp, npz)
     meta = {"key": ref.key, "spec": ref.spec.as_dict(), "exposure": ref.exposure, "error": ref.error,
             "info": ref.info}
@@ -274,7 +275,8 @@ def _mean_of_halves(key: str, spec: RefSpec, halves: list, mask) -> Reference:
     sp = [block_mean(x.spectral, b) for x in halves]
     ref = Reference(key=key, spec=spec, xyz=h.mean(0), rgb=np.mean([block_mean(x.rgb, b) for x in halves], axis=0),
                     halves_xyz=h, spectral=np.mean(sp, axis=0).astype(np.float32),
-                    wl=np.asarray(halves[0].wl), mask=mask, exposure=float(halves[0].exposure), error={})
+                    wl=np.asarray(halves[0].wl), mask=mask, exposure=float(halves[0].exposure), error={},
+                    pixels_xyz=np.stack([x.xyz for x in halves]).astype(np.float32))
     ref.error = own_noise(ref, sp)
     return ref
 

@@ -351,7 +351,7 @@ inline float connect_mnee(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift,
 #endif
 #define MN_SMS_SIGMA 0.2        /* momentum spread of the random seeds around the flat seed */
 #define MN_SMS_CAP 256          /* trials to a solution's recurrence, then clamped (counted) */
-#define MN_SMS_NOFLAT 8         /* random trials where the flat-seeded solve fails */
+#define MN_SMS_NOFLAT 16        /* random trials where the flat-seeded solve fails */
 
 /* One random trial: Newton on the surfaces from a seed u0 + N(0, sigma^2) in each component of
  * the momentum (Box-Muller; full support, so every solution's basin has a chance). */

@@ -34,7 +34,7 @@ def scene(layers, *, relief=None, papillae=0.0, period=100.0, quantize=False, si
            "camera": {"position_mm": [size / 2, size / 2, 40.0], "look_at_mm": [size / 2, size / 2, 0.0],
                       "fov_deg": fov, "resolution": list(res)},
            "render": {"passes": passes, "pt_samples_per_pass": spp, "specular": False,
-                      "checkpoint_every": 0, "seed": seed, "pt_relief": True},
+                      "checkpoint_every": 0, "seed": seed},
            "layer": layers}
     return config.validate(raw, "test")
 

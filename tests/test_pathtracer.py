@@ -412,13 +412,11 @@ def test_band_counts_are_exact():
 
 
 @pytest.mark.parametrize("edit,needles", [
-    ("[relief]\nkind = \"generated\"\n", ["relief.kind", "'generated'", "pt_relief", "forearm_flat.toml"]),
-    ("[papillae]\namplitude_um = 10.0\n", ["papillae.amplitude_um", "10.0", "pt_relief"]),
     ("", ["light.kind", "'wide'", "point light"]),
-], ids=["relief", "papillae", "wide light"])
+], ids=["wide light"])
 def test_refuses_in_one_line(tmp_path, capsys, edit, needles):
-    """Non-point lights, and relief without render.pt_relief (experimental: tests/test_mnee.py):
-    exit code 2, one line naming the key and the value, no traceback, nothing written."""
+    """Non-point lights: exit code 2, one line naming the key and the value, no traceback,
+    nothing written."""
     text = tiny_toml(passes=1) + edit
     if not edit:
         text = text.replace('kind = "point"', 'kind = "wide"\ndirection = [0.0, 0.0, -1.0]')
