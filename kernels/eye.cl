@@ -171,11 +171,11 @@ inline int place(Emit* e, float3 p, float3 to_eye, int L, float tw, __constant c
 
 /* The skin surface's normal where an eye ray meets it (upward; w = 0): the smooth surface's */
 inline float4 entry_normal(__constant const Params* P, __constant const float4* iface,
-                           __global const float* smooth, float3 p) {
+                           __global const float* smooth, float x, float y) {
 #ifdef FLAT
     return (float4)(0.0f, 0.0f, 1.0f, 0.0f);
 #else
-    return smooth_normal(P, iface, smooth, 0, p.x, p.y);
+    return smooth_normal(P, iface, smooth, 0, x, y);
 #endif
 }
 
@@ -220,7 +220,7 @@ __kernel void eye_pass(VOLUME_ARGS,
     /* ---- surface: specular term and refraction, weighted by the Fresnel transmittance */
     float tw;
     {
-        float3 sn = entry_normal(P, iface, smooth, t.pos).xyz;
+        float3 sn = entry_normal(P, iface, smooth, t.pos.x, t.pos.y).xyz;
         float ci = -dot(t.dir, sn);
         if (ci <= 1e-6f) { sn = gn; ci = -dot(t.dir, gn); }
         float3 v = -t.dir;
@@ -370,7 +370,7 @@ __kernel void eye_pass(VOLUME_ARGS,
             t.pos += 1e-3f * t.dir;
             float3 gn2;
             if (!hit_surface(&t, P, iface, heights, &gn2)) { done = 1; break; }
-            float3 sn2 = entry_normal(P, iface, smooth, t.pos).xyz;
+            float3 sn2 = entry_normal(P, iface, smooth, t.pos.x, t.pos.y).xyz;
             float ci2 = -dot(t.dir, sn2);
             if (ci2 <= 1e-6f) { sn2 = gn2; ci2 = -dot(t.dir, gn2); }
             float R2 = fresnel_R(P->n_above, layer_n[0], ci2, &ct);

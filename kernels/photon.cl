@@ -63,19 +63,17 @@ inline int reenter(Track* t, VOLUME_ARGS, __global const float* smooth, Rng* rng
 }
 
 /* The Fresnel decision crossing from layer L into L2 through a face of geometric normal gn
- * (pointing into L2) at t->pos: at the smooth surface's normal there (surface.h) where interface
- * k varies and the indices differ, as the path tracer's walk decides (pt.cl pt_boundary). */
-inline int cross_face(Track* t, float3 gn, int k, int L2, float n1, float n2, __constant const Params* P,
-                      __constant const float4* iface, __global const float* smooth, Rng* rng) {
-    const float4 g4 = (float4)(gn, 0.0f);
-    float4 sn = g4;
+ * (pointing into L2) at (x, y): at the smooth surface's normal there (surface.h) where interface
+ * k varies and the indices differ, as the path tracer's walk decides (pt.cl pt_boundary).
+ * Scalars and 4-vectors only across the call (surface.h: Intel's 3-vector miscompilation). */
+inline int cross_face(float4* dir, float4 gn, int k, int L, int L2, float x, float y, float n1, float n2,
+                      __constant const Params* P, __constant const float4* iface,
+                      __global const float* smooth, float u) {
+    float4 sn = gn;
 #ifndef FLAT
-    if (n1 != n2) sn = face_normal(P, iface, smooth, k, t->L, L2, t->pos.x, t->pos.y, g4);
+    if (n1 != n2) sn = face_normal(P, iface, smooth, k, L, L2, x, y, gn);
 #endif
-    float4 d = (float4)(t->dir, 0.0f);
-    const int through = fresnel_cross(&d, g4, sn, n1, n2, rng_u01(rng));
-    t->dir = d.xyz;
-    return through;
+    return fresnel_cross(dir, gn, sn, n1, n2, u);
 }
 
 /* Importance-driven storage (Peter & Pietrek 1998, in direction and depth instead of position).
@@ -313,8 +311,12 @@ __kernel void photon_pass(VOLUME_ARGS,
             t.pos.z = iface_z(iface, heights, P, up ? t.L : t.L + 1, col_index(P, t.ix, t.iy));
             const float n1 = layer_n[t.L];
             const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-            const float3 gn2 = (float3)(0.0f, 0.0f, up ? 1.0f : -1.0f);
-            if (cross_face(&t, gn2, up ? t.L : t.L + 1, L2, n1, n2, P, iface, smooth, &rng)) {
+            const float4 gn2 = (float4)(0.0f, 0.0f, up ? 1.0f : -1.0f, 0.0f);
+            float4 d = (float4)(t.dir, 0.0f);
+            const int through = cross_face(&d, gn2, up ? t.L : t.L + 1, t.L, L2, t.pos.x, t.pos.y, n1, n2,
+                                           P, iface, smooth, rng_u01(&rng));
+            t.dir = d.xyz;
+            if (through) {
                 if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) { events++; continue; }
                 if (L2 < 0) { rd += W; if (t.dir.z > P->rcone_cos) rcone += W; W = 0; break; }
                 if (L2 >= NL) { tt += W; W = 0; break; }
@@ -340,9 +342,13 @@ __kernel void photon_pass(VOLUME_ARGS,
         if (L2 == t.L) continue;
         const float n1 = layer_n[t.L];
         const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-        const float3 gnw = axis == 0 ? (float3)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
-                                     : (float3)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f);
-        if (cross_face(&t, gnw, L2 < t.L ? t.L : t.L + 1, L2, n1, n2, P, iface, smooth, &rng)) {
+        const float4 gnw = axis == 0 ? (float4)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f, 0.0f)
+                                     : (float4)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f);
+        float4 d = (float4)(t.dir, 0.0f);
+        const int through = cross_face(&d, gnw, L2 < t.L ? t.L : t.L + 1, t.L, L2, t.pos.x, t.pos.y, n1, n2,
+                                       P, iface, smooth, rng_u01(&rng));
+        t.dir = d.xyz;
+        if (through) {
             if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) continue;
             if (L2 < 0) { rd += W; if (t.dir.z > P->rcone_cos) rcone += W; W = 0; break; }
             if (L2 >= NL) { tt += W; W = 0; break; }
