@@ -293,7 +293,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     ``nb`` alone (no volume): the photon grid's kernels (hashgrid.cl).  HERO_C: bands a photon
     path carries, when more than one (spectral.h).  FAST_MATH: the compiler's relaxed math,
     when CLPPM_FAST_MATH=1.  A pass's own: ESTIMATOR (gather.cl: sphere, clip, layer, beam),
-    GCLASS (the beam gather's band classes), PT_FP64 (pt.cl: double-precision sums),
+    GCLASS (the beam gather's band classes), PT_FP64 (pt.cl: double-precision sums; relief
+    builds of every pass: the smooth surfaces in double, kernels/surface.h: ``surface_fp64``),
     COUNT_CANDIDATES (gather.cl: count the photons a query visits, for bench/gather.py),
     EXACT_RSQRT (gather.cl: rsqrt for native_rsqrt, to compare layouts off PoCL to float rounding)."""
     if vol is None:
@@ -312,6 +313,13 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     if exact_rsqrt:
         d["EXACT_RSQRT"] = 1
     return d
+
+
+def surface_fp64(dev, vol) -> bool | None:
+    """PT_FP64 for a pass's build: a relief build evaluates the smooth surfaces (kernels/surface.h)
+    in double where the device has it, as the path tracer does, so that all passes refract alike;
+    None (no switch) for a flat one."""
+    return None if vol.flat else bool(dev.info()["fp64"])
 
 
 @functools.lru_cache(maxsize=None)

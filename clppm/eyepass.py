@@ -32,7 +32,7 @@ from . import structs as S
 from .config import render_settings
 from .camera import Camera, from_config
 from .light import Light
-from .device import Device, DeviceError, check_alloc, kernel_defines, launch
+from .device import Device, DeviceError, check_alloc, kernel_defines, launch, surface_fp64
 from .volume import Volume, VolumeBuffers, volume_params
 
 SPACING = {"a": 4.0, "b": 7.0, "c": 14.0}
@@ -179,7 +179,8 @@ class _EyeKernel:
         ro = mf.READ_ONLY | mf.COPY_HOST_PTR
         self.common = [cl.Buffer(ctx, ro, hostbuf=p), *vbuf.args(), cl.Buffer(ctx, ro, hostbuf=e),
                        cl.Buffer(ctx, ro, hostbuf=rates)]
-        self.knl = cl.Kernel(dev.build("eye.cl", kernel_defines(vol)), "eye_pass")
+        self.knl = cl.Kernel(dev.build("eye.cl", kernel_defines(vol, pt_fp64=surface_fp64(dev, vol))), "eye_pass")
+        self.smooth = vbuf.smooth
         self.ctx = ctx
         self.nrays = cam.width * cam.height * cam.spp
         self.npts = cla.zeros(self.q, self.nrays + 1, np.uint32)
@@ -190,7 +191,7 @@ class _EyeKernel:
     def _launch(self, mode: int, outputs: list) -> None:
         q, knl = self.q, self.knl
         knl(q, *launch(knl, q, self.nrays), *self.common, np.int32(mode),
-            self.npts.data, self.npcs.data, self.npts.data, self.npcs.data, *outputs)
+            self.npts.data, self.npcs.data, self.npts.data, self.npcs.data, *outputs, self.smooth)
 
     def count(self) -> tuple[np.ndarray, int, int]:
         """Sample points and pieces per ray (mode 0): the points per ray and both totals."""

@@ -165,9 +165,7 @@ class PathTracer:
         self.pix_bins = cla.zeros(q, self.npix * NBIN, np.float64)
         self.pix_mnee = cla.zeros(q, self.npix * len(MNEE_STATS), np.uint64)
         self.mnee_base = np.zeros(len(MNEE_STATS), np.int64)         # counts of the passes before a resume
-        sm = vol.smooth if vol.smooth is not None else np.zeros(1, np.float32)
-        self.smooth = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                                hostbuf=np.ascontiguousarray(sm, np.float32).reshape(-1))
+        self.smooth = self.vbuf.smooth
         self.launch = min(self.npix, max(LAUNCH_MIN, 16384 // self.nspp))   # ~16k paths, then timed
         self.bands = Bands.from_config(cfg, hero=1)
         self.spectrum = self.bands.spectrum

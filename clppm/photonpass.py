@@ -21,7 +21,7 @@ from . import structs as S
 from .config import render_settings
 from .bands import Bands
 from .light import Light
-from .device import Device, kernel_defines, launch
+from .device import Device, kernel_defines, launch, surface_fp64
 from .volume import Volume, VolumeBuffers, upload_volume, volume_params
 
 W0 = 2 ** 38
@@ -143,7 +143,7 @@ class PhotonPass:
         self.dev, self.vol, self.cfg = dev, vol, cfg
         self.bands = bands or Bands.from_config(cfg, hero=1, sampling="power")
         self.hero = self.bands.hero
-        self.prg = dev.build("photon.cl", kernel_defines(vol, hero=self.hero))
+        self.prg = dev.build("photon.cl", kernel_defines(vol, hero=self.hero, pt_fp64=surface_fp64(dev, vol)))
         self.kernel = cl.Kernel(self.prg, "photon_pass")
         self.vbuf = vbuf or upload_volume(dev, vol)
         self.spectrum = self.bands.spectrum
@@ -212,7 +212,8 @@ class PhotonPass:
         self.p["count"] = n
         cl.enqueue_copy(q, self.pbuf, self.p)
         self.kernel(q, *launch(self.kernel, q, n), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
-                    self.band_spi, self.logmu, self.pos_w, self.dir_b, self.extra, self.count_buf, self.tally_buf)
+                    self.band_spi, self.logmu, self.pos_w, self.dir_b, self.extra, self.count_buf, self.tally_buf,
+                    self.vbuf.smooth)
 
     def _flush(self, emitted: int, into: Tallies | None = None) -> np.ndarray:
         import pyopencl as cl

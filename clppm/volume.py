@@ -1,4 +1,4 @@
-"""The skin volume: layers, surface relief, papillae, interface heights and normals.
+"""The skin volume: layers, surface relief, papillae, interface heights, the smooth surfaces.
 
 The paper's model is a grid of 5 um voxels, each with a layer's optical properties.  A
 layered model needs no per-voxel storage: for each interface between layers we keep one
@@ -35,7 +35,6 @@ class Volume:
     g: np.ndarray                   # (NL, NB)
     iface: np.ndarray               # (NL+1, 4) float32: z if flat, zmin, zmax, var index (-1 flat)
     heights: np.ndarray             # (nvar, ny, nx) float32 heights of the varying interfaces
-    normals: np.ndarray             # (ny, nx, 2) float16 relief normal x, y components
     x0: float = 0.0
     y0: float = 0.0
     dx: float = 5.0
@@ -48,8 +47,8 @@ class Volume:
     n_below: float = 1.0
     info: dict = field(default_factory=dict)
     # (nvar, ny, nx) float32: the varying interfaces' heights before snapping to the voxel grid,
-    # the samples of the smooth surfaces the path tracer's manifold connection solves on
-    # (docs/relief.md); None where nothing varies
+    # the samples of the smooth surfaces (kernels/surface.h) every pass refracts at and the path
+    # tracer's manifold connection solves on (docs/relief.md); None where nothing varies
     smooth: np.ndarray | None = None
 
     @property
@@ -87,7 +86,7 @@ class Volume:
     def device_bytes(self) -> dict[str, int]:
         return {
             "interface heights": int(self.heights.nbytes),
-            "relief normals": int(self.normals.nbytes),
+            "smooth surfaces": int(self.smooth.nbytes) if self.smooth is not None else 0,
             "layer optics": int(self.optics_table().nbytes),
             "interfaces": int(self.iface.nbytes),
         }
@@ -201,16 +200,6 @@ def papillae(nx, ny, dx, dy, amplitude, period):
     x = (np.arange(nx) + 0.5) * dx
     y = (np.arange(ny) + 0.5) * dy
     return amplitude * np.sin(2 * np.pi * y / period)[:, None] * np.sin(2 * np.pi * x / period)[None, :]
-
-
-def relief_normals(h, dx, dy, periodic):
-    if periodic:
-        hx = (np.roll(h, -1, 1) - np.roll(h, 1, 1)) / (2 * dx)
-        hy = (np.roll(h, -1, 0) - np.roll(h, 1, 0)) / (2 * dy)
-    else:
-        hy, hx = np.gradient(h, dy, dx) if min(h.shape) > 1 else (np.zeros_like(h), np.zeros_like(h))
-    inv = 1.0 / np.sqrt(1.0 + hx * hx + hy * hy)
-    return np.stack([-hx * inv, -hy * inv], axis=-1).astype(np.float16)
 
 
 # ----------------------------------------------------------------------------- build
@@ -336,14 +325,10 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
             iface[k] = (hi, hi, hi, -1)
     iface[:, 0] = np.where(np.isnan(iface[:, 0]), 0.0, iface[:, 0])
     heights = np.stack(var) if var else np.zeros((1, 1, 1), np.float32)
-    normals = relief_normals(s, dx, dy, periodic) if rel["kind"] != "flat" \
-        else np.zeros((ny, nx, 2), np.float16)
-    if not var:
-        normals = np.zeros((1, 1, 2), np.float16)
     vol = Volume(wl=wl, names=[L["name"] for L in layers], n=np.array([L["n"] for L in layers]),
                  thickness=thickness, mua=mua * 1e-4, mus=mus * 1e-4, g=g,
                  iface=iface, heights=np.ascontiguousarray(heights, np.float32),
-                 normals=np.ascontiguousarray(normals), x0=0.0, y0=0.0, dx=dx, dy=dy, nx=nx, ny=ny,
+                 x0=0.0, y0=0.0, dx=dx, dy=dy, nx=nx, ny=ny,
                  dz=dz, lateral=m["lateral"], n_above=m["n_outside"], n_below=m["n_below"],
                  smooth=np.ascontiguousarray(np.stack(svar), np.float32) if svar else None)
     vol.info = {"columns": [nx, ny], "varying_interfaces": len(var),
@@ -364,21 +349,23 @@ def volume_params(p: np.ndarray, vol: Volume) -> None:
 
 @dataclass
 class VolumeBuffers:
-    """The volume on the device (shared by the photon and eye passes)."""
+    """The volume on the device (shared by the photon and eye passes): ``args()`` are the
+    kernels' VOLUME_ARGS (common.h); ``smooth`` (Volume.smooth, one float where nothing varies)
+    is the photon and eye passes' last argument."""
 
     iface: object
     layer_n: object
     optics: object
     heights: object
-    normals: object
+    smooth: object
 
     def args(self):
-        return [self.iface, self.layer_n, self.optics, self.heights, self.normals]
+        return [self.iface, self.layer_n, self.optics, self.heights]
 
 
 def upload_volume(dev, vol: Volume) -> VolumeBuffers:
-    """The volume's arrays as read-only device buffers (interface heights as float32, normals
-    as float16)."""
+    """The volume's arrays as read-only device buffers (interface heights and the smooth
+    surfaces' samples as float32)."""
     import pyopencl as cl
     mf = cl.mem_flags
 
@@ -391,4 +378,4 @@ def upload_volume(dev, vol: Volume) -> VolumeBuffers:
                          layer_n=buf(vol.n.astype(np.float32)),
                          optics=buf(vol.optics_table()),
                          heights=buf(vol.heights.astype(np.float32)),
-                         normals=buf(vol.normals.astype(np.float16)))
+                         smooth=buf((vol.smooth if vol.smooth is not None else np.zeros(1)).astype(np.float32)))

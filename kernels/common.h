@@ -87,8 +87,8 @@ typedef struct {
 
 #define VOLUME_ARGS __constant const Params* P, __constant const float4* iface, \
     __constant const float* layer_n, __global const float4* optics, \
-    __global const float* heights, __global const half* normals
-#define VOLUME_PASS P, iface, layer_n, optics, heights, normals
+    __global const float* heights
+#define VOLUME_PASS P, iface, layer_n, optics, heights
 
 /* ---------------------------------------------------------------- random numbers */
 /* Philox4x32-10 (Random123, via pyopencl): counter = (stream id, draw, pass, domain),
@@ -290,6 +290,32 @@ inline float3 refract3(float3 d, float3 n, float eta, float cos_i, float cos_t) 
     return unit3(eta * d + (eta * cos_i - cos_t) * n);
 }
 
+/* Fresnel decision at a face of the staircase, shared by the photon pass and the path tracer's
+ * walk (the same decision for the same inputs): gn the face's geometric normal and sn the
+ * shading normal (surface.h face_normal; gn at flat interfaces), both pointing from the current
+ * medium into the next; sn gives way to gn where the direction does not cross it.  u: the
+ * uniform that decides.  Returns 1 (transmitted, dir refracted) or 0 (reflected).  A reflection
+ * must stay on this side of the face, a transmission must cross it (mirrored at gn otherwise).
+ * float4 with w = 0: no 3-vectors across calls (surface.h). */
+inline int fresnel_cross(float4* dir, float4 gn4, float4 sn4, float n1, float n2, float u) {
+    const float3 d = (*dir).xyz, gn = gn4.xyz;
+    float3 sn = sn4.xyz;
+    float ci = dot(d, sn);
+    if (ci <= 1e-6f) { sn = gn; ci = dot(d, gn); }
+    float ct;
+    const float R = fresnel_R(n1, n2, ci, &ct);
+    if (u < R) {
+        float3 r = reflect3(d, sn);
+        if (dot(r, gn) > 0.0f) r = reflect3(r, gn);
+        *dir = (float4)(unit3(r), 0.0f);
+        return 0;
+    }
+    float3 t = refract3(d, -sn, n1 / n2, ci, ct);
+    if (dot(t, gn) <= 0.0f) t = reflect3(t, gn);
+    *dir = (float4)(unit3(t), 0.0f);
+    return 1;
+}
+
 /* ---------------------------------------------------------------- volume geometry */
 inline int col_index(__constant const Params* P, int ix, int iy) { return iy * P->nx + ix; }
 
@@ -313,17 +339,6 @@ inline float2 layer_slab(__constant const Params* P, __constant const float4* if
     int iy = clamp((int)floor((p.y - P->y0) / P->dy), 0, P->ny - 1);
     int col = col_index(P, ix, iy);
     return (float2)(iface_z(iface, heights, P, L, col), iface_z(iface, heights, P, L + 1, col));
-#endif
-}
-
-/* Smooth relief normal of a surface column (unit, pointing up/out of the skin). */
-inline float3 relief_normal(__constant const Params* P, __global const half* normals, int col) {
-#ifdef FLAT
-    return (float3)(0.0f, 0.0f, 1.0f);
-#else
-    float2 t = vload_half2(col, normals);
-    float nz = sqrt(fmax(1e-6f, 1.0f - t.x * t.x - t.y * t.y));
-    return (float3)(t.x, t.y, nz);
 #endif
 }
 

@@ -34,6 +34,15 @@
  */
 #include "common.h"
 #include "camera.h"
+#ifndef FLAT
+#ifdef PT_FP64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+typedef double real;            /* the smooth surfaces in the path tracer's precision */
+#else
+typedef float real;
+#endif
+#include "surface.h"
+#endif
 
 typedef struct {
     Camera cam;
@@ -160,6 +169,16 @@ inline int place(Emit* e, float3 p, float3 to_eye, int L, float tw, __constant c
     return 1;
 }
 
+/* The skin surface's normal where an eye ray meets it (upward; w = 0): the smooth surface's */
+inline float4 entry_normal(__constant const Params* P, __constant const float4* iface,
+                           __global const float* smooth, float x, float y) {
+#ifdef FLAT
+    return (float4)(0.0f, 0.0f, 1.0f, 0.0f);
+#else
+    return smooth_normal(P, iface, smooth, 0, x, y);
+#endif
+}
+
 __kernel void eye_pass(VOLUME_ARGS,
                        __constant const EyeParams* E,
                        __constant const float* rate,            /* per layer, um^-1 */
@@ -168,7 +187,8 @@ __kernel void eye_pass(VOLUME_ARGS,
                        __global const uint* pt_start, __global const uint* pc_start,
                        __global float4* pt_pos, __global float4* pt_dir, __global uint* pt_piece,
                        __global float2* pieces, __global float* ray_spec, __global float* ray_hit,
-                       __global float2* pt_slab, __global float4* geo)
+                       __global float2* pt_slab, __global float4* geo,
+                       __global const float* smooth)            /* Volume.smooth (relief builds) */
 {
     const uint r = (uint)get_global_id(0);
     const uint npix = (uint)(E->cam.width * E->cam.height);
@@ -200,8 +220,7 @@ __kernel void eye_pass(VOLUME_ARGS,
     /* ---- surface: specular term and refraction, weighted by the Fresnel transmittance */
     float tw;
     {
-        int col = col_index(P, t.ix, t.iy);
-        float3 sn = relief_normal(P, normals, col);
+        float3 sn = entry_normal(P, iface, smooth, t.pos.x, t.pos.y).xyz;
         float ci = -dot(t.dir, sn);
         if (ci <= 1e-6f) { sn = gn; ci = -dot(t.dir, gn); }
         float3 v = -t.dir;
@@ -313,17 +332,26 @@ __kernel void eye_pass(VOLUME_ARGS,
         const float3 gnn = (ev == EV_TOP) ? (float3)(0.0f, 0.0f, 1.0f) : (ev == EV_BOTTOM) ? (float3)(0.0f, 0.0f, -1.0f)
                    : ((ev == EV_WALL_X || ev == EV_DOMAIN_X) ? (float3)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
                                                              : (float3)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f));
-        {
+        /* the normal refracted at: the smooth surface's where interface k varies and the
+         * indices differ (as the photon pass and the path tracer), else the face's own; the
+         * face's where the ray does not cross the smooth one (fresnel_cross, common.h) */
+        const float n1 = layer_n[L], n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+        float3 sn = gnn;
+#ifndef FLAT
+        if (n1 != n2)
+            sn = face_normal(P, iface, smooth, L2 < L ? L : L + 1, L, L2, t.pos.x, t.pos.y, (float4)(gnn, 0.0f)).xyz;
+#endif
+        float ci = dot(t.dir, sn), ct;
+        if (ci <= 1e-6f) { sn = gnn; ci = dot(t.dir, gnn); }
+        const float R = fresnel_R(n1, n2, ci, &ct);
+        if (R >= 1.0f) {
             /* total internal reflection: all the radiance comes along the mirrored path, so the
              * eye ray reflects and stays in L (at a 5 um stair step of the relief a steep ray
-             * meets a side wall at grazing incidence) */
-            const float n2x = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-            float ctx;
-            if (fresnel_R(layer_n[L], n2x, dot(t.dir, gnn), &ctx) >= 1.0f) {
-                t.ix = oix; t.iy = oiy; t.pos = opos;
-                t.dir = reflect3(t.dir, gnn);
-                continue;
-            }
+             * meets a side wall at grazing incidence); it stays on this side of the face */
+            t.ix = oix; t.iy = oiy; t.pos = opos;
+            t.dir = reflect3(t.dir, sn);
+            if (dot(t.dir, gnn) > 0.0f) t.dir = reflect3(t.dir, gnn);
+            continue;
         }
         /* leaving layer L: extinction-based schemes give an empty visit its exit point */
         if (E->scheme == 1 && visit_pts == 0) {
@@ -336,21 +364,18 @@ __kernel void eye_pass(VOLUME_ARGS,
         if (L2 < 0) {
             /* out through the relief (a furrow wall): leave with Fresnel, cross the air gap and
              * enter again where the ray meets the skin */
-            float ci = dot(t.dir, gnn), ct;
-            float R = fresnel_R(layer_n[L], P->n_above, ci, &ct);
-            if (R >= 1.0f) { done = 1; break; }
             tw *= 1.0f - R;
-            t.dir = refract3(t.dir, -gnn, layer_n[L] / P->n_above, ci, ct);
+            t.dir = refract3(t.dir, -sn, n1 / n2, ci, ct);
+            if (dot(t.dir, gnn) <= 0.0f) t.dir = reflect3(t.dir, gnn);
             t.pos += 1e-3f * t.dir;
             float3 gn2;
             if (!hit_surface(&t, P, iface, heights, &gn2)) { done = 1; break; }
-            int col = col_index(P, t.ix, t.iy);
-            float3 sn = relief_normal(P, normals, col);
-            float ci2 = -dot(t.dir, sn);
-            if (ci2 <= 1e-6f) { sn = gn2; ci2 = -dot(t.dir, gn2); }
+            float3 sn2 = entry_normal(P, iface, smooth, t.pos.x, t.pos.y).xyz;
+            float ci2 = -dot(t.dir, sn2);
+            if (ci2 <= 1e-6f) { sn2 = gn2; ci2 = -dot(t.dir, gn2); }
             float R2 = fresnel_R(P->n_above, layer_n[0], ci2, &ct);
             tw *= 1.0f - R2;
-            float3 d2 = refract3(t.dir, sn, P->n_above / layer_n[0], ci2, ct);
+            float3 d2 = refract3(t.dir, sn2, P->n_above / layer_n[0], ci2, ct);
             if (dot(d2, gn2) >= 0.0f) d2 = reflect3(d2, gn2);
             t.dir = normalize(d2);
             nfac = P->n_above / layer_n[0];
@@ -358,14 +383,11 @@ __kernel void eye_pass(VOLUME_ARGS,
             t.L = 0;
             continue;
         }
-        /* refraction into L2 with its Fresnel transmittance */
-        float n1 = layer_n[L], n2 = layer_n[L2];
+        /* refraction into L2 with its Fresnel transmittance (a transmission crosses the face) */
         if (n1 != n2) {
-            float ci = dot(t.dir, gnn), ct;
-            float R = fresnel_R(n1, n2, ci, &ct);
-            if (R >= 1.0f) { done = 1; break; }                    /* total internal reflection */
             tw *= 1.0f - R;
-            t.dir = refract3(t.dir, -gnn, n1 / n2, ci, ct);
+            t.dir = refract3(t.dir, -sn, n1 / n2, ci, ct);
+            if (dot(t.dir, gnn) <= 0.0f) t.dir = reflect3(t.dir, gnn);
             nfac = P->n_above / n2;
             nfac *= nfac;
         }

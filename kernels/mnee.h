@@ -1,11 +1,7 @@
 /* Manifold next-event estimation through height-field interfaces (included by pt.cl).
  *
- * The surfaces (docs/relief.md).  Interface k is the height field z = h_k(x, y), the
- * Catmull-Rom bicubic through the interface's heights before voxel snapping (Volume.smooth) at
- * the column centres x0 + (i + 1/2) dx, y0 + (j + 1/2) dy: C1, its second derivatives piecewise
- * linear, and at a column centre its gradient is the central difference the eye and photon
- * passes' relief normal is (clppm/volume.py relief_normals).  Flat interfaces are their plane.
- * Beyond the grid the edge samples repeat (open, infinite sides) or wrap (periodic).
+ * The surfaces (docs/relief.md) are the height fields of surface.h, which the photon and eye
+ * passes refract at too.
  *
  * The connection (Hanika, Droske & Fascione 2015, "Manifold next event estimation", solved here
  * by shooting).  A chain from the vertex is a fixed sequence of events (interface i from layer
@@ -31,98 +27,21 @@
 #ifndef CLPPM_MNEE_H
 #define CLPPM_MNEE_H
 
-/* Points and directions are 4-vectors with w = 0, never 3-vectors.  Intel's OpenCL CPU
- * compiler (2026.2) miscompiles a 3-vector that crosses the boundary of a function it does not
- * inline (an argument by value or through a pointer, a field of a struct read through a
- * pointer, a return value) when it vectorises the caller across work items: only the first lane
- * of each vectorised group gets the right value (tests/test_mnee.py failed on Intel; reproduced
- * with a 6-line kernel and a noinline function; 4-vectors, 2-vectors and scalars are right).
- * The solver's functions are large and called from several places, so Intel keeps them as
- * calls.  The w component costs nothing on PoCL: xyz is computed by the same operations. */
+#include "surface.h"
+
 #ifdef PT_FP64
-typedef double4 real4;
 #define MN_TOL 1e-9             /* landing error, relative to the vertex-light distance */
 #define HF_TOL 1e-13            /* intersection step, relative to the coordinates' size */
 #else
-typedef float4 real4;
 #define MN_TOL 2e-6f
 #define HF_TOL 1e-6f
 #endif
-#define R4(x, y, z) ((real4)((x), (y), (z), 0))
 #define MN_MAXIT 16             /* Newton iterations on the landing constraint */
 #define MN_HALF 6               /* step halvings per iteration */
 #define MN_BUDGET 160           /* traces per connection, all attempts together (then: failed) */
 #define MN_SEED_BUDGET 24       /* traces per extra seed */
 #define HF_MAXIT 24             /* Newton iterations per ray-height-field intersection */
 #define MN_CONT 64              /* continuation steps */
-
-/* dot product written out (PoCL calls its library's dot out of line) */
-inline real rdot(real4 a, real4 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
-
-/* h and its derivatives up to second order at (x, y) */
-typedef struct { real h, hx, hy, hxx, hxy, hyy; } HF;
-
-/* Catmull-Rom weights of the samples -1..2 at fraction f (W), their first (D) and second (S)
- * derivatives: scalars, so nothing is indexed (an indexed array would live on the stack) */
-#define CR_W(f, f2, f3, w0, w1, w2, w3) \
-    w0 = (real)0.5 * (-(f) + 2 * (f2) - (f3)); w1 = (real)0.5 * (2 - 5 * (f2) + 3 * (f3)); \
-    w2 = (real)0.5 * ((f) + 4 * (f2) - 3 * (f3)); w3 = (real)0.5 * ((f3) - (f2));
-#define CR_D(f, f2, w0, w1, w2, w3) \
-    w0 = (real)0.5 * (-1 + 4 * (f) - 3 * (f2)); w1 = (real)0.5 * (-10 * (f) + 9 * (f2)); \
-    w2 = (real)0.5 * (1 + 8 * (f) - 9 * (f2)); w3 = (real)0.5 * (-2 * (f) + 3 * (f2));
-#define CR_S(f, w0, w1, w2, w3) \
-    w0 = 2 - 3 * (f); w1 = -5 + 9 * (f); w2 = 4 - 9 * (f); w3 = -1 + 3 * (f);
-
-inline int hf_index(int i, int n, int periodic) {
-    if (periodic) { i %= n; return i < 0 ? i + n : i; }
-    return clamp(i, 0, n - 1);
-}
-
-inline void hf_eval(__constant const Params* P, __constant const float4* iface,
-                    __global const float* smooth, int k, real x, real y, HF* o) {
-    o->hx = o->hy = o->hxx = o->hxy = o->hyy = 0;
-    const int v = IF_VAR(k);
-    if (v < 0) { o->h = (real)IF_Z(k); return; }
-    const real gx = (x - (real)P->x0) / (real)P->dx - (real)0.5;
-    const real gy = (y - (real)P->y0) / (real)P->dy - (real)0.5;
-    const int ix = (int)gx - (gx < 0), iy = (int)gy - (gy < 0);      /* floor */
-    const real fx = gx - (real)ix, fy = gy - (real)iy;
-    const real fx2 = fx * fx, fx3 = fx2 * fx, fy2 = fy * fy, fy3 = fy2 * fy;
-    real a0, a1, a2, a3, b0, b1, b2, b3, c0, c1, c2, c3;
-    CR_W(fx, fx2, fx3, a0, a1, a2, a3)
-    CR_D(fx, fx2, b0, b1, b2, b3)
-    CR_S(fx, c0, c1, c2, c3)
-    const int per = P->lateral == 2;
-    const int i0 = hf_index(ix - 1, P->nx, per), i1 = hf_index(ix, P->nx, per);
-    const int i2 = hf_index(ix + 1, P->nx, per), i3 = hf_index(ix + 2, P->nx, per);
-    __global const float* base = smooth + (size_t)v * (size_t)(P->nx * P->ny);
-    real r0[3], r1[3], r2[3], r3[3];
-#define CR_ROW(j, out) { \
-        __global const float* row = base + (size_t)hf_index(iy - 1 + (j), P->ny, per) * (size_t)P->nx; \
-        const real s0 = row[i0], s1 = row[i1], s2 = row[i2], s3 = row[i3]; \
-        out[0] = a0 * s0 + a1 * s1 + a2 * s2 + a3 * s3; \
-        out[1] = b0 * s0 + b1 * s1 + b2 * s2 + b3 * s3; \
-        out[2] = c0 * s0 + c1 * s1 + c2 * s2 + c3 * s3; }
-    CR_ROW(0, r0) CR_ROW(1, r1) CR_ROW(2, r2) CR_ROW(3, r3)
-#undef CR_ROW
-    CR_W(fy, fy2, fy3, a0, a1, a2, a3)
-    CR_D(fy, fy2, b0, b1, b2, b3)
-    CR_S(fy, c0, c1, c2, c3)
-    const real idx = 1 / (real)P->dx, idy = 1 / (real)P->dy;
-    o->h = a0 * r0[0] + a1 * r1[0] + a2 * r2[0] + a3 * r3[0];
-    o->hx = (a0 * r0[1] + a1 * r1[1] + a2 * r2[1] + a3 * r3[1]) * idx;
-    o->hxx = (a0 * r0[2] + a1 * r1[2] + a2 * r2[2] + a3 * r3[2]) * idx * idx;
-    o->hy = (b0 * r0[0] + b1 * r1[0] + b2 * r2[0] + b3 * r3[0]) * idy;
-    o->hxy = (b0 * r0[1] + b1 * r1[1] + b2 * r2[1] + b3 * r3[1]) * idx * idy;
-    o->hyy = (c0 * r0[0] + c1 * r1[0] + c2 * r2[0] + c3 * r3[0]) * idy * idy;
-}
-
-/* Upward unit normal of the height field (and the unnormalised (-hx, -hy, 1)'s length) */
-inline real4 hf_normal(const HF* f, real* len) {
-    const real4 N = R4(-f->hx, -f->hy, 1);
-    *len = sqrt(rdot(N, N));
-    return N / *len;
-}
 
 /* A ray (o, d) with its differentials (do_a, dd_a), a = 1, 2, with respect to u */
 typedef struct { real4 o, d, do1, do2, dd1, dd2; } Ray;

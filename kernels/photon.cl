@@ -11,6 +11,15 @@
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #include "common.h"
 #include "spectral.h"
+#ifndef FLAT
+#ifdef PT_FP64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+typedef double real;            /* the smooth surfaces in the path tracer's precision */
+#else
+typedef float real;
+#endif
+#include "surface.h"
+#endif
 
 #define W0F 274877906944.0f           /* 2^38 */
 #define W0L ((long)274877906944L)
@@ -30,30 +39,11 @@ inline int sample_band(__global const float* cdf, float u) {
     return lo;
 }
 
-/* Fresnel decision at a face: gn geometric normal and sn shading normal, both pointing from
- * the current medium into the next.  Returns 1 (transmitted, dir refracted) or 0 (reflected). */
-inline int fresnel_cross(float3* dir, float3 gn, float3 sn, float n1, float n2, float u) {
-    float ci = dot(*dir, sn);
-    if (ci <= 1e-6f) { sn = gn; ci = dot(*dir, gn); }
-    float ct;
-    float R = fresnel_R(n1, n2, ci, &ct);
-    if (u < R) {
-        float3 r = reflect3(*dir, sn);
-        if (dot(r, gn) > 0.0f) r = reflect3(r, gn);   /* a reflection must stay on this side */
-        *dir = unit3(r);
-        return 0;
-    }
-    float3 t = refract3(*dir, -sn, n1 / n2, ci, ct);
-    if (dot(t, gn) <= 0.0f) t = reflect3(t, gn);       /* a transmission must cross the face */
-    *dir = unit3(t);
-    return 1;
-}
-
 /* A photon that has just left the skin at t->pos going t->dir: if the straight way out meets
  * the relief again (a furrow), enter there (Fresnel decided at the new point).  Returns 1 if the
  * photon is back in layer 0, 0 if it escaped for good.  Reflections at re-entry send it on its
  * way out again (up to a few bounces). */
-inline int reenter(Track* t, VOLUME_ARGS, Rng* rng) {
+inline int reenter(Track* t, VOLUME_ARGS, __global const float* smooth, Rng* rng) {
 #ifdef FLAT
     return 0;
 #else
@@ -62,16 +52,28 @@ inline int reenter(Track* t, VOLUME_ARGS, Rng* rng) {
         t->pos += 1e-3f * t->dir;
         float3 gn;
         if (!hit_surface(t, P, iface, heights, &gn)) return 0;
-        float3 sn = relief_normal(P, normals, col_index(P, t->ix, t->iy));
-        float3 d = t->dir;
-        if (fresnel_cross(&d, -gn, -sn, P->n_above, layer_n[0], rng_u01(rng))) {
-            t->dir = d; t->L = 0;
-            return 1;
-        }
-        t->dir = d;
+        const float4 sn = smooth_normal(P, iface, smooth, 0, t->pos.x, t->pos.y);
+        float4 d = (float4)(t->dir, 0.0f);
+        const int in = fresnel_cross(&d, (float4)(-gn, 0.0f), -sn, P->n_above, layer_n[0], rng_u01(rng));
+        t->dir = d.xyz;
+        if (in) { t->L = 0; return 1; }
     }
     return 0;
 #endif
+}
+
+/* The Fresnel decision crossing from layer L into L2 through a face of geometric normal gn
+ * (pointing into L2) at (x, y): at the smooth surface's normal there (surface.h) where interface
+ * k varies and the indices differ, as the path tracer's walk decides (pt.cl pt_boundary).
+ * Scalars and 4-vectors only across the call (surface.h: Intel's 3-vector miscompilation). */
+inline int cross_face(float4* dir, float4 gn, int k, int L, int L2, float x, float y, float n1, float n2,
+                      __constant const Params* P, __constant const float4* iface,
+                      __global const float* smooth, float u) {
+    float4 sn = gn;
+#ifndef FLAT
+    if (n1 != n2) sn = face_normal(P, iface, smooth, k, L, L2, x, y, gn);
+#endif
+    return fresnel_cross(dir, gn, sn, n1, n2, u);
 }
 
 /* Importance-driven storage (Peter & Pietrek 1998, in direction and depth instead of position).
@@ -148,7 +150,8 @@ __kernel void photon_pass(VOLUME_ARGS,
                           __global float4* store_dir_b,      /* direction, hero band + 256 layer */
                           __global float* store_extra,       /* HERO_C-1 weights of the other bands */
                           __global volatile uint* store_count,
-                          __global long* tallies)
+                          __global long* tallies,
+                          __global const float* smooth)      /* Volume.smooth (relief builds) */
 {
     if ((uint)get_global_id(0) >= P->count) return;
     const uint id = P->photon_offset + (uint)get_global_id(0);
@@ -205,10 +208,13 @@ __kernel void photon_pass(VOLUME_ARGS,
     long absorbed[NL];
     for (int i = 0; i < NL; ++i) absorbed[i] = 0;
 
-    /* ---- enter: deterministic Fresnel split at the relief normal */
+    /* ---- enter: deterministic Fresnel split at the smooth surface's normal */
     {
-        int col = col_index(P, t.ix, t.iy);
-        float3 sn = relief_normal(P, normals, col);
+#ifdef FLAT
+        float3 sn = (float3)(0.0f, 0.0f, 1.0f);
+#else
+        float3 sn = smooth_normal(P, iface, smooth, 0, t.pos.x, t.pos.y).xyz;
+#endif
         float ci = -dot(t.dir, sn);
         if (ci <= 1e-6f) { sn = gn; ci = -dot(t.dir, gn); }
         float ct;
@@ -305,11 +311,13 @@ __kernel void photon_pass(VOLUME_ARGS,
             t.pos.z = iface_z(iface, heights, P, up ? t.L : t.L + 1, col_index(P, t.ix, t.iy));
             const float n1 = layer_n[t.L];
             const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-            float3 gn2 = (float3)(0.0f, 0.0f, up ? 1.0f : -1.0f);
-            float3 sn2 = gn2;
-            if (L2 < 0) sn2 = relief_normal(P, normals, col_index(P, t.ix, t.iy));
-            if (fresnel_cross(&t.dir, gn2, sn2, n1, n2, rng_u01(&rng))) {
-                if (L2 < 0 && reenter(&t, VOLUME_PASS, &rng)) { events++; continue; }
+            const float4 gn2 = (float4)(0.0f, 0.0f, up ? 1.0f : -1.0f, 0.0f);
+            float4 d = (float4)(t.dir, 0.0f);
+            const int through = cross_face(&d, gn2, up ? t.L : t.L + 1, t.L, L2, t.pos.x, t.pos.y, n1, n2,
+                                           P, iface, smooth, rng_u01(&rng));
+            t.dir = d.xyz;
+            if (through) {
+                if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) { events++; continue; }
                 if (L2 < 0) { rd += W; if (t.dir.z > P->rcone_cos) rcone += W; W = 0; break; }
                 if (L2 >= NL) { tt += W; W = 0; break; }
                 t.L = L2;
@@ -334,10 +342,14 @@ __kernel void photon_pass(VOLUME_ARGS,
         if (L2 == t.L) continue;
         const float n1 = layer_n[t.L];
         const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-        float3 gnw = axis == 0 ? (float3)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
-                               : (float3)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f);
-        if (fresnel_cross(&t.dir, gnw, gnw, n1, n2, rng_u01(&rng))) {
-            if (L2 < 0 && reenter(&t, VOLUME_PASS, &rng)) continue;
+        const float4 gnw = axis == 0 ? (float4)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f, 0.0f)
+                                     : (float4)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f);
+        float4 d = (float4)(t.dir, 0.0f);
+        const int through = cross_face(&d, gnw, L2 < t.L ? t.L : t.L + 1, t.L, L2, t.pos.x, t.pos.y, n1, n2,
+                                       P, iface, smooth, rng_u01(&rng));
+        t.dir = d.xyz;
+        if (through) {
+            if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) continue;
             if (L2 < 0) { rd += W; if (t.dir.z > P->rcone_cos) rcone += W; W = 0; break; }
             if (L2 >= NL) { tt += W; W = 0; break; }
             t.L = L2;

@@ -434,37 +434,6 @@ inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 sh
     return c;
 }
 
-/* Fresnel decision at a face (as photon.cl): gn geometric and sn smooth normal, both pointing
- * from the current medium into the next.  1: transmitted (dir refracted), 0: reflected. */
-inline int pt_fresnel_cross(float4* dir, float4 gn4, float4 sn4, float n1, float n2, float u) {
-    const float3 d = (*dir).xyz, gn = gn4.xyz;
-    float3 sn = sn4.xyz;
-    float ci = dot(d, sn);
-    if (ci <= 1e-6f) { sn = gn; ci = dot(d, gn); }
-    float ct;
-    const float R = fresnel_R(n1, n2, ci, &ct);
-    if (u < R) {
-        float3 r = reflect3(d, sn);
-        if (dot(r, gn) > 0.0f) r = reflect3(r, gn);
-        *dir = (float4)(unit3(r), 0.0f);
-        return 0;
-    }
-    float3 t = refract3(d, -sn, n1 / n2, ci, ct);
-    if (dot(t, gn) <= 0.0f) t = reflect3(t, gn);
-    *dir = (float4)(unit3(t), 0.0f);
-    return 1;
-}
-
-/* Upward smooth normal of interface k at (x, y) (float; w = 0: no 3-vectors across calls, mnee.h) */
-inline float4 smooth_normal(__constant const Params* P, __constant const float4* iface,
-                            __global const float* smooth, int k, float x, float y) {
-    HF f;
-    hf_eval(P, iface, smooth, k, x, y, &f);
-    real len;
-    const real4 n = hf_normal(&f, &len);
-    return (float4)((float)n.x, (float)n.y, (float)n.z, 0.0f);
-}
-
 /* Enter the skin from the air at the first hit of t (an eye ray): Fresnel sampled at the smooth
  * normal; 0 when it misses or is reflected (to the black sky). */
 inline int pt_enter(Track* t, VOLUME_ARGS, __global const float* smooth, Rng* rng) {
@@ -472,7 +441,7 @@ inline int pt_enter(Track* t, VOLUME_ARGS, __global const float* smooth, Rng* rn
     if (!hit_surface(t, P, iface, heights, &gn)) return 0;
     const float4 sn = smooth_normal(P, iface, smooth, 0, t->pos.x, t->pos.y);
     float4 d = (float4)(t->dir, 0.0f);
-    if (!pt_fresnel_cross(&d, (float4)(-gn, 0.0f), -sn, P->n_above, layer_n[0], rng_u01(rng))) return 0;
+    if (!fresnel_cross(&d, (float4)(-gn, 0.0f), -sn, P->n_above, layer_n[0], rng_u01(rng))) return 0;
     t->dir = d.xyz; t->L = 0;
     return 1;
 }
@@ -508,10 +477,9 @@ inline int pt_boundary(Track* t, int ev, float* beta, Rng* rng, VOLUME_ARGS,
     const float n1 = layer_n[L];
     const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
     if (n1 != n2) {
-        float4 sn = smooth_normal(P, iface, smooth, k, t->pos.x, t->pos.y);
-        if (L2 > L) sn = -sn;
+        const float4 sn = face_normal(P, iface, smooth, k, L, L2, t->pos.x, t->pos.y, (float4)(gn, 0.0f));
         float4 d = (float4)(t->dir, 0.0f);
-        const int through = pt_fresnel_cross(&d, (float4)(gn, 0.0f), sn, n1, n2, rng_u01(rng));
+        const int through = fresnel_cross(&d, (float4)(gn, 0.0f), sn, n1, n2, rng_u01(rng));
         t->dir = d.xyz;
         if (!through) {
             if (ev != EV_TOP && ev != EV_BOTTOM) { t->ix = oix; t->iy = oiy; t->pos = opos; }
