@@ -600,10 +600,19 @@ __kernel void pt_pass(VOLUME_ARGS,
                         Chain ch;
                         float c = 0.0f;
 #ifndef FLAT
-                        const real4 vr = R4((real)t.pos.x, (real)t.pos.y, (real)t.pos.z);
-                        const int Ls = smooth_layer(P, iface, smooth, vr, t.L);
-                        if (Ls < 0) m_mis++;
-                        if (Ls >= 0 && chain_build(&ch, Ls, t.pos.z, lpos.z, 1, -1, &rng, iface, chain)) {
+                        real4 vr = R4((real)t.pos.x, (real)t.pos.y, (real)t.pos.z);
+                        int Ls = smooth_layer(P, iface, smooth, vr, t.L);
+                        if (Ls < 0) {
+                            /* in the staircase's skin but above the smooth surface (within half a
+                             * voxel): connected from the smooth surface just below, as the photons
+                             * that reach this voxel light it in the photon pass */
+                            HF f0;
+                            hf_eval(P, iface, smooth, 0, vr.x, vr.y, &f0);
+                            vr.z = f0.h - (real)1e-3;
+                            Ls = smooth_layer(P, iface, smooth, vr, 0);
+                            m_mis++;
+                        }
+                        if (Ls >= 0 && chain_build(&ch, Ls, (float)vr.z, lpos.z, 1, -1, &rng, iface, chain)) {
                             for (int ix = -nimg; ix <= nimg; ++ix)
                                 for (int iy = -nimg; iy <= nimg; ++iy) {
                                     const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
