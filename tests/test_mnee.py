@@ -368,3 +368,15 @@ def test_relief_same_seed_same_bytes_and_resume_is_byte_identical(dev, tmp_path)
     full = json.loads((tmp_path / "a.json").read_text())["manifold_nee"]
     resumed = json.loads(part.with_suffix(".json").read_text())["manifold_nee"]
     assert full == resumed and full["solves"] > 0
+
+
+def test_compare_and_bias_take_the_path_tracer_as_the_relief_reference():
+    """clppm compare (and bench/bias.py through clppm.reference) use the path tracer on relief
+    scenes now, with the manifold kernels in the reference's cache key."""
+    from clppm.compare import QUICK, reference_spec
+    from clppm.reference import RefSpec, reference_key
+    from clppm import config as C
+    cfg = C.load(C.find("forearm"))
+    assert reference_spec(cfg, (80, 60), QUICK).integrator == "pt"
+    spec = RefSpec(integrator="pt", resolution=(80, 60), block=10, paths=1000)
+    assert reference_key(cfg, spec) != reference_key(C.load(C.find("forearm_flat")), spec)
