@@ -35,12 +35,6 @@
 #include "common.h"
 #include "camera.h"
 #ifndef FLAT
-#ifdef PT_FP64
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-typedef double real;            /* the smooth surfaces in the path tracer's precision */
-#else
-typedef float real;
-#endif
 #include "surface.h"
 #endif
 

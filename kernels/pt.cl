@@ -56,6 +56,7 @@ typedef double real;
 typedef float real;
 #define REL_TOL 1e-7f
 #endif
+#define CLPPM_REAL              /* surface.h: real is defined */
 
 /* Mirrors clppm/pathtracer.py PT_DTYPE: 4-byte fields only, in this order. */
 typedef struct {

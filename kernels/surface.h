@@ -9,13 +9,23 @@
  * the path tracer's walk and its manifold connection (pt.cl, mnee.h), the photon pass
  * (photon.cl) and the eye pass (eye.cl).
  *
- * Relief builds only (not -DFLAT).  The includer defines `real`: double where the device has
- * fp64 (PT_FP64, set for every pass's relief build), else float; the path tracer's manifold
+ * Relief builds only (not -DFLAT).  `real` (unless the includer defined it, CLPPM_REAL): double
+ * where the device has fp64 (PT_FP64, set for every pass's relief build), else float; the path tracer's manifold
  * solver needs the double (tests/test_mnee.py compares it to float64 references), and the other
  * passes share it so that all make the same decision at a crossing.
  */
 #ifndef CLPPM_SURFACE_H
 #define CLPPM_SURFACE_H
+
+#ifndef CLPPM_REAL
+#define CLPPM_REAL
+#ifdef PT_FP64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+typedef double real;
+#else
+typedef float real;
+#endif
+#endif
 
 /* Points and directions are 4-vectors with w = 0, never 3-vectors.  Intel's OpenCL CPU
  * compiler (2026.2) miscompiles a 3-vector that crosses the boundary of a function it does not
