@@ -5,6 +5,7 @@ __version__ = "0.1.0"
 from . import icd as _icd  # noqa: E402
 
 _icd.register()
+_icd.own_pocl_cache()
 
 
 def render(config, integrator="ppm", **kwargs):

@@ -98,11 +98,12 @@ def gather(sc, grid, sslab, extra, st, acc, alpha: float, scale: float, pass_sca
     bs = state(sc)
     st.M.fill(0)
     sw = weights16(sc, grid, extra)
+    pslab = bs.piece_slabs(sc)           # launched before gather_beam is (the launch order)
     kg = sc.kernels["gather_beam"]
     kg(q, *launch(kg, q, sc.npix, rows=sc.gclass), grid.params, sc.pp.pbuf,
        sc.vbuf.iface, sc.vbuf.heights, grid.cell_start.data, grid.spos_w.data,
        grid.sdir_b.data, sslab.data, sc.vlay, extra, sc.hgtab, sc.vbuf.optics, bs.hgc, bs.mutc, sw.data,
-       bs.piece_slabs(sc).data,
+       pslab.data,
        e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, st.R.data,
        st.N.data, st.M.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp),
        np.int32(sc.global_radius), np.float32(scale), np.float64(pass_scale))

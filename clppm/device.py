@@ -81,10 +81,14 @@ IMPLEMENTATIONS = (("pocl", ("portable computing language", "pocl")),
                    ("nvidia", ("nvidia",)), ("amd", ("amd accelerated", "amd")),
                    ("rusticl", ("rusticl",)), ("oclgrind", ("oclgrind",)))
 
-# Default choice among devices that compile: GPUs first, then CPU implementations in this order.
-# It follows docs/devices.md's measured throughput of clppm's kernels (bench/devices.py) and is
-# meant to be revisited whenever a kernel's speed on one implementation changes.
-CPU_PREFERENCE = ("pocl", "intel")
+# Default choice among devices that pass their self-test: GPUs first, then CPU implementations in
+# this order, the faster first by docs/devices.md's measured throughput (bench/devices.py).
+CPU_PREFERENCE = ("intel", "pocl")
+
+
+def short_version(device) -> str:
+    """The platform's version up to its first comma ("OpenCL 3.0 PoCL 3.0-rc2  Linux")."""
+    return " ".join(device.platform.version.split(",")[0].split())
 
 
 def implementation(device) -> str:
@@ -104,14 +108,52 @@ def _rank(entry) -> tuple:
     return (0 if dev.type & cl.device_type.GPU else 1, pref, entry[0], entry[1])
 
 
-def _first_compiling(cands: list, what: str):
+#: one line per device a default choice passed over, and why (a render prints them)
+SELECTION_NOTES: list[str] = []
+
+
+def device_problem(dev, spec: str | None = None) -> str | None:
+    """Why ``dev`` is not usable (one line), or None: its compiler check (:func:`compiler_problem`)
+    and then its known-answer self-test (:mod:`clppm.selftest`, cached per user; off with
+    ``CLPPM_SELF_TEST=0``)."""
+    why = compiler_problem(dev)
+    if why is not None or not _selftest_enabled():
+        return why
+    from . import selftest
+    res = selftest.check(dev, spec or device_spec(dev))
+    return None if res.passed else f"its self-test failed: {res.reason}"
+
+
+def _selftest_enabled() -> bool:
+    from .selftest import enabled
+    return enabled()
+
+
+def device_spec(dev) -> str:
+    """``dev``'s "P:D" (as ``clppm devices`` prints it)."""
+    key = _device_key(dev)
+    for ip, idev, _, d in list_devices():
+        if _device_key(d) == key:
+            return f"{ip}:{idev}"
+    raise DeviceError(f"device '{dev.name.strip()}' is not among the OpenCL devices found")
+
+
+def _first_usable(cands: list, what: str):
+    """The first device of ``cands`` (in :func:`_rank` order) that passes :func:`device_problem`;
+    a one-line note in :data:`SELECTION_NOTES` for each one passed over."""
     cands = sorted(cands, key=_rank)
-    for cand in cands:
-        if compiler_problem(cand[3]) is None:
-            return cand[3]
-    dev = cands[0][3]
-    raise DeviceError(f"no OpenCL device {what}can compile kernels; device '{dev.name.strip()}': "
-                      f"{compiler_problem(dev)}")
+    whys = []
+    for ip, idev, _, dev in cands:
+        why = device_problem(dev, f"{ip}:{idev}")
+        if why is None:
+            SELECTION_NOTES[:] = [f"device {ip}:{idev} '{d.name.strip()}' ({implementation(d)}) "
+                                  f"passed over: {w}" for (ip, idev, d), w in whys]
+            return dev
+        whys.append(((ip, idev, dev), why))
+    (ip, idev, dev), why = whys[0]
+    raise DeviceError(f"no OpenCL device {what}is usable; device {ip}:{idev} '{dev.name.strip()}' "
+                      f"({implementation(dev)}): {why}" + "".join(
+                          f"; device {a}:{b} '{d.name.strip()}': {w}" for (a, b, d), w in whys[1:]))
 
 
 def _by_name(devs: list, spec: str) -> list:
@@ -131,14 +173,20 @@ def select_device(spec: str | None = None):
     forms) is honoured, else the first device that compiles kernels, GPUs first
     and then CPU implementations in :data:`CPU_PREFERENCE` order.  Among several
     devices a name matches, the same order decides.
+    A device that fails its known-answer self-test (:mod:`clppm.selftest`) is never chosen by
+    default (:data:`SELECTION_NOTES` says which were passed over, and why); a named one that
+    fails is refused (:class:`DeviceError`).
     """
     devs = list_devices()
     if not devs:
         raise DeviceError(NO_PLATFORM_HELP)
+    source = "--device"
     if spec is None:
         spec = os.environ.get("PYOPENCL_CTX") or None
+        source = "PYOPENCL_CTX"
+    SELECTION_NOTES.clear()
     if spec is None:
-        return _first_compiling(devs, "")
+        return _first_usable(devs, "")
     spec = str(spec).strip()
     parts = spec.split(":")
     if all(p.isdigit() for p in parts if p != "") and parts[0] != "":
@@ -146,16 +194,32 @@ def select_device(spec: str | None = None):
         idev = int(parts[1]) if len(parts) > 1 and parts[1] != "" else 0
         for p_, d_, _, dev in devs:
             if p_ == ip and d_ == idev:
-                return dev
-        raise DeviceError(f"device '{spec}' not found; `clppm devices` lists "
+                return _named(dev, f"{p_}:{d_}", source, spec)
+        raise DeviceError(f"{source} = '{spec}': no such device; `clppm devices` lists "
                           + ", ".join(f"{a}:{b}" for a, b, _, _ in devs))
     cands = _by_name(devs, spec)
     if not cands:
-        raise DeviceError(f"no device name contains '{spec}'; `clppm devices` lists them")
-    try:
-        return _first_compiling(cands, f"matching '{spec}' ")
-    except DeviceError:
-        return sorted(cands, key=_rank)[0][3]        # its build error names the device later
+        raise DeviceError(f"{source} = '{spec}': no implementation, platform or device name "
+                          "contains it; `clppm devices` lists them")
+    ranked = sorted(cands, key=_rank)
+    for ip, idev, _, dev in ranked:                  # the first one that compiles and passes
+        if device_problem(dev, f"{ip}:{idev}") is None:
+            return dev
+    ip, idev, _, dev = ranked[0]
+    return _named(dev, f"{ip}:{idev}", source, spec)
+
+
+def _named(dev, pd: str, source: str, spec: str):
+    """The device the user named, unless it failed its self-test: then exit 3 with the reason
+    (a device that computes wrong answers or aborts is not used, named or not)."""
+    if compiler_problem(dev) is not None:
+        return dev                                  # its build error names the device later
+    why = device_problem(dev, pd)
+    if why is not None:
+        raise DeviceError(f"device {pd} '{dev.name.strip()}' ({implementation(dev)}, {source} = "
+                          f"'{spec}'): {why}; `clppm devices` lists the others "
+                          "(CLPPM_SELF_TEST=0 skips the self-test)")
+    return dev
 
 
 _PROBE_SRC = "__kernel void clppm_probe(__global float* a) { a[get_global_id(0)] = 1.0f; }"
@@ -247,7 +311,25 @@ def launch(kernel, queue, n: int, want: int = 64, rows: int | None = None) -> tu
     *launch(kernel, queue, n), *args)``; the local size from :func:`local_size`.  With ``rows``,
     a 2-D range of ``rows`` rows of ``n`` (a work group within one row)."""
     g, ls = global_size(n, want), local_size(kernel, queue.device, want)
+    if _SELFTEST_CHILD:
+        _first_launch(kernel, queue)
     return ((g,), (ls,)) if rows is None else ((g, int(rows)), (ls, 1))
+
+
+_SELFTEST_CHILD = os.environ.get("CLPPM_SELF_TEST_CHILD") == "1"
+_FIRST_LAUNCHED: set = set()
+
+
+def _first_launch(kernel, queue) -> None:
+    """In the self-test's child: before a kernel's first launch, finish what is queued and say
+    which kernel comes next, so that a crash in its compile (PoCL compiles a kernel at its first
+    launch) or its run is attributed to it."""
+    name = kernel.function_name
+    if name in _FIRST_LAUNCHED:
+        return
+    queue.finish()
+    _FIRST_LAUNCHED.add(name)
+    print(f"clppm-selftest-stage: {name}'s first launch", flush=True)
 
 
 def launched(device) -> list[dict]:
@@ -262,22 +344,28 @@ def launched(device) -> list[dict]:
 
 @dataclass
 class Device:
-    """A context + queue on one device, and the program builder for it."""
+    """A context + queue on one device, and the program builder for it; ``chosen`` says why
+    this device (the option that named it, or the default rule), ``passed_over`` the devices
+    the default rule skipped and why."""
 
     ctx: object
     queue: object
     device: object
+    chosen: str = ""
+    passed_over: tuple = ()
 
     @property
     def name(self) -> str:
         return self.device.name.strip()
 
     def info(self) -> dict:
-        return describe(self.device)
+        return {**describe(self.device), "chosen": self.chosen, "passed_over": list(self.passed_over)}
 
     def build(self, filename: str, defines: dict | None = None) -> object:
-        """Build ``kernels/filename`` with ``-D`` defines (cached per device and options)."""
-        return _build(self.ctx, filename, tuple(sorted((defines or {}).items())))
+        """Build ``kernels/filename`` with ``-D`` defines (cached per device and options), and
+        check that the program holds every kernel the source declares (:func:`_build`)."""
+        return _build(self.ctx, filename, tuple(sorted((defines or {}).items())),
+                      os.environ.get("CLPPM_FAULT", ""))
 
 
 #: the gather's density estimators (kernels/gather.cl ESTIMATOR)
@@ -323,7 +411,7 @@ def surface_fp64(dev, vol) -> bool | None:
 
 
 @functools.lru_cache(maxsize=None)
-def _build(ctx, filename: str, defines: tuple):
+def _build(ctx, filename: str, defines: tuple, fault: str = ""):
     cl = _cl()
     kdir = kernel_dir()
     path = os.path.join(kdir, filename)
@@ -340,6 +428,25 @@ def _build(ctx, filename: str, defines: tuple):
         opts = []
     else:
         opts = [f"-I{kdir}"]
+    opts += _define_options(defines)
+    want = expected_kernels(src, {o[2:].split("=")[0] for o in opts if o.startswith("-D")})
+    dev = ctx.devices[0]
+    src, opts = _inject_fault(fault, dev, filename, src, opts)
+    prg = _program(ctx, src, opts, filename)
+    missing = want - set(_kernel_names(prg))
+    if missing:                 # a broken cache entry (a crashed compile's): bypass and rebuild once
+        forget_kernel_cache(implementation(dev), ctx, src, opts)
+        prg = _program(ctx, src, opts, filename, cache=False)
+        missing = want - set(_kernel_names(prg))
+    if missing:
+        raise DeviceError(f"kernel build of {filename} on device '{dev.name.strip()}' "
+                          f"({implementation(dev)}, {short_version(dev)}) holds no kernel "
+                          f"{', '.join(sorted(missing))}, even rebuilt without the kernel caches")
+    return prg
+
+
+def _define_options(defines: tuple) -> list[str]:
+    opts = []
     for k, v in defines:
         if k == "FAST_MATH":                 # not a -D: the compiler's relaxed-math switch
             if v:
@@ -352,12 +459,106 @@ def _build(ctx, filename: str, defines: tuple):
             opts.append(f"-D{k}={v!r}f")
         else:
             opts.append(f"-D{k}={v}")
+    return opts
+
+
+def _program(ctx, src: str, opts: list, filename: str, cache: bool = True):
+    cl = _cl()
     try:
-        return cl.Program(ctx, src).build(options=opts)
+        return cl.Program(ctx, src).build(options=opts, **({} if cache else {"cache_dir": False}))
     except cl.Error as e:  # build failure (RuntimeError), bad options (LogicError): name + log
         dev = ctx.devices[0].name.strip()
         raise DeviceError(f"kernel build of {filename} failed on device '{dev}' "
                           f"with options {' '.join(opts)}:\n{e}") from None
+
+
+def _kernel_names(prg) -> list[str]:
+    try:
+        return [n for n in prg.kernel_names.split(";") if n]
+    except Exception:                     # a program the driver cannot describe holds nothing
+        return []
+
+
+_KERNEL_DECL = re.compile(r"__kernel\s+void\s+(\w+)\s*\(")
+_COND = re.compile(r"^[ \t]*#[ \t]*(if|ifdef|ifndef|elif|else|endif)\b[ \t]*(\w*)", re.M)
+
+
+def expected_kernels(src: str, defined: set[str]) -> set[str]:
+    """The kernels ``src`` declares outside preprocessor conditions it cannot decide: ``#ifdef``
+    and ``#ifndef`` of ``defined`` names are followed, any other ``#if`` is left undecided (its
+    kernels are not required)."""
+    events = sorted([(m.start(), "k", m.group(1)) for m in _KERNEL_DECL.finditer(src)]
+                    + [(m.start(), m.group(1), m.group(2)) for m in _COND.finditer(src)])
+    stack: list = []                 # per open condition: True, False, or None (undecided)
+    out = set()
+    for _, what, arg in events:
+        if what == "k":
+            if all(c is True for c in stack):
+                out.add(arg)
+        elif what in ("ifdef", "ifndef"):
+            stack.append((arg in defined) == (what == "ifdef"))
+        elif what == "if":
+            stack.append(None)
+        elif what == "elif" and stack:
+            stack[-1] = None
+        elif what == "else" and stack:
+            stack[-1] = None if stack[-1] is None else not stack[-1]
+        elif what == "endif" and stack:
+            stack.pop()
+    return out
+
+
+def _inject_fault(fault: str, dev, filename: str, src: str, opts: list) -> tuple[str, list]:
+    """Deliberately broken builds, for the tests of the self-test and of verified builds only:
+    ``CLPPM_FAULT=[IMPL@]FILE:KIND[:KERNEL]`` (several, comma-separated; IMPL: on that
+    implementation only), KIND ``crash`` (KERNEL's first
+    work item writes to address 0 at its first launch), ``drop`` (KERNEL is not a kernel: the
+    program lacks it) or ``wrong`` (``-DCLPPM_FAULT_WRONG``: photon.cl scatters less)."""
+    for f in filter(None, (x.strip() for x in fault.split(","))):
+        impl, _, f = f.rpartition("@")
+        file_, kind, *rest = f.split(":") + [""]
+        if file_ != filename or (impl and impl != implementation(dev)):
+            continue
+        name = rest[0] if rest and rest[0] else r"\w+"
+        m = re.search(r"__kernel(\s+void\s+" + name + r"\s*\()", src)
+        if kind == "wrong":
+            opts = opts + ["-DCLPPM_FAULT_WRONG=1"]
+        elif kind == "drop" and m:
+            src = src[:m.start()] + m.group(1).lstrip() + src[m.end():]
+        elif kind == "crash" and m:
+            brace = src.index("{", m.end())
+            src = (src[:brace + 1] + " if (get_global_id(0) == 0) *(volatile __global int*)0 = 1; "
+                   + src[brace + 1:])
+    return src, opts
+
+
+def forget_kernel_cache(impl: str, ctx=None, src: str | None = None, opts: list | None = None) -> None:
+    """Drop what the kernel caches may hold of a crashed or broken build: the PoCL kernel cache
+    clppm owns (``POCL_CACHE_DIR`` set by :func:`clppm.icd.own_pocl_cache`; a cache the user
+    chose loses only its unfinished ``tempfile_*`` entries and truncated programs) and, for
+    ``src`` and ``opts``, pyopencl's cached binary."""
+    import shutil
+    from .icd import owned_pocl_cache, prune_pocl_cache
+    d = os.environ.get("POCL_CACHE_DIR")
+    if impl == "pocl" and d and os.path.isdir(d):
+        if d == owned_pocl_cache():          # its entries: PoCL needs the folder itself
+            for n in os.listdir(d):
+                shutil.rmtree(os.path.join(d, n), ignore_errors=True)
+        else:
+            prune_pocl_cache(d)
+    if ctx is not None and src is not None:
+        try:
+            from pyopencl.cache import get_cache_key
+            prg = _cl().Program(ctx, src)
+            ob = prg._process_build_options(ctx, opts)[0]
+            import platformdirs
+            import sys
+            base = os.path.join(platformdirs.user_cache_dir("pyopencl", "pyopencl"),
+                                "pyopencl-compiler-cache-v2-py" + ".".join(map(str, sys.version_info)))
+            shutil.rmtree(os.path.join(base, get_cache_key(ctx.devices[0], ob, src)),
+                          ignore_errors=True)
+        except Exception:             # pyopencl's private layout changed: the rebuild bypasses it
+            pass
 
 
 _INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]*"([^"]+)"[ \t]*$', re.M)
@@ -380,20 +581,28 @@ def _inline_includes(src: str, kdir: str, seen: frozenset = frozenset()) -> str:
     return _INCLUDE.sub(sub, src)
 
 
+DEFAULT_RULE = ("the default: GPUs first, then " + ", ".join(CPU_PREFERENCE)
+                + ", the first that passes its self-test")
+
+
 @functools.lru_cache(maxsize=None)
-def _open(spec: str | None) -> Device:
+def _open(spec: str | None, source: str) -> Device:
     cl = _cl()
     dev = select_device(spec)
     ctx = cl.Context([dev])
     queue = cl.CommandQueue(ctx)
-    return Device(ctx=ctx, queue=queue, device=dev)
+    chosen = DEFAULT_RULE if spec is None else f"{source} {spec}"
+    return Device(ctx=ctx, queue=queue, device=dev, chosen=chosen,
+                  passed_over=tuple(SELECTION_NOTES) if spec is None else ())
 
 
 def open_device(spec: str | None = None) -> Device:
     """Context and queue on the selected device (one per process and spec)."""
+    source = "--device"
     if spec is None:
         spec = os.environ.get("PYOPENCL_CTX") or None
-    return _open(spec)
+        source = "PYOPENCL_CTX ="
+    return _open(spec, source)
 
 
 def check_alloc(dev: Device, needs: dict[str, int]) -> None:

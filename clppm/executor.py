@@ -216,10 +216,10 @@ def check_distributable(cfg: dict, how: str) -> None:
 def parse_devices(spec: str) -> list[str]:
     """``all`` or ``P:D,P:D`` -> usable local devices as ``P:D`` (a device may repeat: one worker
     per entry).  Bad entries -> one line naming --devices."""
-    from .device import compiler_problem, list_devices
+    from .device import device_problem, list_devices
     devs = {f"{ip}:{idev}": d for ip, idev, _, d in list_devices()}
     if spec.strip().lower() == "all":
-        out = [k for k, d in devs.items() if compiler_problem(d) is None]
+        out = [k for k, d in devs.items() if device_problem(d, k) is None]
         if not out:
             raise ConfigError("command line", "--devices", spec, "no usable OpenCL device here "
                               "(`clppm devices` lists them)")
@@ -231,7 +231,7 @@ def parse_devices(spec: str) -> list[str]:
         if part not in devs:
             raise ConfigError("command line", "--devices", spec,
                               f"no device {part}; `clppm devices` lists {', '.join(devs) or 'none'}")
-        why = compiler_problem(devs[part])
+        why = device_problem(devs[part], part)
         if why:
             raise ConfigError("command line", "--devices", spec, f"device {part} is not usable: {why}")
         out.append(part)

@@ -124,3 +124,59 @@ def _point(lib: str, previous: str, entries: dict[str, str]) -> str | None:
         return None                                   # read-only home and /tmp: PoCL still works
     os.environ["OCL_ICD_VENDORS"] = d
     return d
+
+
+def owned_pocl_cache() -> str:
+    """The PoCL kernel cache folder clppm owns (below its own cache folder)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "clppm", "pocl-kcache")
+
+
+def own_pocl_cache() -> None:
+    """Give PoCL a kernel cache of clppm's own (``POCL_CACHE_DIR``) unless the user chose one, so
+    that clppm can drop it whole when a crashed compile left a broken entry there (PoCL then
+    "builds" programs without kernels from it).  PoCL reads the variable when it starts.  Its
+    broken entries go first (:func:`prune_pocl_cache`): PoCL 3.1 asserts on one, 3.0 aborts."""
+    if not os.environ.get("POCL_CACHE_DIR"):
+        os.environ["POCL_CACHE_DIR"] = owned_pocl_cache()
+    prune_pocl_cache(os.environ["POCL_CACHE_DIR"])
+
+
+#: the first bytes of LLVM bitcode, bare and wrapped: what PoCL keeps as a program.bc
+_BITCODE = (b"BC\xc0\xde", b"\xde\xc0\x17\x0b")
+
+
+def prune_pocl_cache(d: str) -> None:
+    """Drop the entries of PoCL's kernel cache ``d`` that a crashed compile leaves: unfinished
+    ``tempfile_*`` and programs whose ``program.bc`` is missing, truncated or not bitcode."""
+    import shutil
+    try:
+        tops = os.listdir(d)
+    except OSError:
+        return
+    for top in tops:
+        p = os.path.join(d, top)
+        if top.startswith("tempfile_"):
+            if os.path.isdir(p):
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                try:
+                    os.remove(p)
+                except OSError:
+                    pass
+            continue
+        try:
+            subs = os.listdir(p) if os.path.isdir(p) else []
+        except OSError:
+            continue
+        for sub in subs:
+            if not _bitcode(os.path.join(p, sub, "program.bc")):
+                shutil.rmtree(os.path.join(p, sub), ignore_errors=True)
+
+
+def _bitcode(path: str) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) in _BITCODE
+    except OSError:
+        return False

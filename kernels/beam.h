@@ -27,6 +27,16 @@ inline float16 exp_neg16(float16 x) {
     return select(r, (float16)(0.0f), isless(y, (float16)(126.0f)) == 0);
 }
 
+/* (native_)rsqrt on 16 lanes as two 8-lane halves, the same value per lane: pip's PoCL 3.0
+ * (LLVM 14) aborts at the first launch of a kernel that takes any sqrt-family builtin of a
+ * float16 on AVX2 targets (AMD Zen 4: "Cannot select: fsqrt"); float8 compiles everywhere. */
+inline float16 native_rsqrt16(float16 q) {
+    return (float16)(native_rsqrt(q.lo), native_rsqrt(q.hi));
+}
+inline float16 rsqrt16(float16 q) {
+    return (float16)(rsqrt(q.lo), rsqrt(q.hi));
+}
+
 /* A photon of a layer-conforming layer is filed at the depth key phi_key of its fraction phi of
  * the layer (photon_keys); a piece queries the key range of its phi range. */
 #define PHI_LO (-0.5f)

@@ -516,9 +516,9 @@ __kernel void gather_beam(const GridParams gp,
                                 const float16 q = hh[0] + hh[1] * cw;
 #ifdef EXACT_RSQRT                      /* tests on implementations whose native_rsqrt differs
                                          * between vector widths (Intel's: up to 0.9 % per pixel) */
-                                const float16 rq = rsqrt(q);
+                                const float16 rq = rsqrt16(q);
 #else
-                                const float16 rq = native_rsqrt(q);
+                                const float16 rq = native_rsqrt16(q);
 #endif
                                 const float16 T = exp_neg16(od16 + mut16 * ts);
 #ifdef PROF_NOSAT

@@ -240,6 +240,9 @@ __kernel void photon_pass(VOLUME_ARGS,
             sw_flight(&sw, optics, t.L, mut, s);
             sw_collide(&sw, optics, logmu, t.L, op);
             long dw = convert_long_rte((float)W * op.x);
+#ifdef CLPPM_FAULT_WRONG                /* the self-test's tests only: a miscompiled absorption */
+            dw = convert_long_rte((float)dw * 1.5f);
+#endif
             dw = dw < 0 ? 0 : (dw > W ? W : dw);
             absorbed[t.L] += dw; W -= dw;
             if (W > 0 && op.x < 1.0f) {

@@ -159,7 +159,7 @@ __kernel void scatter_beam(const GridParams gp, __constant const Params* P,
         const float16 od16 = (float16)(vload8(0, ok), ok[8], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f);
         const float16 w = wj * wax * wl * wwin;
         const float16 q = hx + hy * cw;
-        const float16 rq = native_rsqrt(q);
+        const float16 rq = native_rsqrt16(q);
         const float16 T = exp_neg16(od16 + mutc[Lk * GCLASS + g] * ts);
         const long16 x = convert_long16(fmin(hz * rq * rq * rq * w * T * FIX, 9.0e18f));
         const uint i = piece_pt[k];

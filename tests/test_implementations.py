@@ -21,11 +21,11 @@ GROUPS = 3
 
 
 def _implementations() -> dict[str, str]:
-    from clppm.device import compiler_problem, implementation, list_devices
+    from clppm.device import device_problem, implementation, list_devices
     out = {}
     for ip, idev, _, d in list_devices():
         impl = implementation(d)
-        if impl not in out and impl != "oclgrind" and compiler_problem(d) is None:
+        if impl not in out and impl != "oclgrind" and device_problem(d, f"{ip}:{idev}") is None:
             out[impl] = f"{ip}:{idev}"
     return out
 

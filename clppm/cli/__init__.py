@@ -13,6 +13,7 @@ had is written, with a checkpoint to resume).
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 
@@ -134,3 +135,16 @@ def main(argv=None) -> int:
         if old is not None:
             signal.signal(signal.SIGTERM, old)
 
+
+
+def entry() -> None:
+    """The ``clppm`` command: :func:`main`, whose exit code then ends the process without the
+    interpreter's teardown (pip's PoCL 3.0 can abort there, "still have references to IRs",
+    and SIGABRT's 134 would replace clppm's code).  Everything is written and closed by then."""
+    code = main()
+    for f in (sys.stdout, sys.stderr):
+        try:
+            f.flush()
+        except (OSError, ValueError):       # a closed pipe: nothing more can be said
+            pass
+    os._exit(code)

@@ -1,6 +1,4 @@
 """``python -m clppm.cli``: the same as the ``clppm`` command."""
-import sys
+from . import entry
 
-from . import main
-
-sys.exit(main())
+entry()

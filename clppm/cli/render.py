@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import sys
 import signal
 
 from ..config import ConfigError
@@ -86,7 +87,11 @@ def cmd_render(a) -> int:
             f"{r['mean_vertices_per_path']:.1f} vertices per path" if a.integrator == "pt" else
             f"method {r['scheme']}, {r['passes_done']} passes, {r['photons_emitted']} photons emitted, "
             f"{r['sample_points']} sample points")
-    print(f"wrote {a.output} (+ {side}): {what}, {r['seconds']['total']:.1f} s on {r['device']['name']}")
+    d = r["device"]
+    chosen = f" ({d.get('implementation', '?')}: {d['chosen']})" if d.get("chosen") else ""
+    print(f"wrote {a.output} (+ {side}): {what}, {r['seconds']['total']:.1f} s on {d['name']}{chosen}")
+    for note in d.get("passed_over", ()):
+        print(f"clppm: note: {note}", file=sys.stderr)
     if r["interrupted"]:
         sig = interrupt_signal() or signal.SIGINT
         again = " ".join(["clppm render", a.config, "-o", a.output] + (["--integrator pt"] if a.integrator == "pt" else [])

@@ -1,6 +1,7 @@
 """``clppm devices | config | trace | samples``: the commands that render nothing."""
 from __future__ import annotations
 
+import json
 import os
 import sys
 
@@ -9,22 +10,44 @@ from .options import METHODS_HELP, add_device, load_config, method_or_spacing, r
 
 
 def cmd_devices(a) -> int:
-    from ..device import compiler_problem, describe, list_devices, NO_PLATFORM_HELP
+    """Each OpenCL device, its compiler check and its known-answer self-test (cached; ``--check``
+    reruns it); ``--json`` the same as a list for scripts (CI picks the devices to test on)."""
+    from .. import selftest
+    from ..device import compiler_problem, describe, device_spec, list_devices, select_device, NO_PLATFORM_HELP
     devs = list_devices()
     if not devs:
         print(NO_PLATFORM_HELP, file=sys.stderr)
         return 3
+    only = None
+    if a.device is not None:
+        os.environ["CLPPM_SELF_TEST"] = "0"           # choose without testing: tested below
+        only = device_spec(select_device(a.device))
+    rows = []
     for ip, idev, plat, dev in devs:
+        spec = f"{ip}:{idev}"
+        if only is not None and spec != only:
+            continue
         d = describe(dev)
-        print(f"{ip}:{idev}  {d['name']}  [{d['implementation']}: {d['platform']} {d['platform_version']}; "
+        why = compiler_problem(dev)
+        test = None if why else selftest.check(dev, spec, rerun=a.check)
+        rows.append({"spec": spec, **d, "compiler_problem": why,
+                     "self_test": None if test is None else {
+                         "passed": test.passed, "seconds": round(test.seconds, 2),
+                         "reason": test.reason, "checked": test.checked, "cached": test.cached},
+                     "usable": why is None and test.passed})
+        if a.json:
+            continue
+        print(f"{spec}  {d['name']}  [{d['implementation']}: {d['platform']} {d['platform_version']}; "
               f"{d['type']}; {d['compute_units']} CUs; "
               f"{d['global_mem_bytes'] / 2**30:.1f} GiB, max alloc {d['max_alloc_bytes'] / 2**30:.1f} GiB; "
-              f"fp64 {'yes' if d['fp64'] else 'no'}; int64 atomics {'yes' if d['int64_atomics'] else 'no'}]")
-        why = compiler_problem(dev)
-        print(f"      not usable: {why}" if why else "      compiler check: builds kernels")
-        if a.kernels and not why:
+              f"fp64 {'yes' if d['fp64'] else 'no'}; int64 atomics {'yes' if d['int64_atomics'] else 'no'}]",
+              flush=True)
+        print(f"      not usable: {why}" if why else f"      {test.line()}", flush=True)
+        if a.kernels and not why and test.passed:
             from ..tiny import print_kernel_report
-            print_kernel_report(f"{ip}:{idev}")
+            print_kernel_report(spec)
+    if a.json:
+        print(json.dumps(rows, indent=1))
     return 0
 
 
@@ -146,6 +169,11 @@ def add_parsers(sub) -> None:
     add_device(p)
     p.add_argument("--kernels", action="store_true", help="run a tiny scene through every kernel "
                    "on each usable device; print each kernel's private memory, work-group limit and local size")
+    p.add_argument("--check", action="store_true", help="rerun each device's known-answer self-test "
+                   "(else its cached result is shown; it runs by itself the first time a device, "
+                   "driver or clppm version is used)")
+    p.add_argument("--json", action="store_true", help="the devices, their checks and self-tests "
+                       "as JSON (spec, name, implementation, ..., self_test, usable)")
     p.set_defaults(func=cmd_devices)
 
     p = sub.add_parser("config", help="print the defaults, a config as clppm reads it, a shipped "

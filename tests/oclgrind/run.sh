@@ -10,7 +10,8 @@ cd "$(dirname "$0")/../.."
 PY=${1:-.venv/bin/python}
 command -v oclgrind >/dev/null || { echo "oclgrind is not installed (apt-get install oclgrind)" >&2; exit 1; }
 LOG=$(mktemp /tmp/clppm-oclgrind.XXXXXX)
-export CLPPM_NO_ICD=1 PYOPENCL_NO_CACHE=1
+# No self-test: its child would run under the simulator too (the tiny scene here is its test).
+export CLPPM_NO_ICD=1 PYOPENCL_NO_CACHE=1 CLPPM_SELF_TEST=0
 rc=0
 oclgrind --data-races --max-wgsize 32 --num-threads "$(nproc)" --log "$LOG" \
   "$PY" tests/oclgrind/tiny_all.py "${CLPPM_OCLGRIND_PHOTONS:-400}" "${CLPPM_OCLGRIND_RES:-6x4}" || rc=$?
