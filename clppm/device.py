@@ -434,8 +434,10 @@ def _build(ctx, filename: str, defines: tuple, fault: str = ""):
     src, opts = _inject_fault(fault, dev, filename, src, opts)
     prg = _program(ctx, src, opts, filename)
     missing = want - set(_kernel_names(prg))
-    if missing:                 # a broken cache entry (a crashed compile's): bypass and rebuild once
-        forget_kernel_cache(implementation(dev), ctx, src, opts)
+    for whole in (False, True):   # a broken cache entry (a crashed compile's): drop it, rebuild
+        if not missing:
+            break
+        forget_kernel_cache(implementation(dev), ctx, src, opts, whole=whole)
         prg = _program(ctx, src, opts, filename, cache=False)
         missing = want - set(_kernel_names(prg))
     if missing:
@@ -532,20 +534,20 @@ def _inject_fault(fault: str, dev, filename: str, src: str, opts: list) -> tuple
     return src, opts
 
 
-def forget_kernel_cache(impl: str, ctx=None, src: str | None = None, opts: list | None = None) -> None:
-    """Drop what the kernel caches may hold of a crashed or broken build: the PoCL kernel cache
+def forget_kernel_cache(impl: str, ctx=None, src: str | None = None, opts: list | None = None,
+                        whole: bool = True) -> None:
+    """Drop what the kernel caches may hold of a crashed or broken build: PoCL's broken entries
+    (:func:`clppm.icd.prune_pocl_cache`) and, with ``whole``, every entry of the PoCL cache
     clppm owns (``POCL_CACHE_DIR`` set by :func:`clppm.icd.own_pocl_cache`; a cache the user
-    chose loses only its unfinished ``tempfile_*`` entries and truncated programs) and, for
-    ``src`` and ``opts``, pyopencl's cached binary."""
+    chose is only pruned); for ``src`` and ``opts``, pyopencl's cached binary."""
     import shutil
     from .icd import owned_pocl_cache, prune_pocl_cache
     d = os.environ.get("POCL_CACHE_DIR")
     if impl == "pocl" and d and os.path.isdir(d):
-        if d == owned_pocl_cache():          # its entries: PoCL needs the folder itself
+        prune_pocl_cache(d)
+        if whole and d == owned_pocl_cache():  # its entries: PoCL needs the folder itself
             for n in os.listdir(d):
                 shutil.rmtree(os.path.join(d, n), ignore_errors=True)
-        else:
-            prune_pocl_cache(d)
     if ctx is not None and src is not None:
         try:
             from pyopencl.cache import get_cache_key

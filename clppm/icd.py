@@ -146,10 +146,34 @@ def own_pocl_cache() -> None:
 _BITCODE = (b"BC\xc0\xde", b"\xde\xc0\x17\x0b")
 
 
-def prune_pocl_cache(d: str) -> None:
-    """Drop the entries of PoCL's kernel cache ``d`` that a crashed compile leaves: unfinished
-    ``tempfile_*`` and programs whose ``program.bc`` is missing, truncated or not bitcode."""
+#: PoCL writes a program's entry through ``tempfile_*`` files and fills its folder while it
+#: compiles: an entry younger than this may belong to a build running in another process
+STALE_S = 600.0
+
+
+def prune_pocl_cache(d: str, stale_s: float = STALE_S) -> None:
+    """Drop the entries of PoCL's kernel cache ``d`` that a crashed compile leaves: programs
+    whose ``program.bc`` is not LLVM bitcode (truncated, garbage), and ``tempfile_*`` files or
+    program folders without a ``program.bc`` older than ``stale_s`` seconds (younger ones may be
+    another process's build in progress)."""
     import shutil
+    import time
+    now = time.time()
+
+    def old(p):
+        try:
+            return now - os.path.getmtime(p) > stale_s
+        except OSError:
+            return False
+
+    def drop(p):
+        if os.path.isdir(p):
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            try:
+                os.remove(p)
+            except OSError:
+                pass
     try:
         tops = os.listdir(d)
     except OSError:
@@ -157,21 +181,18 @@ def prune_pocl_cache(d: str) -> None:
     for top in tops:
         p = os.path.join(d, top)
         if top.startswith("tempfile_"):
-            if os.path.isdir(p):
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                try:
-                    os.remove(p)
-                except OSError:
-                    pass
+            if old(p):
+                drop(p)
             continue
         try:
             subs = os.listdir(p) if os.path.isdir(p) else []
         except OSError:
             continue
         for sub in subs:
-            if not _bitcode(os.path.join(p, sub, "program.bc")):
-                shutil.rmtree(os.path.join(p, sub), ignore_errors=True)
+            entry = os.path.join(p, sub)
+            bc = os.path.join(entry, "program.bc")
+            if os.path.exists(bc) and not _bitcode(bc) or not os.path.exists(bc) and old(entry):
+                drop(entry)
 
 
 def _bitcode(path: str) -> bool:
