@@ -158,8 +158,11 @@ def _device_error(run: Run, e, cad: Cadence, last_ckpt: int | None) -> DeviceErr
     msg = " ".join(str(e).split())
     keep = (f"checkpoint {cad.checkpoint} (pass {last_ckpt}) is kept: resume with "
             f"{run.resume_flags} {cad.checkpoint}" if last_ckpt else "no checkpoint was written yet")
-    return DeviceError(f"device '{run.device_name}' failed in pass {run.passes_done + 1} of "
-                       f"{run.n_passes} ({msg}); {keep}")
+    err = DeviceError(f"device '{run.device_name}' failed in pass {run.passes_done + 1} of "
+                      f"{run.n_passes} ({msg}); {keep}")
+    err.checkpoint = cad.checkpoint if last_ckpt else None     # the command line's resume command
+    err.resume_hint = f"{run.resume_flags} {cad.checkpoint}" if last_ckpt else None
+    return err
 
 
 def drive(run: Run, cad: Cadence, t_start: float, resumed: bool = False) -> film.RenderResult:

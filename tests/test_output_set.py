@@ -173,3 +173,20 @@ def test_printed_resume_command_works_as_printed(tmp_path, monkeypatch):
     assert rep["passes_done"] == 3 and rep["config"]["render"]["seed"] == 5
     assert rep["config"]["camera"]["resolution"] == [10, 8]
     assert rep["config"]["render"]["store_scale"] == 20
+
+
+def test_device_error_prints_the_whole_resume_command(dev, monkeypatch, tmp_path):
+    """A device lost mid-render keeps its checkpoint and prints a command that resumes it as
+    printed (the options that shaped the render included)."""
+    from test_guards import _lost_setup
+    p, out, ck = _lost_setup(monkeypatch, tmp_path)
+    r = clppm_inproc("render", p, "-o", out, "-q", "--seed", 4, "--resolution", "6x4")
+    assert r.returncode == 3, r.stderr
+    line = r.stderr.strip().splitlines()[-1]
+    cmd = shlex.split(line.split("resume with ", 1)[1])
+    assert cmd[:2] == ["clppm", "render"] and "--seed" in cmd and "6x4" in cmd
+    monkeypatch.undo()
+    r = clppm_inproc(*cmd[1:], "-q")
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "x.json").read_text())
+    assert rep["passes_done"] == 5 and rep["config"]["render"]["seed"] == 4

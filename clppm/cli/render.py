@@ -104,6 +104,7 @@ def _import_renderers() -> None:
 
 def cmd_render(a) -> int:
     from .. import paths
+    from ..device import DeviceError
     from ..driver import interrupt_signal
     cfg = _render_config(a)
     _check_render_paths(a, cfg)
@@ -122,6 +123,10 @@ def cmd_render(a) -> int:
         except paths.WriteError as e:
             hint = (f": resume with {resume_command(a, e.checkpoint)}" if e.checkpoint else "")
             raise InputError(f"{e}; {e.kept()}{hint}") from None
+        except DeviceError as e:
+            if getattr(e, "resume_hint", None):          # the whole command, not the flags alone
+                raise DeviceError(str(e).replace(e.resume_hint, resume_command(a, e.checkpoint))) from None
+            raise
     r = res.report
     side = ", ".join(os.path.basename(files[k]) for k in ("png", "report", "checkpoint") if k in files)
     what = (f"path tracer, {r['passes_done']} passes, {r['paths_traced']} paths, "
