@@ -21,6 +21,8 @@ import zlib
 
 import numpy as np
 
+from . import paths
+
 VERSION = 2
 #: the arrays of a PPM checkpoint
 ARRAYS = ("pt_R", "pt_N", "R0", "pix_acc", "chunk_acc", "pix_pairs")
@@ -68,22 +70,17 @@ def save(path: str, meta: dict, state: dict, arrays: dict, integrator: str = "pp
 
 
 def _write(path: str, header: dict, arrays: dict) -> None:
-    """Atomically: a temporary file in the same folder, flushed, renamed over the old one."""
+    """Atomically: a temporary file in the same folder, flushed, renamed over the old one (a full
+    disk keeps the old checkpoint and raises :class:`clppm.paths.WriteError` naming the file)."""
     d = os.path.dirname(os.path.abspath(path))
     os.makedirs(d, exist_ok=True)
-    tmp = os.path.join(d, f".{os.path.basename(path)}.{os.getpid()}.tmp")
-    try:
+
+    def fill(tmp):
         with open(tmp, "wb") as f:
             np.savez(f, header=np.array(json.dumps(header, default=str)), **arrays)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:                # disk full, a second Ctrl-C: keep the old checkpoint
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    paths.write_atomic(path, fill)
     _fsync_dir(d)
 
 
@@ -149,10 +146,7 @@ def load(path: str, meta: dict | None = None, integrator: str = "ppm") -> dict:
     if not isinstance(header.get("meta"), dict) or not isinstance(header.get("state"), dict):
         raise corrupt("header without meta or state")
     if meta is not None and header["meta"] != meta:
-        diffs = _diff(header["meta"], meta)
-        more = f"; and {len(diffs) - 8} more" if len(diffs) > 8 else ""
-        raise CheckpointError(f"checkpoint {name} was made with different parameters: "
-                              + "; ".join(diffs[:8]) + more)
+        raise _mismatch(name, [d.removeprefix("config.") for d in _diff(header["meta"], meta)])
     st = dict(header["state"])
     if integrator == "pt":
         return _pt_state(name, st, arrays, meta, corrupt)
@@ -222,12 +216,62 @@ def _check_shapes(name: str, st: dict, meta: dict) -> None:
 
 
 def _diff(a, b, path="") -> list[str]:
+    """The keys (dotted, list items by index: ``layer.0.thickness_um``) where a and b differ."""
     if isinstance(a, dict) and isinstance(b, dict):
         out = []
         for k in sorted(set(a) | set(b)):
             out += _diff(a.get(k), b.get(k), f"{path}.{k}" if path else k)
         return out
-    return [] if a == b else [f"{path}: checkpoint {a!r}, now {b!r}"]
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b) \
+            and any(isinstance(x, (dict, list)) for x in a + b):
+        out = []
+        for i, (x, y) in enumerate(zip(a, b)):
+            out += _diff(x, y, f"{path}.{i}")
+        return out
+    if a == b:
+        return []
+    if isinstance(a, list) and isinstance(b, list) and len(a) != len(b):
+        return [f"{path} (checkpoint {len(a)} items, now {len(b)})"]
+    return [f"{path} (checkpoint {_short(a)}, now {_short(b)})"]
+
+
+def _short(v, limit: int = 40) -> str:
+    r = repr(v)
+    return r if len(r) <= limit else r[:limit - 3] + "..."
+
+
+def _mismatch(name: str, diffs: list[str]) -> CheckpointError:
+    """One short line naming the differing keys (their values while the line stays short)."""
+    line = "; ".join(diffs)
+    if len(line) > 240:
+        keys = [d.split(" (", 1)[0] for d in diffs]
+        line = ", ".join(keys[:12]) + (f" and {len(keys) - 12} more" if len(keys) > 12 else "")
+    return CheckpointError(f"checkpoint {name} was made with different parameters: {line}")
+
+
+def header_meta(path: str) -> dict | None:
+    """The run identity a checkpoint was written with (its header alone), or None if unreadable."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["header"]))["meta"]
+        return meta if isinstance(meta, dict) else None
+    except Exception:                    # unreadable: load() says why when the run starts
+        return None
+
+
+def check_matches(path: str, **part) -> None:
+    """Before any work: the parts of the run identity known already (``config``, ``device``)
+    must be the checkpoint's; the rest (the eye pass's counts) is checked by :func:`load`."""
+    if not os.path.isfile(path):
+        raise CheckpointError(f"checkpoint {os.path.basename(path)}: file not found ({path!r})")
+    meta = header_meta(path)
+    if meta is None:
+        return
+    diffs = []
+    for k, v in part.items():
+        diffs += _diff(meta.get(k), v, k)
+    if diffs:
+        raise _mismatch(os.path.basename(path), [d.removeprefix("config.") for d in diffs])
 
 
 def _pt_state(name: str, st: dict, arrays: dict, meta: dict | None, corrupt) -> dict:

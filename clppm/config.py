@@ -177,7 +177,9 @@ SCHEMA: dict[str, dict[str, F]] = {
 LAYER_SCHEMA: dict[str, F] = {
     "name": F("str", None, doc="layer name (required)"),
     "thickness_um": F("float", None, lo=0, lo_open=True, hi=1e6, inf_ok=True,
-                      doc="thickness (required; inf: semi-infinite, last layer only)"),
+                      doc="thickness (required; inf: semi-infinite, last layer only; under 1 nm in every "
+                          "column, after model.quantize's snapping: the layer is absent, light crosses "
+                          "it as if it were not there)"),
     "n": F("float", 1.4, lo=1.0, hi=3.0, doc="refractive index"),
     "melanin": F("float", 0.0, lo=0, hi=1, doc="melanosome volume fraction"),
     "blood": F("float", 0.0, lo=0, hi=1, doc="whole-blood volume fraction"),
@@ -448,7 +450,9 @@ def _cross_checks(src: str, cfg: dict) -> None:
 
 
 def load(path: str) -> dict:
-    """Read and validate a TOML config file."""
+    """Read and validate a TOML config file, or a shipped config by name (``"forearm"``; as
+    :func:`find` finds it, so as ``clppm render`` does)."""
+    path = find(path)
     src = os.path.basename(path)
     try:
         with open(path, "rb") as f:
@@ -463,11 +467,16 @@ def load(path: str) -> dict:
 
 
 def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
-    """Apply ``SECTION.KEY=VALUE`` or ``layer.N.KEY=VALUE`` (N: index into the ``[[layer]]``
-    tables; VALUE in TOML syntax, a bare word is a string)."""
-    if "=" not in item or "." not in item.split("=", 1)[0]:
-        raise ConfigError(source, item, item, "expected SECTION.KEY=VALUE or layer.N.KEY=VALUE, "
-                                              "e.g. render.passes=20 or layer.0.n=1.45")
+    """A copy of ``cfg`` with one value changed by ``SECTION.KEY=VALUE`` or
+    ``layer.N.KEY=VALUE`` (N: index into the ``[[layer]]`` tables; VALUE in TOML syntax, a bare
+    word is a string), validated like the file's value.  ``cfg`` itself is left unchanged, as by
+    :func:`override`: ``cfg = set_item(cfg, "layer.0.n=1.45")``."""
+    key_part = item.split("=", 1)[0].strip()
+    section_part, _, rest = key_part.partition(".")
+    if "=" not in item or not section_part or not rest:
+        raise ConfigError("command line", source, item,
+                          "expected SECTION.KEY=VALUE or layer.N.KEY=VALUE, "
+                          "e.g. render.passes=20 or layer.0.n=1.45")
     path, text = (x.strip() for x in item.split("=", 1))
     section, key = path.split(".", 1)
     try:
@@ -544,12 +553,32 @@ def wavelengths(cfg: dict):
     return sp["start_nm"] + sp["step_nm"] * np.arange(nb)
 
 
-def slab_config(spec: str, source: str = "--slab") -> dict:
-    """A homogeneous slab from ``mua=10,mus=90,g=0.75,n=1.0,d=0.02`` (cm^-1, cm).
+#: what ``--slab`` assumes for the keys it does not get, and what that means
+SLAB_DEFAULTS = {"n": (1.0, "index matched to the air outside"), "d": (INF, "semi-infinite")}
 
-    Leaving out ``d`` gives a semi-infinite medium.  Normal collimated pencil
-    beam, air outside, one band.
-    """
+
+@dataclass(frozen=True)
+class Slab:
+    """A homogeneous slab as ``--slab`` gave it: cm^-1, cm; ``defaulted``: keys not given."""
+
+    mua: float
+    mus: float
+    g: float
+    n: float
+    d: float
+    defaulted: tuple[str, ...] = ()
+
+    def text(self) -> str:
+        """The slab on one line, as traced, saying which values were not given."""
+        vals = " ".join(f"{k}={getattr(self, k):g}" for k in ("mua", "mus", "g", "n", "d"))
+        if not self.defaulted:
+            return vals
+        return vals + "; not given: " + ", ".join(f"{k} ({SLAB_DEFAULTS[k][1]})" for k in self.defaulted)
+
+
+def parse_slab(spec: str, source: str = "--slab") -> Slab:
+    """``mua=10,mus=90,g=0.75,n=1.0,d=0.02`` (cm^-1, cm): each key once; mua, mus, g required;
+    n and d default to :data:`SLAB_DEFAULTS` (the result says which were not given)."""
     vals: dict[str, float] = {}
     allowed = ("mua", "mus", "g", "n", "d")
     for item in filter(None, (s.strip() for s in spec.split(","))):
@@ -560,6 +589,8 @@ def slab_config(spec: str, source: str = "--slab") -> dict:
             near = difflib.get_close_matches(k, allowed, 1)
             raise ConfigError(source, _show_key(k), v, "unknown key" + (
                 f" (did you mean '{near[0]}'?)" if near else f"; valid: {', '.join(allowed)}"))
+        if k in vals:
+            raise ConfigError(source, k, v, f"given twice (first {k}={vals[k]:g}); give each key once")
         try:
             vals[k] = float(v)
         except ValueError:
@@ -567,14 +598,23 @@ def slab_config(spec: str, source: str = "--slab") -> dict:
     for k in ("mua", "mus", "g"):
         if k not in vals:
             raise ConfigError(source, k, None, "missing required key")
-    d_um = vals["d"] * 1e4 if "d" in vals else INF
+    defaulted = tuple(k for k in SLAB_DEFAULTS if k not in vals)
+    return Slab(**{k: vals.get(k, SLAB_DEFAULTS.get(k, (None,))[0]) for k in allowed}, defaulted=defaulted)
+
+
+def slab_config(spec: "str | Slab", source: str = "--slab") -> dict:
+    """A homogeneous slab from ``mua=10,mus=90,g=0.75,n=1.0,d=0.02`` (cm^-1, cm) or a
+    :class:`Slab`.  Leaving out ``d`` gives a semi-infinite medium, ``n`` the index 1.0.
+    Normal collimated pencil beam, air outside, one band."""
+    slab = parse_slab(spec, source) if isinstance(spec, str) else spec
+    d_um = slab.d * 1e4 if math.isfinite(slab.d) else INF
     raw = {
         "model": {"name": "slab", "lateral": "infinite", "quantize": False},
         "spectrum": {"start_nm": 500.0, "stop_nm": 500.0, "step_nm": 5.0},
         "light": {"kind": "pencil", "direction": [0.0, 0.0, -1.0], "spectrum": "flat",
                   "center_mm": [0.0, 0.0]},
-        "layer": [{"name": "slab", "thickness_um": d_um, "n": vals.get("n", 1.0),
-                   "mua": vals["mua"], "mus": vals["mus"], "g": vals["g"],
+        "layer": [{"name": "slab", "thickness_um": d_um, "n": slab.n,
+                   "mua": slab.mua, "mus": slab.mus, "g": slab.g,
                    "scattering": "none"}],
     }
     return validate(raw, source)
@@ -590,16 +630,19 @@ def shipped_configs() -> dict[str, str]:
 
 
 def find(name: str) -> str:
-    """A config file: ``name`` itself when it exists, else a shipped config of that name
-    (``forearm`` or ``forearm.toml``); else a one-line ConfigError listing the shipped ones."""
-    if os.path.exists(name):
+    """A config file: ``name`` itself when it is a file, else a shipped config of that name
+    (``forearm`` or ``forearm.toml``; a folder of that name in the working directory does not
+    hide it); else a one-line ConfigError listing the shipped ones."""
+    name = os.fspath(name)
+    if os.path.isfile(name):
         return name
     stem = name[:-5] if name.endswith(".toml") else name
     ship = shipped_configs()
     if os.sep not in name and stem in ship:
         return ship[stem]
+    why = "is a folder, not a config file" if os.path.isdir(name) else "file not found"
     raise ConfigError(os.path.basename(name) or repr(name), "<file>", name,
-                      f"file not found (shipped configs: {', '.join(ship)})")
+                      f"{why} (shipped configs: {', '.join(ship)})")
 
 
 # ----------------------------------------------------------------------------- TOML out

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Callable, Protocol
 
 from . import film
+from .paths import WriteError
 from .config import ConfigError, RenderSettings
 from .device import DeviceError
 
@@ -157,8 +158,11 @@ def _device_error(run: Run, e, cad: Cadence, last_ckpt: int | None) -> DeviceErr
     msg = " ".join(str(e).split())
     keep = (f"checkpoint {cad.checkpoint} (pass {last_ckpt}) is kept: resume with "
             f"{run.resume_flags} {cad.checkpoint}" if last_ckpt else "no checkpoint was written yet")
-    return DeviceError(f"device '{run.device_name}' failed in pass {run.passes_done + 1} of "
-                       f"{run.n_passes} ({msg}); {keep}")
+    err = DeviceError(f"device '{run.device_name}' failed in pass {run.passes_done + 1} of "
+                      f"{run.n_passes} ({msg}); {keep}")
+    err.checkpoint = cad.checkpoint if last_ckpt else None     # the command line's resume command
+    err.resume_hint = f"{run.resume_flags} {cad.checkpoint}" if last_ckpt else None
+    return err
 
 
 def drive(run: Run, cad: Cadence, t_start: float, resumed: bool = False) -> film.RenderResult:
@@ -190,12 +194,25 @@ def drive(run: Run, cad: Cadence, t_start: float, resumed: bool = False) -> film
                     film.write_preview(cad.out, run.image(False))
         except cl.Error as e:
             raise _device_error(run, e, cad, last_ckpt) from None
+        except WriteError as e:
+            raise _kept(e, cad, last_ckpt) from None
         finally:
             run.close()
             if bar is not None:
                 bar.close()
-    if cad.checkpoint and last_ckpt != run.passes_done:
-        run.save(cad.checkpoint)
-    res = run.image(intr.flag and run.passes_done < run.n_passes)
-    film.write_outputs(cad.out, res)
+    try:
+        if cad.checkpoint and last_ckpt != run.passes_done:
+            run.save(cad.checkpoint)
+            last_ckpt = run.passes_done
+        res = run.image(intr.flag and run.passes_done < run.n_passes)
+        film.write_outputs(cad.out, res)
+    except WriteError as e:
+        raise _kept(e, cad, last_ckpt) from None
     return res
+
+
+def _kept(e: WriteError, cad: Cadence, last_ckpt: int | None) -> WriteError:
+    """``e`` with the checkpoint that is still whole on disk (written atomically), if any."""
+    if cad.checkpoint and last_ckpt and os.path.exists(cad.checkpoint):
+        e.checkpoint, e.checkpoint_pass = cad.checkpoint, last_ckpt
+    return e

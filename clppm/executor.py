@@ -44,7 +44,7 @@ import numpy as np
 from distributed import WorkerPlugin
 
 from . import checkpoint as ckpt
-from . import driver, film, paths, photonpass, ppm, progressive
+from . import driver, film, paths, photonpass, ppm, progressive, scene
 from . import config as C
 from .config import ConfigError, render_settings
 from .device import DeviceError
@@ -431,6 +431,8 @@ def render_distributed(cfg: dict, *, scheduler: str | None = None, devices=None,
     paths.check_outputs(out=out, checkpoint=ckpath)
     if resume:
         ckpt.load(resume)                               # fail fast on a missing or corrupt file
+        ckpt.check_matches(resume, config=progressive.config_identity(cfg))
+    scene.warn_scene(cfg, source)
     if isinstance(devices, str):
         devices = parse_devices(devices)
     where = scheduler or ("local cluster" if devices else "client" if client else "in-process")

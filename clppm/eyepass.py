@@ -47,9 +47,10 @@ class Scheme:
     stat: str = ""         # max | mean | min (extinction)
 
     def label(self) -> str:
+        """The scheme in words (the report's ``scheme``; render's last line: "method " + this)."""
         if self.kind == "equal":
-            return f"{self.method}) equal spacing {self.spacing:g} um"
-        return f"{self.method}) extinction-based ({self.stat})"
+            return f"{self.method}: equal spacing {self.spacing:g} um"
+        return f"{self.method}: random spacing, mean 1/extinction ({self.stat} over the bands)"
 
 
 def scheme(method: str, spacing_um: float | None = None) -> Scheme:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import colorimetry, image, paths
+from . import colorimetry, image, paths, scene
 from .config import render_settings
 from .bands import band_width
 from .light import Light
@@ -63,6 +63,15 @@ def tristimulus(L: np.ndarray, wl) -> np.ndarray:
     return L * colorimetry.cmfs(wl)[0] * band_width(wl)
 
 
+def exposure_of(set_by_hand: float | None, white_y: float) -> tuple[float, str]:
+    """The PNG's exposure and where it came from (the report's ``exposure_from``)."""
+    if set_by_hand is not None:
+        return set_by_hand, "render.exposure"
+    if white_y > 0:
+        return 1.0 / white_y, "white reference"
+    return 1.0, "assumed 1.0: the white reference at the image centre gets no light"
+
+
 def develop(L: np.ndarray, cfg: dict, cam, wl, spectrum) -> RenderResult:
     """Radiance (npix, NB) -> the image; its report holds the exposure, the white reference
     and the count of non-finite values (set to 0)."""
@@ -72,8 +81,9 @@ def develop(L: np.ndarray, cfg: dict, cam, wl, spectrum) -> RenderResult:
     rgb = colorimetry.xyz_to_linear_srgb(xyz)
     Yw = float(tristimulus(white_reference(Light.from_config(cfg), cam, wl, spectrum)[None, :], wl)[0, 1])
     rc = render_settings(cfg)
-    exposure = rc.exposure if rc.exposure is not None else (1.0 / Yw if Yw > 0 else 1.0)
-    report = {"exposure": exposure, "white_reference_Y": Yw, "nonfinite_values_zeroed": nonfinite}
+    exposure, source = exposure_of(rc.exposure, Yw)
+    report = {"exposure": exposure, "exposure_from": source, "white_reference_Y": Yw,
+              "nonfinite_values_zeroed": nonfinite}
     return RenderResult(spectral=L, xyz=xyz, rgb=rgb, wl=np.asarray(wl), report=report,
                         exposure=exposure)
 
@@ -84,7 +94,7 @@ def common_report(cfg: dict, integrator: str, dev, passes_done: int, interrupted
             "config": json.loads(json.dumps(cfg, default=str)),
             "integrator": integrator, "device": dev.info(),
             "passes_done": passes_done, "passes_requested": render_settings(cfg).passes,
-            "interrupted": interrupted}
+            "interrupted": interrupted, "assumed": scene.notes(cfg)}
 
 
 def sibling(out: str, suffix: str) -> str:
@@ -95,29 +105,30 @@ def sibling(out: str, suffix: str) -> str:
 
 def write_image(out: str, res: RenderResult) -> None:
     """The image at ``out``: ``.exr`` the spectral + RGB EXR and the PNG beside it; ``.png``
-    the PNG alone (:func:`clppm.paths.render_outputs`)."""
+    the PNG alone (:func:`clppm.paths.render_outputs`).  Each file whole or not at all."""
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     files = paths.render_outputs(out)
     if "png" in files:
         hdr = {"clppm_report": json.dumps({k: res.report[k] for k in ("method", "scheme", "passes_done",
                                                                        "photons_emitted", "exposure")})}
-        tmp = out + ".tmp.exr"
-        image.write_exr(tmp, res.rgb.astype(np.float32), spectral=res.spectral.astype(np.float32),
-                        wl=res.wl, header=hdr)
-        os.replace(tmp, out)
-    image.write_png(files.get("png", out), res.rgb, res.exposure)
+        paths.write_atomic(out, lambda tmp: image.write_exr(
+            tmp, res.rgb.astype(np.float32), spectral=res.spectral.astype(np.float32), wl=res.wl, header=hdr))
+    _write_png(files.get("png", out), res)
+
+
+def _write_png(path: str, res: RenderResult) -> None:
+    image.write_png(path, res.rgb, res.exposure)          # atomic itself
 
 
 def write_preview(out: str, res: RenderResult) -> None:
-    image.write_png(sibling(out, ".preview.png"), res.rgb, res.exposure)
+    _write_png(sibling(out, ".preview.png"), res)
 
 
 def write_report(out: str, report: dict) -> None:
-    path = paths.render_outputs(out)["report"]
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(report, f, indent=1, default=str)
-    os.replace(tmp, path)
+    def fill(tmp):
+        with open(tmp, "w") as f:
+            json.dump(report, f, indent=1, default=str)
+    paths.write_atomic(paths.render_outputs(out)["report"], fill)
 
 
 def write_outputs(out: str | None, res: RenderResult) -> None:

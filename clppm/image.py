@@ -242,13 +242,8 @@ def write_png(path, rgb_linear, exposure: float = 1.0) -> None:
     enc = encode_srgb(a * float(exposure))
     u8 = np.ascontiguousarray(np.round(enc * 255.0).astype(np.uint8))
     path = os.fspath(path)
-    tmp = f"{path}.{os.getpid()}.tmp"         # a kill mid-write leaves the old file, not half a PNG
-    try:
-        Image.fromarray(u8, mode=mode).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    from .paths import write_atomic           # a kill mid-write leaves the old file, not half a PNG
+    write_atomic(path, lambda tmp: Image.fromarray(u8, mode=mode).save(tmp, format="PNG"))
 
 
 # --------------------------------------------------------------------- height maps

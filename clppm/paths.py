@@ -13,15 +13,86 @@ no two of them can be the same file (:func:`render_outputs`).
 """
 from __future__ import annotations
 
+import errno
 import os
 import socket
 import tempfile
+from dataclasses import dataclass
 
 from .config import ConfigError
 
 #: what ``-o`` may end in, and what it then writes
 RENDER_FORMATS = {".exr": "the spectral + RGB EXR (with the sRGB PNG beside it)",
                   ".png": "the sRGB PNG alone"}
+
+
+#: digits of the largest process id (Linux's pid_max is at most 4194304): the staging names hold one
+PID_DIGITS = 7
+
+
+class WriteError(OSError):
+    """An output that could not be written once work had begun (a full disk, a lost mount): the
+    file, the reason, and what the render keeps (``checkpoint``, ``checkpoint_pass``: set by
+    the render loop; None when no checkpoint was written)."""
+
+    def __init__(self, path: str, reason: str):
+        self.path, self.reason = path, reason
+        self.checkpoint: str | None = None
+        self.checkpoint_pass: int | None = None
+        super().__init__(f"cannot write {path} ({reason})")
+
+    def kept(self) -> str:
+        """What survives, one phrase."""
+        if self.checkpoint and self.checkpoint_pass:
+            return f"the checkpoint {self.checkpoint} (pass {self.checkpoint_pass}) is kept"
+        return "no checkpoint was written yet"
+
+
+def write_atomic(path: str, fill) -> None:
+    """``fill(staging name)`` writes the file, which is then renamed over ``path``; any failure
+    leaves no staging file and ``path`` as it was; an OSError becomes a :class:`WriteError`."""
+    tmp = staging(path)
+    try:
+        fill(tmp)
+        os.replace(tmp, path)
+    except BaseException as e:           # a full disk, a second Ctrl-C: nothing half-written
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(e, OSError):
+            raise WriteError(path, e.strerror or str(e)) from None
+        raise
+
+
+def staging(path: str, pid: int | None = None) -> str:
+    """The temporary file a writer fills before renaming it over ``path`` (same folder, hidden):
+    a kill or a full disk mid-write leaves the old file or nothing, never half a file."""
+    d, name = os.path.split(path)
+    return os.path.join(d, f".{name}.{os.getpid() if pid is None else pid}.tmp")
+
+
+def name_max(folder: str) -> int:
+    """The longest file name (bytes) the file system of ``folder`` (or its nearest existing
+    ancestor) takes; 255 where it cannot be asked."""
+    d = os.path.abspath(folder)
+    while not os.path.isdir(d) and os.path.dirname(d) != d:
+        d = os.path.dirname(d)
+    try:
+        return int(os.pathconf(d, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
+
+
+def name_problem(path: str) -> str | None:
+    """Why the file ``path`` or its staging name is too long for its folder, or None."""
+    limit = name_max(os.path.dirname(os.path.abspath(path)) or ".")
+    longest = os.path.basename(staging(path, 10 ** PID_DIGITS - 1))
+    n = len(os.fsencode(longest))
+    if n <= limit:
+        return None
+    return (f"the name is too long: its temporary file {longest[:12]}...{longest[-16:]} has {n} bytes, "
+            f"the file system takes {limit}")
 
 
 def writable_problem(path: str) -> str | None:
@@ -33,7 +104,7 @@ def writable_problem(path: str) -> str | None:
         return "is a folder"
     if os.path.exists(p) and not os.path.isfile(p):
         return "exists and is not a regular file"
-    return _try_folder(os.path.dirname(p))
+    return name_problem(p) or _try_folder(os.path.dirname(p))
 
 
 def folder_problem(path: str) -> str | None:
@@ -64,7 +135,11 @@ def _try_folder(d: str) -> str | None:
         os.close(fd)
         os.unlink(tmp)
     except OSError as e:
-        return f"folder {d}: {e.strerror or e}"
+        if e.errno == errno.ENAMETOOLONG:
+            return f"a folder name in {d} is too long"
+        if os.path.isdir(d):
+            return f"folder {d} does not take new files ({e.strerror or e})"
+        return f"folder {d} cannot be made ({e.strerror or e})"
     finally:
         for f in made:                       # deepest first
             try:
@@ -233,6 +308,84 @@ class OutputLock:
                 except OSError:
                     break
         self.held = False
+
+
+def output_set(out: str) -> list[str]:
+    """Every file that can belong to the render named by ``out`` (NAME.*): both image formats,
+    the report, the checkpoint and the preview, whatever ``out``'s own format writes."""
+    base, ext = os.path.splitext(out)
+    files = render_outputs(out)
+    other = base + (".png" if ext.lower() == ".png" else ".exr")
+    images = [out, files.get("png", other)]
+    if ext.lower() == ".png":
+        images = [base + ".exr", out]
+    return images + [files[k] for k in ("report", "checkpoint", "preview")]
+
+
+def _same(a: str, b: str) -> bool:
+    return os.path.normcase(os.path.realpath(a)) == os.path.normcase(os.path.realpath(b))
+
+
+@dataclass
+class OutputSetPlan:
+    """What a render does to the files already under its NAME.*: ``replace`` are removed before
+    work (``--force``: the whole earlier set goes, so no file of it outlives the new render)."""
+
+    out: str
+    replace: list[str]
+
+    def apply(self) -> str | None:
+        """Remove the files to replace; the one line that says so, or None."""
+        for p in self.replace:
+            try:
+                os.unlink(p)
+            except FileNotFoundError:
+                pass
+        if not self.replace:
+            return None
+        return (f"--force: removed the earlier render's {', '.join(self.replace)} "
+                f"(the whole set NAME.* is this render's)")
+
+
+def check_output_set(out: str, resume: str | None, force: bool) -> OutputSetPlan:
+    """An output set is one render.  A fresh render to a NAME with files of an earlier render is
+    refused unless ``--force`` (then all of them are replaced); ``--resume`` of NAME's own
+    checkpoint continues that render, and is refused when NAME holds an image this run would not
+    rewrite (``-o NAME.png`` beside an earlier ``NAME.exr``)."""
+    files = render_outputs(out)
+    ck = files["checkpoint"]
+    existing = [p for p in output_set(out) if os.path.lexists(p)]
+    if resume and os.path.exists(ck) and os.path.exists(resume) and os.path.samefile(resume, ck):
+        written = set(files.values())
+        stale = [p for p in existing if p not in written]
+        if stale:
+            raise ConfigError("command line", "-o/--output", out,
+                              f"{', '.join(stale)} of this render would not be rewritten by -o {out} and "
+                              f"would go stale: resume with -o {stale[0]}")
+        return OutputSetPlan(out, [])
+    if not existing:
+        return OutputSetPlan(out, [])
+    if force:
+        return OutputSetPlan(out, existing)
+    if ck in existing:
+        check_checkpoint_free(out, resume, force)
+    raise ConfigError("command line", "-o/--output", out,
+                      f"{', '.join(existing)} of an earlier render exist and would be overwritten or "
+                      "left beside this one: give --force to replace the whole set, or another -o")
+
+
+def check_inputs_not_outputs(out: str, **inputs: str | None) -> None:
+    """No input (a config, a height map, a checkpoint other than NAME's own) may be a file the
+    render writes: it would be overwritten."""
+    outs = output_set(out) + [render_outputs(out)["lock"]]
+    own_ck = render_outputs(out)["checkpoint"]
+    for flag, p in inputs.items():
+        if not p:
+            continue
+        for o in outs:
+            if _same(p, o) and not (flag == "--resume" and o == own_ck):
+                raise ConfigError("command line", flag, p, f"is also an output of -o {out} ({o}) "
+                                                           "and would be overwritten; give another -o")
 
 
 def check_checkpoint_free(out: str, resume: str | None, force: bool) -> None:

@@ -34,6 +34,7 @@ import numpy as np
 
 from . import checkpoint as ckpt
 from . import colorimetry, driver, film, paths, progressive, volume
+from .scene import warn_scene
 from . import structs as S
 from .bands import Bands, band_width
 from .camera import from_config
@@ -219,9 +220,7 @@ class PathTracer:
 
 def run_identity(cfg: dict, dev: Device, tracer: PathTracer) -> dict:
     """What a path-tracer checkpoint must match to be resumed."""
-    keep = json.loads(json.dumps(cfg, default=str))
-    keep["render"] = {k: v for k, v in keep["render"].items() if k not in C.NOT_PICTURE}
-    return {"integrator": "pt", "config": keep, "device": dev.name, "npix": tracer.npix,
+    return {"integrator": "pt", "config": progressive.config_identity(cfg), "device": dev.name, "npix": tracer.npix,
             "nb": tracer.vol.nb, "nbin": NBIN, **({} if tracer.vol.flat else {"mnee": ["sms", MNEE_TRIALS]})}
 
 
@@ -347,7 +346,13 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
                           "of a pass")
     ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
     paths.check_outputs(out=out, checkpoint=ckpath)
+    if resume:
+        ckpt.load(resume, integrator="pt")      # fail fast on a missing or corrupt file
+        ckpt.check_matches(resume, config=progressive.config_identity(cfg))
+    warn_scene(cfg, source)
     dev = dev or open_device(device)
+    if resume:
+        ckpt.check_matches(resume, device=dev.name)
     t0 = time.perf_counter()
     vol = volume.build(cfg, source)
     timing = {"volume": time.perf_counter() - t0, "trace": 0.0, "output": 0.0}
@@ -355,8 +360,6 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
                       "pixel statistics": w * h * 64, "value by vertex index": w * h * NBIN * 8,
                       "smooth heights": 0 if vol.smooth is None else int(vol.smooth.nbytes),
                       **vol.device_bytes()})
-    if resume:
-        ckpt.load(resume, integrator="pt")      # fail fast on a missing or corrupt file
     run = PTRun(PathTracer(dev, vol, cfg), timing, t_start)
     if resume:
         run.restore(resume)

@@ -19,6 +19,7 @@ from . import checkpoint as ckpt
 from . import config as C
 from .config import render_settings
 from . import driver, film, paths, photonpass, ppm
+from .scene import warn_scene
 from .device import Device, open_device
 from .film import RenderResult
 from .light import Light
@@ -26,25 +27,36 @@ from .light import Light
 FIX_NOTE = "fixed point 2^32 per unit weight x phase; pixel sums in float64"
 
 
+def _flag(cfg: dict, flag: str, section: str, key: str, value) -> dict:
+    """``override`` for a command-line flag (or the API keyword of that name): a refusal names
+    the flag as the user gave it, not the key it sets."""
+    try:
+        return C.override(cfg, section, key, value)
+    except C.ConfigError as e:
+        raise C.ConfigError("command line", flag, value, f"{e.why} ({section}.{key})") from None
+
+
 def apply_overrides(cfg: dict, method=None, passes=None, photons=None, resolution=None,
                     seed=None, spacing=None, spp=None) -> dict:
+    """``cfg`` with the command line's (or the API's) values; ``photons`` below the config's
+    ``render.initial_photons`` lowers that to ``photons`` too (the first search cannot want more
+    photons than a pass stores)."""
     if method is not None:
-        cfg = C.override(cfg, "render", "method", method)
+        cfg = _flag(cfg, "--method", "render", "method", method)
     if spacing is not None:
-        cfg = C.override(cfg, "render", "spacing_um", float(spacing))
+        cfg = _flag(cfg, "--spacing", "render", "spacing_um", float(spacing))
     if passes is not None:
-        cfg = C.override(cfg, "render", "passes", int(passes))
+        cfg = _flag(cfg, "--passes", "render", "passes", int(passes))
     if photons is not None:
-        cfg = C.override(cfg, "render", "photons", int(photons))
-        rs = render_settings(cfg)
-        if rs.initial_photons > rs.photons:
-            cfg = C.override(cfg, "render", "initial_photons", rs.photons)
+        if 1 <= int(photons) < render_settings(cfg).initial_photons:
+            cfg = _flag(cfg, "--photons", "render", "initial_photons", int(photons))
+        cfg = _flag(cfg, "--photons", "render", "photons", int(photons))
     if resolution is not None:
-        cfg = C.override(cfg, "camera", "resolution", [int(resolution[0]), int(resolution[1])])
+        cfg = _flag(cfg, "--resolution", "camera", "resolution", [int(resolution[0]), int(resolution[1])])
     if seed is not None:
-        cfg = C.override(cfg, "render", "seed", int(seed))
+        cfg = _flag(cfg, "--seed", "render", "seed", int(seed))
     if spp is not None:
-        cfg = C.override(cfg, "camera", "spp", int(spp))
+        cfg = _flag(cfg, "--spp", "camera", "spp", int(spp))
     return cfg
 
 
@@ -64,10 +76,14 @@ def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None
     rc = render_settings(cfg)
     ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
     paths.check_outputs(out=out, checkpoint=ckpath)
-    dev = dev or open_device(device)
     if resume:
         ckpt.load(resume)                       # fail fast on a missing or corrupt file
         driver.check_resume_passes(resume, int(rc.passes), "--passes" if passes is not None else "render.passes")
+        ckpt.check_matches(resume, config=config_identity(cfg))
+    warn_scene(cfg, source)
+    dev = dev or open_device(device)
+    if resume:
+        ckpt.check_matches(resume, device=dev.name)
     driver.say(progress, f"building the volume and the eye pass ({cfg['camera']['resolution'][0]}x"
                          f"{cfg['camera']['resolution'][1]}, method {rc.method}) on {dev.name}...")
     sc = ppm.setup(cfg, dev, source)
@@ -189,12 +205,16 @@ class PPMRun:
         pass
 
 
+def config_identity(cfg: dict) -> dict:
+    """The config as a checkpoint records it: every key that changes the picture."""
+    keep = json.loads(json.dumps(cfg, default=str))
+    keep["render"] = {k: v for k, v in keep["render"].items() if k not in C.NOT_PICTURE}
+    return keep
+
+
 def run_identity(cfg: dict, dev: Device, eye) -> dict:
     """What a checkpoint must match to be resumed."""
-    keep = {k: v for k, v in cfg.items()}
-    keep = json.loads(json.dumps(keep, default=str))
-    keep["render"] = {k: v for k, v in keep["render"].items() if k not in C.NOT_PICTURE}
-    return {"config": keep, "device": dev.name, "npoints": int(eye.npoints),
+    return {"config": config_identity(cfg), "device": dev.name, "npoints": int(eye.npoints),
             "npieces": int(eye.npieces), "nrays": int(eye.nrays)}
 
 

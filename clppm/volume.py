@@ -254,6 +254,29 @@ def memoised():
         _memo = outer
 
 
+#: a layer thinner than this everywhere (um; after snapping to the voxel grid) is absent: no photon
+#: or eye ray can resolve it (1 nm, well below a wavelength and float32's step at skin depths
+#: is 1e-4 um), so a tiny thickness is how a layer is switched off (0 is refused)
+ABSENT_UM = 1e-3
+
+
+def absent_layers(z: list) -> list[int]:
+    """The layers whose thickness z[k] - z[k+1] is below :data:`ABSENT_UM` in every column."""
+    return [k for k in range(len(z) - 1)
+            if float(np.max(np.asarray(z[k]) - np.asarray(z[k + 1]))) < ABSENT_UM]
+
+
+def optical_indices(n: list[float], absent: list[int], n_below: float) -> np.ndarray:
+    """Each layer's refractive index as the kernels see it: an absent layer takes the index of the
+    first present layer below it (or of the medium below), so light crosses it as if it were not
+    there: no Fresnel split at a film of no thickness, and nothing to reflect between (two
+    coincident interfaces trapped a photon for up to max_events zero-length steps)."""
+    out = np.array(n, float)
+    for k in sorted(absent, reverse=True):
+        out[k] = out[k + 1] if k + 1 < len(out) else n_below
+    return out
+
+
 def _build(cfg: dict, source: str = "<config>") -> Volume:
     wl = wavelengths(cfg)
     layers = cfg["layer"]
@@ -313,6 +336,10 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
                 z[k] = np.round(z[k] / dz) * dz
     for k in range(1, nl + 1):                     # layers never overlap
         z[k] = np.minimum(z[k], z[k - 1])
+    absent = absent_layers(z)
+    for k in absent:                               # no sliver of a layer that is not there
+        z[k + 1], zs[k + 1] = z[k], zs[k]
+    n = optical_indices([L["n"] for L in layers], absent, m["n_below"])
     iface = np.zeros((nl + 1, 4), np.float32)
     var, svar = [], []
     for k in range(nl + 1):
@@ -325,13 +352,14 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
             iface[k] = (hi, hi, hi, -1)
     iface[:, 0] = np.where(np.isnan(iface[:, 0]), 0.0, iface[:, 0])
     heights = np.stack(var) if var else np.zeros((1, 1, 1), np.float32)
-    vol = Volume(wl=wl, names=[L["name"] for L in layers], n=np.array([L["n"] for L in layers]),
+    vol = Volume(wl=wl, names=[L["name"] for L in layers], n=n,
                  thickness=thickness, mua=mua * 1e-4, mus=mus * 1e-4, g=g,
                  iface=iface, heights=np.ascontiguousarray(heights, np.float32),
                  x0=0.0, y0=0.0, dx=dx, dy=dy, nx=nx, ny=ny,
                  dz=dz, lateral=m["lateral"], n_above=m["n_outside"], n_below=m["n_below"],
                  smooth=np.ascontiguousarray(np.stack(svar), np.float32) if svar else None)
     vol.info = {"columns": [nx, ny], "varying_interfaces": len(var),
+                "absent_layers": [layers[k]["name"] for k in absent],
                 "device_bytes": sum(vol.device_bytes().values())}
     return vol
 

@@ -16,6 +16,12 @@
 #endif
 
 #define W0F 274877906944.0f           /* 2^38 */
+/* A photon between two interfaces that coincide in its column (a layer of no thickness there)
+ * can be reflected back and forth by both without moving: after this many boundary events in a
+ * row each shorter than 1 nm it is trapped for good and counted lost, as it would be after
+ * max_events; no photon that moves is affected, so no image changes. */
+#define TRAPPED_STEPS 1000
+#define TRAP_UM 1e-3f
 #define W0L ((long)274877906944L)
 
 /* tally categories (per band); NC = T_ABS0 + NL */
@@ -227,6 +233,7 @@ __kernel void photon_pass(VOLUME_ARGS,
     const long rr_w = (long)(P->rr_threshold * W0F);
     float tau = neg_log_u01(rng_u01(&rng));
     int events = 0;
+    int still = 0;                                     /* boundary events in a row under TRAP_UM */
     while (W > 0) {
         if (++events > P->max_events) { lost += W; W = 0; break; }
         const float4 op = optics[t.L * NB + b];     /* mua/mut, g, 1/(2g), mut in um^-1 */
@@ -297,6 +304,8 @@ __kernel void photon_pass(VOLUME_ARGS,
             continue;
         }
         /* ---- boundary */
+        still = db < TRAP_UM ? still + 1 : 0;
+        if (still > TRAPPED_STEPS) { lost += W; W = 0; break; }
         t.pos += db * t.dir;
         sw_flight(&sw, optics, t.L, mut, db);
         if (mut > 0.0f) { tau -= db * mut; tau = tau > 0.0f ? tau : 0.0f; }

@@ -218,7 +218,7 @@ BAD = {
     "version.ckpt.npz": (lambda p, g: _rewrite(g, p, header=_header(lambda h: h.update(version=99))),
                          "version"),
     "device.ckpt.npz": (lambda p, g: _rewrite(g, p, header=_header(lambda h: h["meta"].update(device="Other GPU"))),
-                        "device: checkpoint 'Other GPU'"),
+                        "device (checkpoint 'Other GPU'"),
     "header.ckpt.npz": (lambda p, g: _rewrite(g, p, header=lambda h: np.array("[1, 2]")), "corrupt"),
     "nostate.ckpt.npz": (lambda p, g: _rewrite(g, p, header=_header(lambda h: h["state"].pop("pass_index"))),
                          "corrupt"),

@@ -19,7 +19,7 @@ import sys
 
 from ..config import ConfigError
 from . import compare, fit, reflectance, render, tools
-from .options import EXIT, METHODS_HELP, InputError, Parser
+from .options import ERROR_PREFIX, EXIT, METHODS_HELP, InputError, Parser
 
 def _versions() -> str:
     """clppm, pyopencl and the OpenCL platforms found, one a line."""
@@ -113,7 +113,7 @@ def main(argv=None) -> int:
     try:
         return a.func(a)
     except (ConfigError, CheckpointError, InputError) as e:
-        print(f"clppm: error: {e}", file=sys.stderr)
+        print(f"{ERROR_PREFIX} {e}", file=sys.stderr)
         return EXIT["input"]
     except DeviceError as e:
         print(f"clppm: device error: {_device_line(e, verbose)}", file=sys.stderr)

@@ -59,10 +59,19 @@ class Formatter(argparse.RawDescriptionHelpFormatter):
         return h
 
 
+#: every command's error lines start with this (argparse's usage errors too)
+ERROR_PREFIX = "clppm: error:"
+
+
 class Parser(argparse.ArgumentParser):
     def __init__(self, *a, **k):
         k.setdefault("formatter_class", Formatter)
         super().__init__(*a, **k)
+
+    def error(self, message):
+        """A usage error as every other bad input: one line, the common prefix, exit 2."""
+        self.exit(EXIT["input"], f"{ERROR_PREFIX} {self.prog}: {' '.join(message.split())} "
+                                 f"({self.prog} --help lists the options)\n")
 
 
 def add_device(p):

@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import os
-import sys
+import shlex
 import signal
+import sys
 
 from ..config import ConfigError
 from .options import (EXIT, METHODS_HELP, InputError, add_device, load_config, method_or_spacing,
@@ -43,12 +44,45 @@ def _render_config(a) -> dict:
 
 
 def _check_render_paths(a, cfg) -> None:
-    """-o, its sidecars, --resume and --passes against the checkpoint: before any work."""
-    from .. import paths
+    """-o, its sidecars, the output set, the inputs, --resume against the checkpoint, and the
+    scene: everything that can be refused before any work."""
+    from .. import config, paths, scene
+    from ..checkpoint import check_matches
     from ..driver import check_resume_passes
+    from ..progressive import apply_overrides, config_identity
+    if a.resume and a.force:
+        raise ConfigError("command line", "--force", True, "conflicts with --resume (--resume continues "
+                          "the checkpoint, --force starts over): give one of them")
     paths.check_render_output(a.output)
+    paths.check_inputs_not_outputs(a.output, CONFIG=config.find(a.config),
+                                   **{"relief.file": cfg["relief"]["file"], "--resume": a.resume})
+    paths.check_output_set(a.output, a.resume, a.force)
     passes = a.passes if a.passes is not None else cfg["render"]["passes"]
     check_resume_passes(a.resume, passes, "--passes" if a.passes is not None else "render.passes")
+    full = apply_overrides(cfg, a.method, a.passes, a.photons, a.resolution, a.seed, a.spacing)
+    if a.resume:
+        check_matches(a.resume, config=config_identity(full))
+    scene.refuse(full, os.path.basename(a.config))
+
+
+def resume_command(a, checkpoint: str) -> str:
+    """The command that continues this render, as a shell line: every option that shaped it."""
+    words = ["clppm", "render", a.config, "-o", a.output]
+    res = f"{a.resolution[0]}x{a.resolution[1]}" if a.resolution else None
+    for flag, v in (("--integrator", None if a.integrator == "ppm" else a.integrator),
+                    ("--method", a.method), ("--spacing", a.spacing), ("--passes", a.passes),
+                    ("--photons", a.photons), ("--resolution", res), ("--seed", a.seed),
+                    ("--preview-every", a.preview_every), ("--estimator", a.estimator),
+                    ("--storage", a.storage), ("--bands-per-path", a.bands_per_path),
+                    ("--radius", a.radius), ("--device", a.device), ("--devices", a.devices),
+                    ("--scheduler", a.scheduler)):
+        if v is not None:
+            words += [flag, f"{v:g}" if isinstance(v, float) else str(v)]
+    if a.paper:
+        words.append("--paper")
+    for item in a.set or []:
+        words += ["--set", item]
+    return shlex.join(words + ["--resume", checkpoint])
 
 
 def _import_renderers() -> None:
@@ -70,18 +104,30 @@ def _import_renderers() -> None:
 
 def cmd_render(a) -> int:
     from .. import paths
+    from ..device import DeviceError
     from ..driver import interrupt_signal
     cfg = _render_config(a)
     _check_render_paths(a, cfg)
+    first = cfg["render"]["initial_photons"]
+    if a.photons is not None and 1 <= a.photons < first and not a.quiet:
+        print(f"clppm: note: render.initial_photons lowered from {first} to --photons {a.photons} "
+              "(the first search cannot want more photons than a pass stores)", file=sys.stderr)
     _import_renderers()
-    with paths.OutputLock(a.output):
-        paths.check_checkpoint_free(a.output, a.resume, a.force)
-        if a.integrator == "pt":
-            res = _render_pt(a, cfg)
-        else:
-            res = _render_ppm(a, cfg)
-    r = res.report
     files = paths.render_outputs(a.output)
+    with paths.OutputLock(a.output):
+        said = paths.check_output_set(a.output, a.resume, a.force).apply()
+        if said:
+            print(f"clppm: {said}", file=sys.stderr)
+        try:
+            res = _render_pt(a, cfg) if a.integrator == "pt" else _render_ppm(a, cfg)
+        except paths.WriteError as e:
+            hint = (f": resume with {resume_command(a, e.checkpoint)}" if e.checkpoint else "")
+            raise InputError(f"{e}; {e.kept()}{hint}") from None
+        except DeviceError as e:
+            if getattr(e, "resume_hint", None):          # the whole command, not the flags alone
+                raise DeviceError(str(e).replace(e.resume_hint, resume_command(a, e.checkpoint))) from None
+            raise
+    r = res.report
     side = ", ".join(os.path.basename(files[k]) for k in ("png", "report", "checkpoint") if k in files)
     what = (f"path tracer, {r['passes_done']} passes, {r['paths_traced']} paths, "
             f"{r['mean_vertices_per_path']:.1f} vertices per path" if a.integrator == "pt" else
@@ -94,10 +140,8 @@ def cmd_render(a) -> int:
         print(f"clppm: note: {note}", file=sys.stderr)
     if r["interrupted"]:
         sig = interrupt_signal() or signal.SIGINT
-        again = " ".join(["clppm render", a.config, "-o", a.output] + (["--integrator pt"] if a.integrator == "pt" else [])
-                         + ["--resume", files["checkpoint"]])
         print(f"interrupted by {signal.Signals(sig).name} after pass {r['passes_done']} of "
-              f"{r['passes_requested']}: resume with --resume {files['checkpoint']} ({again})")
+              f"{r['passes_requested']}: resume with {resume_command(a, files['checkpoint'])}")
         return EXIT["sigterm"] if sig == signal.SIGTERM else EXIT["sigint"]
     return EXIT["ok"]
 
@@ -157,8 +201,9 @@ def add_parser(sub) -> None:
                        epilog=RENDER_EPILOG)
     p.add_argument("config", help="config file, or the name of a shipped config (`clppm config --example`)")
     p.add_argument("--integrator", choices=("ppm", "pt"), default="ppm",
-                   help="ppm: progressive photon mapping; pt: the unbiased path tracer "
-                        "(flat scenes, point light; render.pt_samples_per_pass paths per pixel per pass)")
+                   help="ppm: progressive photon mapping; pt: the unbiased path tracer (a point light; "
+                        "flat scenes and relief alike, through relief by manifold next-event estimation; "
+                        "render.pt_samples_per_pass paths per pixel per pass)")
     p.add_argument("--method", choices=list("abcdef"),
                    help="sample-point scheme, see below (default: the config's render.method)")
     p.add_argument("--spacing", type=float, help="equal spacing of sample points in um, any value "
@@ -170,7 +215,8 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, help="random seed (default: the config's render.seed)")
     p.add_argument("--resume", metavar="CKPT", help="continue from a checkpoint (NAME.ckpt.npz)")
     p.add_argument("--force", action="store_true",
-                   help="start over even though -o's checkpoint of an earlier render exists (it is replaced)")
+                   help="start over even though files of an earlier render exist under -o's NAME.* (the "
+                        "whole set is removed first; not with --resume)")
     p.add_argument("--preview-every", type=int, metavar="K",
                    help="write NAME.preview.png every K passes (default: the config's render.preview_every)")
     p.add_argument("--paper", action="store_true",

@@ -55,8 +55,10 @@ def cmd_trace(a) -> int:
     from .. import config, device, paths, photonpass, volume
     if (a.config is None) == (a.slab is None):
         raise ConfigError("clppm trace", "CONFIG/--slab", None, "give a config file or --slab, not both")
+    slab = None
     if a.slab is not None:
-        cfg = config.slab_config(a.slab)
+        slab = config.parse_slab(a.slab)
+        cfg = config.slab_config(slab)
         src = "--slab"
     else:
         cfg = load_config(a.config)
@@ -74,6 +76,10 @@ def cmd_trace(a) -> int:
     rep = photonpass.trace_report(pp, a.photons, batches=min(a.batches, a.photons))
     rep["device"] = dev.name
     rep["seed"] = cfg["render"]["seed"]
+    if slab is not None:
+        rep["slab"] = {**{k: getattr(slab, k) for k in ("mua", "mus", "g", "n", "d")},
+                       "not_given": list(slab.defaulted)}
+        print(f"--slab {slab.text()} (cm^-1, cm)")
     print(f"{src}: {a.photons} photons on {dev.name} (seed {rep['seed']})")
     for k in ("specular", "Rd", "Tt", "A"):
         print(f"  {k:9s} {rep[k]:.6f} ± {rep[k + '_se']:.6f}")
