@@ -40,7 +40,8 @@ import numpy as np
 import pyopencl.cltypes as cltypes
 
 from . import structs as S
-from .device import Device, launch
+from .device import Device
+from .kernelcall import Kernel
 
 DEFAULT_MAX_CELLS = 2 ** 23
 
@@ -190,7 +191,7 @@ def _kernels(dev: Device, nb: int | None = None) -> dict:
         names = (["gather_grid", "gather_bruteforce"] if nb is not None else
                  ["grid_count", "grid_scatter", "grid_keys", "grid_permute", "grid_permute_extra",
                   "grid_starts_from_keys"])
-        k = _KERNELS[key] = {nm: _cl().Kernel(prg, nm) for nm in names}
+        k = _KERNELS[key] = {nm: Kernel(prg, nm) for nm in names}
     return k
 
 
@@ -324,8 +325,8 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     if extra is not None and extra_stride > 0:
         sextra = bufs.get("sextra", max(n, 1) * extra_stride, np.float32)
         if n:
-            k["grid_permute_extra"](q, *launch(k["grid_permute_extra"], q, n, _WG), un, np.uint32(extra_stride), sorted_idx.data,
-                                    extra, sextra.data)
+            k["grid_permute_extra"](q, n, want=_WG, n=n, stride=extra_stride, idx=sorted_idx,
+                                    src=extra, dst=sextra)
     return Grid(params=params, n=n, cell_start=cell_start, spos_w=spos, sdir_b=sdir,
                 method=method, sextra=sextra)
 
@@ -356,17 +357,17 @@ def _counting_sort(dev, k, bufs, params, un, kpos, pos, dirb, cell_start, spos, 
     rank = bufs.get("rank", n, np.uint32)
     cell_start.fill(0)
     stage("clear")
-    k["grid_count"](q, *launch(k["grid_count"], q, n, _WG), params, un, kpos, cell_start.data, rank.data)
+    k["grid_count"](q, n, want=_WG, gp=params, n=n, pos_w=kpos, counts=cell_start, rank=rank)
     stage("count")
     # in place: counts -> exclusive prefix sums, cell_start[ncells] == n
     _scan(dev)(cell_start, allocator=bufs.pool)
     stage("scan")
     perm = bufs.get("idx", n, np.int32)
-    k["grid_scatter"](q, *launch(k["grid_scatter"], q, n, _WG), params, un, kpos,
-                      cell_start.data, rank.data, perm.data)
+    k["grid_scatter"](q, n, want=_WG, gp=params, n=n, pos_w=kpos, cell_start=cell_start,
+                      rank=rank, perm=perm)
     stage("scatter")
-    k["grid_permute"](q, *launch(k["grid_permute"], q, n, _WG), un, perm.data, pos, dirb,
-                      spos.data, sdir.data)
+    k["grid_permute"](q, n, want=_WG, n=n, idx=perm, pos_w=pos, dir_b=dirb, spos_w=spos,
+                      sdir_b=sdir)
     stage("permute")
     return perm
 
@@ -376,16 +377,16 @@ def _radix_sort(dev, k, bufs, params, un, ncells, kpos, pos, dirb, cell_start, s
     q, n = dev.queue, int(un)
     keys = bufs.get("keys", n, np.uint32)
     idx = bufs.get("idx", n, np.int32)
-    k["grid_keys"](q, *launch(k["grid_keys"], q, n, _WG), params, un, kpos, keys.data, idx.data)
+    k["grid_keys"](q, n, want=_WG, gp=params, n=n, pos_w=kpos, keys=keys, idx=idx)
     stage("keys")
     key_bits = max(1, (ncells - 1).bit_length())
     (skeys, sidx), _ = _radix(dev)(keys, idx, key_bits=key_bits, queue=q, allocator=bufs.pool)
     stage("sort")
-    k["grid_permute"](q, *launch(k["grid_permute"], q, n, _WG), un, sidx.data, pos, dirb,
-                      spos.data, sdir.data)
+    k["grid_permute"](q, n, want=_WG, n=n, idx=sidx, pos_w=pos, dir_b=dirb, spos_w=spos,
+                      sdir_b=sdir)
     stage("permute")
-    k["grid_starts_from_keys"](q, *launch(k["grid_starts_from_keys"], q, n + 1, _WG), un, np.uint32(ncells),
-                               skeys.data, cell_start.data)
+    k["grid_starts_from_keys"](q, n + 1, want=_WG, n=n, ncells=ncells, skeys=skeys,
+                               cell_start=cell_start)
     stage("starts")
     return sidx
 
@@ -410,7 +411,7 @@ def _queries(queries, radii) -> np.ndarray:
     return np.ascontiguousarray(np.column_stack([x, r]).astype(np.float32))
 
 
-def _gather(dev: Device, which: str, head_args: list, queries, radii, nb: int,
+def _gather(dev: Device, which: str, photons: dict, queries, radii, nb: int,
             wscale: float, with_cand: bool) -> GatherResult:
     import pyopencl.array as cla
     qh = _queries(queries, radii)
@@ -424,13 +425,10 @@ def _gather(dev: Device, which: str, head_args: list, queries, radii, nb: int,
     count = cla.empty(q, m, np.uint32)
     wsum = cla.empty(q, m, np.int64)
     band = cla.empty(q, m * nb, np.int64)
-    args = [*head_args[:1], np.uint32(m), np.float32(wscale), *head_args[1:],
-            qd.data, count.data, wsum.data, band.data]
+    args = dict(photons, m=m, wscale=wscale, queries=qd, count=count, wsum=wsum, band=band)
     if with_cand:
-        ncand = cla.empty(q, m, np.uint32)
-        args.append(ncand.data)
-    knl = _kernels(dev, nb)[which]
-    knl(q, *launch(knl, q, m, _WG), *args)
+        ncand = args["ncand"] = cla.empty(q, m, np.uint32)
+    _kernels(dev, nb)[which](q, m, want=_WG, **args)
     res = GatherResult(count.get(), wsum.get(), band.get().reshape(m, nb),
                        ncand.get() if with_cand else None)
     return res
@@ -440,9 +438,8 @@ def gather_counts(dev: Device, grid: Grid, queries, radii, nb: int = 1,
                   wscale: float = 2.0 ** 20) -> GatherResult:
     """Grid gather (one work item per query): count, fixed-point weight sum and
     per-band sums of the photons with ``|p - x|^2 < R^2``, and candidates tested."""
-    # gather_grid(gp, m, wscale, cell_start, spos_w, sdir_b, queries, ...)
-    head = [grid.params, grid.cell_start.data, grid.spos_w.data, grid.sdir_b.data]
-    return _gather(dev, "gather_grid", head, queries, radii, nb, wscale, True)
+    photons = dict(gp=grid.params, cell_start=grid.cell_start, spos_w=grid.spos_w, sdir_b=grid.sdir_b)
+    return _gather(dev, "gather_grid", photons, queries, radii, nb, wscale, True)
 
 
 def gather_bruteforce(dev: Device, pos_w, dir_b, n: int, queries, radii, nb: int = 1,
@@ -458,6 +455,5 @@ def gather_bruteforce(dev: Device, pos_w, dir_b, n: int, queries, radii, nb: int
     bufs = buffers or GridBuffers(dev)
     pos = _as_device(dev, pos_w, n, bufs, "bf_pos_w")
     dirb = _as_device(dev, dir_b, n, bufs, "bf_dir_b")
-    # gather_bruteforce(n, m, wscale, pos_w, dir_b, queries, ...)
-    head = [np.uint32(n), pos, dirb]
-    return _gather(dev, "gather_bruteforce", head, queries, radii, nb, wscale, False)
+    photons = dict(n=n, pos_w=pos, dir_b=dirb)
+    return _gather(dev, "gather_bruteforce", photons, queries, radii, nb, wscale, False)

@@ -40,7 +40,8 @@ from .camera import from_config
 from .light import Light
 from . import config as C
 from .config import ConfigError, render_settings
-from .device import Device, check_alloc, kernel_defines, launch, open_device
+from .device import Device, check_alloc, kernel_defines, open_device
+from .kernelcall import Kernel
 
 NBIN = 8
 BIN_LABELS = ["1", "2", "3", "4", "5-8", "9-16", "17-64", "65+"]
@@ -139,7 +140,7 @@ class PathTracer:
         self.npix = cam.width * cam.height
         self.nspp = int(render_settings(cfg).pt_samples_per_pass)
         q, mf = dev.queue, cl.mem_flags
-        self.kernel = cl.Kernel(build(dev, vol), "pt_pass")
+        self.kernel = Kernel(build(dev, vol), "pt_pass")
         self.vbuf = volume.upload_volume(dev, vol)
         p = S.new_params()
         volume.volume_params(p, vol)
@@ -184,9 +185,9 @@ class PathTracer:
             self.e["pix_offset"], self.e["count"] = done, n
             cl.enqueue_copy(q, self.ebuf, self.e)
             t0 = time.perf_counter()
-            self.kernel(q, *launch(self.kernel, q, n), self.pbuf, *self.vbuf.args(), self.ebuf,
-                        self.chain, self.pix_sum.data, self.pix_sq.data, self.pix_stats.data,
-                        self.pix_bins.data, self.smooth, self.pix_mnee.data)
+            self.kernel(q, n, **self.vbuf.named(self.pbuf), E=self.ebuf, chain=self.chain,
+                        pix_sum=self.pix_sum, pix_sq=self.pix_sq, pix_stats=self.pix_stats,
+                        pix_bins=self.pix_bins, smooth=self.smooth, pix_mnee=self.pix_mnee)
             q.finish()
             dt = time.perf_counter() - t0
             done += n
@@ -434,14 +435,14 @@ class _Probe:
         import pyopencl as cl
         return cl.Buffer(self.dev.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
 
-    def run(self, name: str, *args, smooth_first: bool = False):
-        """Launch ``name`` (P, volume, chain[, smooth], light, *rest) and read both outputs back."""
+    def run(self, name: str, **args):
+        """Launch ``name`` with the volume, the chain tables, the light, the vertices, both
+        outputs and ``args``, and read both outputs back."""
         import pyopencl as cl
         q = self.dev.queue
-        knl = cl.Kernel(self.prg, name)
-        head = (self.pbuf, *self.vb.args(), self.chain)
-        rest = ((args[0], self.light) + args[1:]) if smooth_first else ((self.light,) + args)
-        knl(q, *launch(knl, q, self.n), *head, *rest)
+        Kernel(self.prg, name)(q, self.n, **self.vb.named(self.pbuf), chain=self.chain,
+                               light=self.light, n=self.n, verts=self.vbuf, out=self.obuf,
+                               pts=self.qbuf, **args)
         cl.enqueue_copy(q, self.out, self.obuf)
         cl.enqueue_copy(q, self.pts, self.qbuf)
         q.finish()
@@ -454,7 +455,7 @@ def connect_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, 
     Returns p, dOmega/dA_h, the connection factor (band 0), cos theta_L, the selection
     probability, ok, and the chain's points (vertex first, light last)."""
     pr = _Probe(dev, vol, verts, light_um, 8, 4)
-    out, pts = pr.run("t_connect", np.int32(mode), np.uint32(pr.n), pr.vbuf, pr.obuf, pr.qbuf)
+    out, pts = pr.run("t_connect", mode=mode)
     n = pr.n
     npts = out[:, 6].astype(int)
     return {"p": out[:, 0], "domega_dA": out[:, 1], "factor": out[:, 2], "cos_L": out[:, 3],
@@ -477,9 +478,9 @@ def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mod
     pr = _Probe(dev, vol, verts, light_um, 20, 8)
     n = pr.n
     sd = np.ascontiguousarray(seeds if seeds is not None else np.zeros((n, 2)), pr.real)
-    out, pts = pr.run("t_mnee", pr.buffer(vol.smooth.reshape(-1)), np.int32(mode), np.uint32(n),
-                      pr.vbuf, pr.obuf, pr.qbuf, np.int32(seeds is not None), pr.buffer(sd),
-                      np.int32(trials), np.uint32(salt), smooth_first=True)
+    out, pts = pr.run("t_mnee", smooth=pr.buffer(vol.smooth.reshape(-1)), mode=mode,
+                      use_seeds=int(seeds is not None), seeds=pr.buffer(sd), mnee_trials=trials,
+                      salt=salt)
     npts = out[:, 12].astype(int)
     keys = ["ok", "iters", "halvings", "G", "factor", "F", "cos_v", "cos_a", "ux", "uy", "wsel",
             "layer", "npts", "err", "built", "why", "all_factor", "solutions", "trials", "clamped"]
