@@ -1,4 +1,4 @@
-"""The beam estimator's gather on the device: its layouts (issue 20).
+"""The beam estimator's gather on the device, in one of two layouts.
 
 ``render.layout`` chooses how the (eye-ray piece, photon) pairs are found and summed; both
 layouts find the same pairs and add the same 64-bit fixed-point term per pair and band, so

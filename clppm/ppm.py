@@ -389,8 +389,8 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
 
 def gather_beam(sc: Scene, grid: hashgrid.Grid, sslab, extra, st: PointState, acc: Accumulators,
                 alpha: float, scale: float, pass_scale: float) -> None:
-    """The beam gather (issue 20: clppm/beam.py, its layouts)."""
-    from . import beam                                      # issue 20
+    """The beam gather in the scene's layout (clppm/beam.py: gather or scatter)."""
+    from . import beam          # imported here: beam.py imports this module (hg_table)
     beam.run(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
 
 

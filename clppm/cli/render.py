@@ -158,7 +158,8 @@ def add_parser(sub) -> None:
     p.add_argument("config", help="config file, or the name of a shipped config (`clppm config --example`)")
     p.add_argument("--integrator", choices=("ppm", "pt"), default="ppm",
                    help="ppm: progressive photon mapping; pt: the unbiased path tracer "
-                        "(flat scenes, point light; render.pt_samples_per_pass paths per pixel per pass)")
+                        "(flat or relief scenes, a point light above the skin; "
+                        "render.pt_samples_per_pass paths per pixel per pass)")
     p.add_argument("--method", choices=list("abcdef"),
                    help="sample-point scheme, see below (default: the config's render.method)")
     p.add_argument("--spacing", type=float, help="equal spacing of sample points in um, any value "
