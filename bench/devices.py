@@ -114,7 +114,7 @@ def _best(fn, repeat: int) -> float:
 def measure(spec: str, repeat: int = 3) -> dict:
     """The figures for one device (run in a worker process)."""
     import numpy as np
-    from clppm import config, device, hashgrid, pathtracer, photonpass, progressive, tiny, volume
+    from clppm import config, device, hashgrid, pathtracer, photonpass, progressive, testing, tiny, volume
     dev = device.open_device(spec)
     out = {"device": device.describe(dev.device)}
     for key, cfg, n in (("photon_slab", config.slab_config(SLAB), 200_000),
@@ -144,7 +144,7 @@ def measure(spec: str, repeat: int = 3) -> dict:
     res = {}
 
     def gather():
-        res["r"] = hashgrid.gather_counts(dev, g, qs, rs)
+        res["r"] = testing.gather_counts(dev, g, qs, rs)
     t = _best(gather, repeat)
     pairs = int(res["r"].count.sum())
     out["grid_pairs_s"] = pairs / t

@@ -66,7 +66,11 @@ def _candidates(sc, cal, st, info, ppm, photonpass, flat: bool) -> int | None:
         return None
     prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", count_candidates=True))
     saved_k, saved_hz = sc.kernels["gather_beam"], sc.hz
-    sc.kernels["gather_beam"] = cl.Kernel(prg, "gather_beam")
+    try:                                    # kernels called by parameter name
+        from clppm.kernelcall import Kernel
+    except ImportError:                     # a tree before clppm.kernelcall
+        Kernel = cl.Kernel
+    sc.kernels["gather_beam"] = Kernel(prg, "gather_beam")
     if not flat:
         sc.hz = None
     acc = ppm.Accumulators.zeros(sc)

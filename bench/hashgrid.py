@@ -29,6 +29,7 @@ import time
 import numpy as np
 
 from clppm import hashgrid as hg
+from clppm import testing
 from clppm.device import open_device
 
 
@@ -98,7 +99,7 @@ def main(argv=None):
     g = hg.build(dev, pos_d, dir_d, a.photons, lo, hi, h0, buffers=bufs)
     sub = rng.choice(a.queries, min(a.queries, 20_000), replace=False)
     for _ in range(2):
-        c = hg.gather_counts(dev, g, qx[sub], r[sub], nb=a.nb).count.mean()
+        c = testing.gather_counts(dev, g, qx[sub], r[sub], nb=a.nb).count.mean()
         r *= np.float32((a.target / max(c, 1.0)) ** (1.0 / 3.0))
     R = float(np.median(r))
 
@@ -143,7 +144,7 @@ def main(argv=None):
             row[f"build_{m}_stages_s"] = {s_: v / 3 for s_, v in st.items()}
         g = builds["counting"]()  # the default build is what the gather uses
         row.update(h_um=g.h, ncells=g.ncells, shape=list(g.shape))
-        gather = lambda: hg.gather_counts(dev, g, qx, r, nb=a.nb)  # noqa: E731
+        gather = lambda: testing.gather_counts(dev, g, qx, r, nb=a.nb)  # noqa: E731
         timed(dev, gather, 1)
         ts, res = timed(dev, gather, 3)
         tg = min(ts)
@@ -155,7 +156,7 @@ def main(argv=None):
                    pairs_per_s=pairs / tg, candidates_per_pair=cand / max(pairs, 1))
         # exactness on a subset against brute force
         k = rng.choice(a.queries, min(a.check, a.queries), replace=False)
-        bf = hg.gather_bruteforce(dev, pos_d, dir_d, a.photons, qx[k], r[k], nb=a.nb)
+        bf = testing.gather_bruteforce(dev, pos_d, dir_d, a.photons, qx[k], r[k], nb=a.nb)
         ok = (np.array_equal(bf.count, res.count[k]) and np.array_equal(bf.wsum, res.wsum[k])
               and np.array_equal(bf.band, res.band[k]))
         row["bruteforce_subset_equal"] = bool(ok)

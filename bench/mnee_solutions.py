@@ -28,7 +28,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from clppm import config as C                      # noqa: E402
-from clppm import pathtracer as pt                 # noqa: E402
+from clppm import testing                           # noqa: E402
 from clppm import volume                           # noqa: E402
 from clppm.device import open_device               # noqa: E402
 
@@ -46,7 +46,7 @@ def dense_search(dev, vol, light, verts, r0, use):
     u0 = np.stack([r0["ux"], r0["uy"]], 1)
     for d in np.linspace(0.02, 0.6, 12):
         for phi in np.arange(16) * (np.pi / 8):
-            r = pt.mnee_probe(dev, vol, light, verts, 0, seeds=u0 + d * np.array([np.cos(phi), np.sin(phi)]))
+            r = testing.mnee_probe(dev, vol, light, verts, 0, seeds=u0 + d * np.array([np.cos(phi), np.sin(phi)]))
             for i in np.flatnonzero(use & r["ok"]):
                 add(i, r["ux"][i], r["uy"][i], r["factor"][i])
     return sols
@@ -71,11 +71,11 @@ def main(argv=None) -> int:
     verts = np.stack([rng.uniform(500, 9500, n), rng.uniform(500, 9500, n),
                       -rng.exponential(a.depth, n) - 0.5, np.zeros(n)], 1)
     verts = verts.astype(np.float32).astype(float)
-    r0 = pt.mnee_probe(dev, vol, light, verts, 0)
+    r0 = testing.mnee_probe(dev, vol, light, verts, 0)
     use = r0["built"] & (r0["layer"] >= 0)
     sols = dense_search(dev, vol, light, verts, r0, use)
     K = a.samples
-    rs = pt.mnee_probe(dev, vol, light, np.repeat(verts, K, 0), 0)
+    rs = testing.mnee_probe(dev, vol, light, np.repeat(verts, K, 0), 0)
     smp = rs["all_factor"].reshape(n, K)
     layers = r0["layer"].astype(int)
     flat = np.where(r0["ok"], r0["factor"], 0.0)

@@ -1,4 +1,4 @@
-"""Bright single-photon spots (issue 20, point 5): the tail of single photons' contributions.
+"""Bright single-photon spots: the tail of single photons' contributions.
 
 Some seeds show a 2x2-pixel spot many times its surroundings: one stored photon whose storage
 weight 1/q meets a forward-peaked phase value toward the eye.  Per seed, this renders

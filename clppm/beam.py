@@ -1,4 +1,4 @@
-"""The beam estimator's gather on the device: its layouts (issue 20).
+"""The beam estimator's gather on the device, in one of two layouts.
 
 ``render.layout`` chooses how the (eye-ray piece, photon) pairs are found and summed; both
 layouts find the same pairs and add the same 64-bit fixed-point term per pair and band, so
@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .device import kernel_defines, launch
+from .device import kernel_defines
+from .kernelcall import Kernel
 
 #: render.layout = "auto": the layout per OpenCL device type (bench/gather.py, docs/gather.md).
 #: CPU: the gather, faster under PoCL and Intel's runtime (measured).  GPU and others: not
@@ -69,16 +70,15 @@ class _State:
 
     def piece_slabs(self, sc):
         """Per eye-ray piece: its layer-conforming depth (kernel piece_slabs), once per scene."""
-        import pyopencl as cl
         import pyopencl.array as cla
         if self.pslab is None:
             q, e = sc.dev.queue, sc.eye
             self.pslab = cla.zeros(q, max(e.npieces, 1), _f4())
             if e.npieces:
                 prg = sc.dev.build("gather.cl", _defines(sc))
-                k = cl.Kernel(prg, "piece_slabs")
-                k(q, *launch(k, q, e.npieces), sc.pp.pbuf, sc.vbuf.iface,
-                  sc.vbuf.heights, e.geo.data, np.uint32(e.npieces), self.pslab.data)
+                Kernel(prg, "piece_slabs")(q, e.npieces, P=sc.pp.pbuf, iface=sc.vbuf.iface,
+                                           heights=sc.vbuf.heights, geo=e.geo,
+                                           npieces=e.npieces, pslab=self.pslab)
         return self.pslab
 
 
@@ -99,29 +99,27 @@ def gather(sc, grid, sslab, extra, st, acc, alpha: float, scale: float, pass_sca
     st.M.fill(0)
     sw = weights16(sc, grid, extra)
     pslab = bs.piece_slabs(sc)           # launched before gather_beam is (the launch order)
-    kg = sc.kernels["gather_beam"]
-    kg(q, *launch(kg, q, sc.npix, rows=sc.gclass), grid.params, sc.pp.pbuf,
-       sc.vbuf.iface, sc.vbuf.heights, grid.cell_start.data, grid.spos_w.data,
-       grid.sdir_b.data, sslab.data, sc.vlay, extra, sc.hgtab, sc.vbuf.optics, bs.hgc, bs.mutc, sw.data,
-       pslab.data,
-       e.ray_start.data, e.pt_pos.data, e.pt_piece.data, e.geo.data, st.R.data,
-       st.N.data, st.M.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp),
-       np.int32(sc.global_radius), np.float32(scale), np.float64(pass_scale))
+    sc.kernels["gather_beam"](
+        q, sc.npix, rows=sc.gclass, gp=grid.params, P=sc.pp.pbuf, iface=sc.vbuf.iface,
+        heights=sc.vbuf.heights, cell_start=grid.cell_start, spos_w=grid.spos_w, sdir_b=grid.sdir_b,
+        sslab=sslab, vlay=sc.vlay, sextra=extra, hgtab=sc.hgtab, optics=sc.vbuf.optics, hgc=bs.hgc,
+        mutc=bs.mutc, sw16=sw, pslab=pslab, ray_start=e.ray_start, pt_pos=e.pt_pos,
+        pt_piece=e.pt_piece, geo=e.geo, pt_R=st.R, pt_N=st.N, pt_M=st.M, pix_acc=acc.pix,
+        npix=sc.npix, spp=e.camera.spp, global_radius=int(sc.global_radius), radius_scale=scale,
+        pass_scale=pass_scale)
     points(sc, st, acc, alpha)
 
 
 def weights16(sc, grid, extra):
     """Per sorted photon: its band weights in class order, one float16 (photon_weights16)."""
-    import pyopencl as cl
     q = sc.dev.queue
     sw = sc.gbufs.get("sw16", max(grid.n, 1) * 16, np.float32)
     k = sc.kernels.get("photon_weights16")
     if k is None:
         prg = sc.dev.build("gather.cl", _defines(sc))
-        k = sc.kernels["photon_weights16"] = cl.Kernel(prg, "photon_weights16")
+        k = sc.kernels["photon_weights16"] = Kernel(prg, "photon_weights16")
     if grid.n:
-        k(q, *launch(k, q, grid.n), grid.spos_w.data, grid.sdir_b.data, extra,
-          np.uint32(grid.n), sw.data)
+        k(q, grid.n, spos_w=grid.spos_w, sdir_b=grid.sdir_b, sextra=extra, n=grid.n, sw16=sw)
     return sw
 
 
@@ -131,10 +129,9 @@ def _defines(sc) -> dict:
 
 def points(sc, st, acc, alpha: float) -> None:
     q, e = sc.dev.queue, sc.eye
-    kp = sc.kernels["gather_beam_points"]
-    kp(q, *launch(kp, q, sc.npix), e.ray_start.data, st.R.data,
-       st.N.data, st.M.data, acc.pairs.data, np.int32(sc.npix),
-       np.int32(e.camera.spp), np.float32(alpha), np.int32(sc.global_radius))
+    sc.kernels["gather_beam_points"](
+        q, sc.npix, ray_start=e.ray_start, pt_R=st.R, pt_N=st.N, pt_M=st.M, pix_pairs=acc.pairs,
+        npix=sc.npix, spp=e.camera.spp, alpha=alpha, global_radius=int(sc.global_radius))
 
 
 def supports_scatter(sc) -> str | None:
@@ -182,7 +179,6 @@ class _Scatter:
     """The scatter layout's per-scene state: its kernels, each piece's point and optical depth."""
 
     def __init__(self, sc, bs: _State):
-        import pyopencl as cl
         import pyopencl.array as cla
         from .device import check_alloc
         q, e = sc.dev.queue, sc.eye
@@ -190,7 +186,7 @@ class _Scatter:
                              "scatter: per piece x band optical depths": max(e.npieces, 1) * sc.vol.nb * 4,
                              "scatter: piece grid entries (estimate)": max(e.npieces, 1) * 4 * 40})
         prg = sc.dev.build("scatter.cl", _defines(sc))
-        self.k = {n: cl.Kernel(prg, n) for n in ("piece_points", "piece_od", "piece_cells",
+        self.k = {n: Kernel(prg, n) for n in ("piece_points", "piece_od", "piece_cells",
                                                   "scatter_beam", "scatter_finish",
                                                   "point_pixels")}
         self.spots = None                # bench/spots.py: per pixel the largest pair (float bits)
@@ -200,13 +196,12 @@ class _Scatter:
         self.od = cla.zeros(q, npc * sc.vol.nb, np.float32)
         self.pinfo = cla.zeros(q, npc, _f4())
         if e.npoints:
-            k = self.k["piece_points"]
-            k(q, *launch(k, q, e.npoints), e.pt_piece.data, np.uint32(e.npoints),
-              self.piece_pt.data)
+            self.k["piece_points"](q, e.npoints, pt_piece=e.pt_piece, npts=e.npoints,
+                                   piece_pt=self.piece_pt)
         if e.nrays and e.npieces:
-            k = self.k["piece_od"]
-            k(q, *launch(k, q, e.nrays, rows=sc.gclass), e.ray_start.data,
-              e.pt_piece.data, e.geo.data, bs.mutc, np.uint32(e.nrays), self.od.data)
+            self.k["piece_od"](q, e.nrays, rows=sc.gclass, ray_start=e.ray_start,
+                               pt_piece=e.pt_piece, geo=e.geo, mutc=bs.mutc, nrays=e.nrays,
+                               od=self.od)
 
     def nbytes(self) -> int:
         return self.piece_pt.nbytes + self.od.nbytes + self.pinfo.nbytes
@@ -216,9 +211,8 @@ class _Scatter:
         (``self.spots``, float bits; clear it before a pass)."""
         import pyopencl.array as cla
         q, e = sc.dev.queue, sc.eye
-        k = self.k["point_pixels"]
-        k(q, *launch(k, q, sc.npix), e.ray_start.data, np.int32(sc.npix),
-          np.int32(e.camera.spp), self.pt_pix.data)
+        self.k["point_pixels"](q, sc.npix, ray_start=e.ray_start, npix=sc.npix,
+                               spp=e.camera.spp, pt_pix=self.pt_pix)
         self.spots = cla.zeros(q, max(sc.npix, 1), np.uint32)
 
 
@@ -247,39 +241,37 @@ def scatter(sc, grid, sslab, extra, st, acc, alpha: float, scale: float, pass_sc
     gp = grid.params
     cxyz = int(gp["nx"]) * int(gp["ny"]) * int(gp["nz"])
     npc = e.npieces
-    gr = np.int32(sc.global_radius)
     sw = weights16(sc, grid, extra)
     pstart = sc.gbufs.get("pstart", cxyz + 1, np.uint32)
     pstart.fill(0)
     kc = ss.k["piece_cells"]
-    common = (gp, sc.pp.pbuf, sc.vbuf.iface, sc.vbuf.heights, sc.vlay, e.geo.data,
-              bs.piece_slabs(sc).data, ss.piece_pt.data,
-              st.R.data, np.uint32(npc), gr, np.float32(scale))
+    common = dict(gp=gp, P=sc.pp.pbuf, iface=sc.vbuf.iface, heights=sc.vbuf.heights, vlay=sc.vlay,
+                  geo=e.geo, pslab=bs.piece_slabs(sc), piece_pt=ss.piece_pt, pt_R=st.R,
+                  npieces=npc, global_radius=int(sc.global_radius), radius_scale=scale,
+                  pinfo=ss.pinfo)
     plist = sc.gbufs.get("plist", 1, np.uint32)
-    if npc:
-        kc(q, *launch(kc, q, npc), *common, np.int32(0), pstart.data, plist.data,
-           ss.pinfo.data)
+    if npc:                             # fill 0: count each cell's pieces into pstart
+        kc(q, npc, **common, fill=0, cursor=pstart, plist=plist)
     hashgrid._scan(sc.dev)(pstart, allocator=sc.gbufs.pool)
     total = int(pstart[cxyz:cxyz + 1].get()[0])
     plist = sc.gbufs.get("plist", max(total, 1), np.uint32)
     cursor = sc.gbufs.get("pcursor", cxyz + 1, np.uint32)
     cl.enqueue_copy(q, cursor.data, pstart.data, byte_count=4 * (cxyz + 1))
-    if npc:
-        kc(q, *launch(kc, q, npc), *common, np.int32(1), cursor.data, plist.data,
-           ss.pinfo.data)
+    if npc:                             # fill 1: file each piece at its cell's cursor
+        kc(q, npc, **common, fill=1, cursor=cursor, plist=plist)
     pacc = sc.gbufs.get("pacc", max(sc.npts, 1) * sc.vol.nb, np.int64)
     pacc.fill(0)
     st.M.fill(0)
     ks = ss.k["scatter_beam"]
     if grid.n:
-        ks(q, *launch(ks, q, grid.n), gp, sc.pp.pbuf, grid.cell_start.data,
-           grid.spos_w.data, grid.sdir_b.data, sslab.data, sw.data, bs.hgc, bs.mutc, pstart.data,
-           plist.data, ss.pinfo.data, e.geo.data, ss.piece_pt.data, ss.od.data, np.uint32(grid.n),
-           pacc.data, st.M.data, np.int32(ss.spots is not None), ss.pt_pix.data, e.pt_pos.data,
-           (ss.spots if ss.spots is not None else ss.pt_pix).data)
+        ks(q, grid.n, gp=gp, P=sc.pp.pbuf, cell_start=grid.cell_start, spos_w=grid.spos_w,
+           sdir_b=grid.sdir_b, sslab=sslab, sw16=sw, hgc=bs.hgc, mutc=bs.mutc, pstart=pstart,
+           plist=plist, pinfo=ss.pinfo, geo=e.geo, piece_pt=ss.piece_pt, od=ss.od, n=grid.n,
+           acc=pacc, pt_M=st.M, spots=int(ss.spots is not None), pt_pix=ss.pt_pix, pt_pos=e.pt_pos,
+           pix_max=ss.spots if ss.spots is not None else ss.pt_pix)
     kf = ss.k["scatter_finish"]
-    kf(q, *launch(kf, q, sc.npix, rows=sc.gclass), e.ray_start.data, e.pt_pos.data,
-       st.R.data, pacc.data, acc.pix.data, np.int32(sc.npix), np.int32(e.camera.spp), gr,
-       np.float32(scale), np.float64(pass_scale))
+    kf(q, sc.npix, rows=sc.gclass, ray_start=e.ray_start, pt_pos=e.pt_pos, pt_R=st.R, acc=pacc,
+       pix_acc=acc.pix, npix=sc.npix, spp=e.camera.spp, global_radius=int(sc.global_radius),
+       radius_scale=scale, pass_scale=pass_scale)
     points(sc, st, acc, alpha)
     bs.entries = total                                     # piece-cell entries (bench)

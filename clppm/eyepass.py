@@ -32,7 +32,9 @@ from . import structs as S
 from .config import render_settings
 from .camera import Camera, from_config
 from .light import Light
-from .device import Device, DeviceError, check_alloc, kernel_defines, launch, surface_fp64
+from .device import Device, DeviceError, check_alloc, kernel_defines, surface_fp64
+from .constants import EyeMode
+from .kernelcall import Kernel
 from .volume import Volume, VolumeBuffers, volume_params
 
 SPACING = {"a": 4.0, "b": 7.0, "c": 14.0}
@@ -178,9 +180,9 @@ class _EyeKernel:
         mf = cl.mem_flags
         ctx, self.q = dev.ctx, dev.queue
         ro = mf.READ_ONLY | mf.COPY_HOST_PTR
-        self.common = [cl.Buffer(ctx, ro, hostbuf=p), *vbuf.args(), cl.Buffer(ctx, ro, hostbuf=e),
-                       cl.Buffer(ctx, ro, hostbuf=rates)]
-        self.knl = cl.Kernel(dev.build("eye.cl", kernel_defines(vol, pt_fp64=surface_fp64(dev, vol))), "eye_pass")
+        self.common = dict(vbuf.named(cl.Buffer(ctx, ro, hostbuf=p)), E=cl.Buffer(ctx, ro, hostbuf=e),
+                           rate=cl.Buffer(ctx, ro, hostbuf=rates))
+        self.knl = Kernel(dev.build("eye.cl", kernel_defines(vol, pt_fp64=surface_fp64(dev, vol))), "eye_pass")
         self.smooth = vbuf.smooth
         self.ctx = ctx
         self.nrays = cam.width * cam.height * cam.spp
@@ -189,15 +191,18 @@ class _EyeKernel:
         self.dummy4 = cl.Buffer(ctx, mf.READ_WRITE, 16)
         self.dummyf = cl.Buffer(ctx, mf.READ_WRITE, 16)
 
-    def _launch(self, mode: int, outputs: list) -> None:
-        q, knl = self.q, self.knl
-        knl(q, *launch(knl, q, self.nrays), *self.common, np.int32(mode),
-            self.npts.data, self.npcs.data, self.npts.data, self.npcs.data, *outputs, self.smooth)
+    def _launch(self, mode: EyeMode, outputs: dict) -> None:
+        """One eye pass over every ray; the per-ray counts are both the counts it writes
+        (EyeMode.COUNT) and the offsets it reads (the two store modes)."""
+        self.knl(self.q, self.nrays, **self.common, write=int(mode), n_points=self.npts,
+                 n_pieces=self.npcs, pt_start=self.npts, pc_start=self.npcs, **outputs,
+                 smooth=self.smooth)
 
     def count(self) -> tuple[np.ndarray, int, int]:
-        """Sample points and pieces per ray (mode 0): the points per ray and both totals."""
+        """Sample points and pieces per ray (EyeMode.COUNT): the points per ray and both totals."""
         d4, df = self.dummy4, self.dummyf
-        self._launch(0, [d4, d4, d4, d4, df, df, df, d4])
+        self._launch(EyeMode.COUNT, dict(pt_pos=d4, pt_dir=d4, pt_piece=d4, pieces=d4, ray_spec=df,
+                                         ray_hit=df, pt_slab=df, geo=d4))
         counts = self.npts.get()[:self.nrays].copy()
         npoints = int(counts.astype(np.int64).sum())
         npieces = int(self.npcs.get()[:self.nrays].astype(np.int64).sum())
@@ -210,7 +215,8 @@ class _EyeKernel:
         scan(self.npcs)
 
     def store(self, npoints: int, npieces: int, geometry: bool) -> dict:
-        """Sample points and path pieces at their offsets (mode 1; 2 with the pieces' geometry)."""
+        """Sample points and path pieces at their offsets (EyeMode.STORE; STORE_GEOMETRY with the
+        pieces' geometry)."""
         import pyopencl as cl
         import pyopencl.array as cla
         import pyopencl.cltypes as cltypes
@@ -223,8 +229,8 @@ class _EyeKernel:
                "ray_hit": cla.empty(q, self.nrays, np.float32),
                "pt_slab": cla.empty(q, max(npoints, 1), cltypes.float2),
                "geo": cla.empty(q, 2 * max(npieces, 1), cltypes.float4) if geometry else None}
-        self._launch(2 if geometry else 1, [a.data for a in list(out.values())[:7]]
-                     + [out["geo"].data if geometry else self.dummy4])
+        self._launch(EyeMode.STORE_GEOMETRY if geometry else EyeMode.STORE,
+                     {k: self.dummy4 if a is None else a for k, a in out.items()})
         cl.enqueue_copy(q, out["pt_piece"].data, np.array([npieces], np.uint32), dst_offset=4 * npoints)
         return out
 

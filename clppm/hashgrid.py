@@ -40,12 +40,13 @@ import numpy as np
 import pyopencl.cltypes as cltypes
 
 from . import structs as S
-from .device import Device, launch
+from .device import Device
+from .kernelcall import Kernel
 
 DEFAULT_MAX_CELLS = 2 ** 23
 
 
-_WG = 128  # global sizes are rounded up to this (PoCL picks a work-group size dividing it)
+WG = 128  # global sizes are rounded up to this (PoCL picks a work-group size dividing it)
 
 
 def _cl():
@@ -182,15 +183,13 @@ _SCANS: dict[object, object] = {}
 _SORTS: dict[object, object] = {}
 
 
-def _kernels(dev: Device, nb: int | None = None) -> dict:
-    key = (dev.ctx, nb)
-    k = _KERNELS.get(key)
+def _kernels(dev: Device) -> dict:
+    k = _KERNELS.get(dev.ctx)
     if k is None:
-        prg = dev.build("hashgrid.cl", {"NB": int(nb)} if nb is not None else None)
-        names = (["gather_grid", "gather_bruteforce"] if nb is not None else
-                 ["grid_count", "grid_scatter", "grid_keys", "grid_permute", "grid_permute_extra",
-                  "grid_starts_from_keys"])
-        k = _KERNELS[key] = {nm: _cl().Kernel(prg, nm) for nm in names}
+        prg = dev.build("hashgrid.cl")
+        names = ("grid_count", "grid_scatter", "grid_keys", "grid_permute", "grid_permute_extra",
+                 "grid_starts_from_keys")
+        k = _KERNELS[dev.ctx] = {nm: Kernel(prg, nm) for nm in names}
     return k
 
 
@@ -252,7 +251,7 @@ class Grid:
         return np.array([p["lo_x"], p["lo_y"], p["lo_z"]], dtype=np.float32)
 
 
-def _as_device(dev: Device, a, n: int, bufs: GridBuffers, name: str):
+def as_device(dev: Device, a, n: int, bufs: GridBuffers, name: str):
     """Kernel argument (cl.Buffer) for a float4 photon array given as a
     ``pyopencl.array.Array``, a ``cl.Buffer`` or host data (uploaded: tests)."""
     cl = _cl()
@@ -303,9 +302,9 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     q = dev.queue
     k = _kernels(dev)
     f4 = cltypes.float4
-    pos = _as_device(dev, pos_w, n, bufs, "pos_w")
-    dirb = _as_device(dev, dir_b, n, bufs, "dir_b")
-    kpos = pos if key_pos is None else _as_device(dev, key_pos, n, bufs, "key_pos")
+    pos = as_device(dev, pos_w, n, bufs, "pos_w")
+    dirb = as_device(dev, dir_b, n, bufs, "dir_b")
+    kpos = pos if key_pos is None else as_device(dev, key_pos, n, bufs, "key_pos")
     cell_start = bufs.get("cell_start", ncells + 1, np.uint32)
     spos = bufs.get("spos_w", n, f4)
     sdir = bufs.get("sdir_b", n, f4)
@@ -324,8 +323,8 @@ def build(dev: Device, pos_w, dir_b, n: int, lo, hi, h: float,
     if extra is not None and extra_stride > 0:
         sextra = bufs.get("sextra", max(n, 1) * extra_stride, np.float32)
         if n:
-            k["grid_permute_extra"](q, *launch(k["grid_permute_extra"], q, n, _WG), un, np.uint32(extra_stride), sorted_idx.data,
-                                    extra, sextra.data)
+            k["grid_permute_extra"](q, n, want=WG, n=n, stride=extra_stride, idx=sorted_idx,
+                                    src=extra, dst=sextra)
     return Grid(params=params, n=n, cell_start=cell_start, spos_w=spos, sdir_b=sdir,
                 method=method, sextra=sextra)
 
@@ -356,17 +355,17 @@ def _counting_sort(dev, k, bufs, params, un, kpos, pos, dirb, cell_start, spos, 
     rank = bufs.get("rank", n, np.uint32)
     cell_start.fill(0)
     stage("clear")
-    k["grid_count"](q, *launch(k["grid_count"], q, n, _WG), params, un, kpos, cell_start.data, rank.data)
+    k["grid_count"](q, n, want=WG, gp=params, n=n, pos_w=kpos, counts=cell_start, rank=rank)
     stage("count")
     # in place: counts -> exclusive prefix sums, cell_start[ncells] == n
     _scan(dev)(cell_start, allocator=bufs.pool)
     stage("scan")
     perm = bufs.get("idx", n, np.int32)
-    k["grid_scatter"](q, *launch(k["grid_scatter"], q, n, _WG), params, un, kpos,
-                      cell_start.data, rank.data, perm.data)
+    k["grid_scatter"](q, n, want=WG, gp=params, n=n, pos_w=kpos, cell_start=cell_start,
+                      rank=rank, perm=perm)
     stage("scatter")
-    k["grid_permute"](q, *launch(k["grid_permute"], q, n, _WG), un, perm.data, pos, dirb,
-                      spos.data, sdir.data)
+    k["grid_permute"](q, n, want=WG, n=n, idx=perm, pos_w=pos, dir_b=dirb, spos_w=spos,
+                      sdir_b=sdir)
     stage("permute")
     return perm
 
@@ -376,88 +375,15 @@ def _radix_sort(dev, k, bufs, params, un, ncells, kpos, pos, dirb, cell_start, s
     q, n = dev.queue, int(un)
     keys = bufs.get("keys", n, np.uint32)
     idx = bufs.get("idx", n, np.int32)
-    k["grid_keys"](q, *launch(k["grid_keys"], q, n, _WG), params, un, kpos, keys.data, idx.data)
+    k["grid_keys"](q, n, want=WG, gp=params, n=n, pos_w=kpos, keys=keys, idx=idx)
     stage("keys")
     key_bits = max(1, (ncells - 1).bit_length())
     (skeys, sidx), _ = _radix(dev)(keys, idx, key_bits=key_bits, queue=q, allocator=bufs.pool)
     stage("sort")
-    k["grid_permute"](q, *launch(k["grid_permute"], q, n, _WG), un, sidx.data, pos, dirb,
-                      spos.data, sdir.data)
+    k["grid_permute"](q, n, want=WG, n=n, idx=sidx, pos_w=pos, dir_b=dirb, spos_w=spos,
+                      sdir_b=sdir)
     stage("permute")
-    k["grid_starts_from_keys"](q, *launch(k["grid_starts_from_keys"], q, n + 1, _WG), un, np.uint32(ncells),
-                               skeys.data, cell_start.data)
+    k["grid_starts_from_keys"](q, n + 1, want=WG, n=n, ncells=ncells, skeys=skeys,
+                               cell_start=cell_start)
     stage("starts")
     return sidx
-
-
-# --------------------------------------------------------------------------- gathers (tests, bench)
-
-@dataclass
-class GatherResult:
-    """Per query: ``count`` (uint32), ``wsum`` (int64 fixed point, weight *
-    ``wscale`` rounded per photon), ``band`` ((m, nb) int64 fixed point) and,
-    for the grid gather, ``ncand`` (photons tested)."""
-
-    count: np.ndarray
-    wsum: np.ndarray
-    band: np.ndarray
-    ncand: np.ndarray | None = None
-
-
-def _queries(queries, radii) -> np.ndarray:
-    x = np.asarray(queries, dtype=np.float32).reshape(-1, 3)
-    r = np.broadcast_to(np.asarray(radii, dtype=np.float32), (x.shape[0],))
-    return np.ascontiguousarray(np.column_stack([x, r]).astype(np.float32))
-
-
-def _gather(dev: Device, which: str, head_args: list, queries, radii, nb: int,
-            wscale: float, with_cand: bool) -> GatherResult:
-    import pyopencl.array as cla
-    qh = _queries(queries, radii)
-    m = qh.shape[0]
-    if m == 0:
-        e = np.zeros(0, np.int64)
-        return GatherResult(np.zeros(0, np.uint32), e, np.zeros((0, nb), np.int64),
-                            np.zeros(0, np.uint32) if with_cand else None)
-    q = dev.queue
-    qd = cla.to_device(q, qh)
-    count = cla.empty(q, m, np.uint32)
-    wsum = cla.empty(q, m, np.int64)
-    band = cla.empty(q, m * nb, np.int64)
-    args = [*head_args[:1], np.uint32(m), np.float32(wscale), *head_args[1:],
-            qd.data, count.data, wsum.data, band.data]
-    if with_cand:
-        ncand = cla.empty(q, m, np.uint32)
-        args.append(ncand.data)
-    knl = _kernels(dev, nb)[which]
-    knl(q, *launch(knl, q, m, _WG), *args)
-    res = GatherResult(count.get(), wsum.get(), band.get().reshape(m, nb),
-                       ncand.get() if with_cand else None)
-    return res
-
-
-def gather_counts(dev: Device, grid: Grid, queries, radii, nb: int = 1,
-                  wscale: float = 2.0 ** 20) -> GatherResult:
-    """Grid gather (one work item per query): count, fixed-point weight sum and
-    per-band sums of the photons with ``|p - x|^2 < R^2``, and candidates tested."""
-    # gather_grid(gp, m, wscale, cell_start, spos_w, sdir_b, queries, ...)
-    head = [grid.params, grid.cell_start.data, grid.spos_w.data, grid.sdir_b.data]
-    return _gather(dev, "gather_grid", head, queries, radii, nb, wscale, True)
-
-
-def gather_bruteforce(dev: Device, pos_w, dir_b, n: int, queries, radii, nb: int = 1,
-                      wscale: float = 2.0 ** 20,
-                      buffers: GridBuffers | None = None) -> GatherResult:
-    """All-pairs reference for :func:`gather_counts` (same distance test, same
-    fixed-point conversion): results must agree exactly."""
-    n = int(n)
-    if n == 0:
-        m = _queries(queries, radii).shape[0]
-        return GatherResult(np.zeros(m, np.uint32), np.zeros(m, np.int64),
-                            np.zeros((m, nb), np.int64))
-    bufs = buffers or GridBuffers(dev)
-    pos = _as_device(dev, pos_w, n, bufs, "bf_pos_w")
-    dirb = _as_device(dev, dir_b, n, bufs, "bf_dir_b")
-    # gather_bruteforce(n, m, wscale, pos_w, dir_b, queries, ...)
-    head = [np.uint32(n), pos, dirb]
-    return _gather(dev, "gather_bruteforce", head, queries, radii, nb, wscale, False)

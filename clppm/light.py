@@ -12,8 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: the kernels' light kinds
-SOURCE = {"pencil": 0, "wide": 1, "point": 2}
+from .constants import SOURCE  # noqa: F401  (the kernels' light kinds: SRC_* of constants.h)
 
 
 @dataclass(frozen=True)

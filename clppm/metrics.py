@@ -190,7 +190,8 @@ def accuracy_of_seeds(images: list, ref) -> dict:
     return m
 
 
-#: the bias bound per 10x10-pixel square that issue 11 holds the default to
+#: the bias bound per 10x10-pixel square the default mode is held to against the path tracer
+#: (bench/bias.py; the README's bias table counts the squares beyond it)
 BIAS_BOUND = 0.02
 
 

@@ -1,9 +1,10 @@
-"""Unbiased path tracer (kernels/pt.cl): ground truth for the flat skin scene.
+"""Unbiased path tracer (kernels/pt.cl): ground truth for the skin scenes, flat or with relief.
 
 Eye paths from the same pinhole camera as the eye pass, next-event estimation to the point
-light at every scattering vertex through the flat refracting interfaces (exact: Snell's law
-solved for the connection, the point source's divergence through the planes, Fresnel at every
-crossing; derivation in kernels/pt.cl).  Images have PPM's units, exposure and outputs, so the
+light at every scattering vertex through the refracting interfaces.  Through flat interfaces
+the connection is exact (Snell's law solved for it, the point source's divergence through the
+planes, Fresnel at every crossing; derivation in kernels/pt.cl); through relief it is the
+manifold connection described below.  Images have PPM's units, exposure and outputs, so the
 two integrators are directly comparable.
 
 The pixel value is the average radiance over the pixel's footprint (every sample is jittered
@@ -41,7 +42,8 @@ from .camera import from_config
 from .light import Light
 from . import config as C
 from .config import ConfigError, render_settings
-from .device import Device, check_alloc, kernel_defines, launch, open_device
+from .device import Device, check_alloc, kernel_defines, open_device
+from .kernelcall import Kernel
 
 NBIN = 8
 BIN_LABELS = ["1", "2", "3", "4", "5-8", "9-16", "17-64", "65+"]
@@ -140,7 +142,7 @@ class PathTracer:
         self.npix = cam.width * cam.height
         self.nspp = int(render_settings(cfg).pt_samples_per_pass)
         q, mf = dev.queue, cl.mem_flags
-        self.kernel = cl.Kernel(build(dev, vol), "pt_pass")
+        self.kernel = Kernel(build(dev, vol), "pt_pass")
         self.vbuf = volume.upload_volume(dev, vol)
         p = S.new_params()
         volume.volume_params(p, vol)
@@ -185,9 +187,9 @@ class PathTracer:
             self.e["pix_offset"], self.e["count"] = done, n
             cl.enqueue_copy(q, self.ebuf, self.e)
             t0 = time.perf_counter()
-            self.kernel(q, *launch(self.kernel, q, n), self.pbuf, *self.vbuf.args(), self.ebuf,
-                        self.chain, self.pix_sum.data, self.pix_sq.data, self.pix_stats.data,
-                        self.pix_bins.data, self.smooth, self.pix_mnee.data)
+            self.kernel(q, n, **self.vbuf.named(self.pbuf), E=self.ebuf, chain=self.chain,
+                        pix_sum=self.pix_sum, pix_sq=self.pix_sq, pix_stats=self.pix_stats,
+                        pix_bins=self.pix_bins, smooth=self.smooth, pix_mnee=self.pix_mnee)
             q.finish()
             dt = time.perf_counter() - t0
             done += n
@@ -408,87 +410,3 @@ class PTRun:
 
     def close(self) -> None:
         pass
-
-
-# ----------------------------------------------------------------------------- test entry point
-class _Probe:
-    """The test kernels' set-up (t_connect, t_mnee): the volume, the chain tables, n vertices,
-    a light, and (n, nout) results plus (n, points, ncol) chain points in the device's real."""
-
-    def __init__(self, dev: Device, vol: volume.Volume, verts, light_um, nout: int, ncol: int):
-        import pyopencl as cl
-        import pyopencl.cltypes as cltypes
-        self.dev, self.prg = dev, build(dev, vol)
-        self.real = np.float64 if fp64(dev) else np.float32
-        self.vb = volume.upload_volume(dev, vol)
-        p = S.new_params()
-        volume.volume_params(p, vol)
-        self.pbuf, self.chain = self.buffer(p), self.buffer(chain_tables(vol))
-        v = np.ascontiguousarray(verts, np.float32)
-        self.n = len(v)
-        self.out = np.zeros((self.n, nout), self.real)
-        self.pts = np.zeros((self.n, 4 * vol.nl + 10, ncol), self.real)
-        self.vbuf = self.buffer(v)
-        self.obuf = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE, self.out.nbytes)
-        self.qbuf = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE, self.pts.nbytes)
-        self.light = np.array([*light_um, 0.0], np.float32).view(cltypes.float4)[0]
-
-    def buffer(self, a):
-        import pyopencl as cl
-        return cl.Buffer(self.dev.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
-
-    def run(self, name: str, *args, smooth_first: bool = False):
-        """Launch ``name`` (P, volume, chain[, smooth], light, *rest) and read both outputs back."""
-        import pyopencl as cl
-        q = self.dev.queue
-        knl = cl.Kernel(self.prg, name)
-        head = (self.pbuf, *self.vb.args(), self.chain)
-        rest = ((args[0], self.light) + args[1:]) if smooth_first else ((self.light,) + args)
-        knl(q, *launch(knl, q, self.n), *head, *rest)
-        cl.enqueue_copy(q, self.out, self.obuf)
-        cl.enqueue_copy(q, self.pts, self.qbuf)
-        q.finish()
-        return self.out, self.pts
-
-
-def connect_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mode: int = 0) -> dict:
-    """Run the kernel's connection for vertices ``verts`` (n, 4: x, y, z um, layer) to the light
-    at ``light_um``: mode 0 the direct chain, j > 0 reflected once at interface j, -1 sampled.
-    Returns p, dOmega/dA_h, the connection factor (band 0), cos theta_L, the selection
-    probability, ok, and the chain's points (vertex first, light last)."""
-    pr = _Probe(dev, vol, verts, light_um, 8, 4)
-    out, pts = pr.run("t_connect", np.int32(mode), np.uint32(pr.n), pr.vbuf, pr.obuf, pr.qbuf)
-    n = pr.n
-    npts = out[:, 6].astype(int)
-    return {"p": out[:, 0], "domega_dA": out[:, 1], "factor": out[:, 2], "cos_L": out[:, 3],
-            "wsel": out[:, 4], "ok": out[:, 5] > 0,
-            "points": [pts[i, :npts[i]] for i in range(n)]}
-
-
-def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mode: int = 0,
-               seeds: np.ndarray | None = None, trials: int = MNEE_TRIALS, salt: int = 0) -> dict:
-    """Run the kernel's manifold connection (relief builds) for vertices ``verts`` (n, 4: x, y, z
-    um, a layer guess) to the light at ``light_um``; mode as connect_probe.  Returns ok,
-    iterations, halvings, G, the factor (band 0), the Fresnel product, cos theta_v, cos theta_a,
-    u, wsel, the vertex's layer, the landing error, and the chain's points (n, 8: x, y, z,
-    layer, upward normal, 0; vertex first, the light's height last).  ``seeds`` (n, 2): Newton
-    on the surfaces from these momenta instead of the flat seed (no continuation).  Without
-    seeds also ``all_factor``, ``solutions``, ``trials`` and ``clamped``: one sample of the
-    render's connection (specular manifold sampling with ``trials`` random trials, random stream
-    (vertex index, ``salt``); band 0, isotropic phase function x 4 pi)."""
-    assert not vol.flat
-    pr = _Probe(dev, vol, verts, light_um, 20, 8)
-    n = pr.n
-    sd = np.ascontiguousarray(seeds if seeds is not None else np.zeros((n, 2)), pr.real)
-    out, pts = pr.run("t_mnee", pr.buffer(vol.smooth.reshape(-1)), np.int32(mode), np.uint32(n),
-                      pr.vbuf, pr.obuf, pr.qbuf, np.int32(seeds is not None), pr.buffer(sd),
-                      np.int32(trials), np.uint32(salt), smooth_first=True)
-    npts = out[:, 12].astype(int)
-    keys = ["ok", "iters", "halvings", "G", "factor", "F", "cos_v", "cos_a", "ux", "uy", "wsel",
-            "layer", "npts", "err", "built", "why", "all_factor", "solutions", "trials", "clamped"]
-    r = {k: out[:, j] for j, k in enumerate(keys)}
-    r["continued"] = r["ok"] >= 2
-    r["ok"] = (r["ok"] % 2) > 0
-    r["built"] = r["built"] > 0
-    r["points"] = [pts[i, :npts[i]] for i in range(n)]
-    return r

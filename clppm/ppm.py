@@ -25,7 +25,8 @@ import numpy as np
 from . import eyepass, hashgrid, photonpass, volume
 from .bands import Bands
 from .config import RenderSettings, render_settings
-from .device import Device, check_alloc, kernel_defines, launch
+from .device import Device, check_alloc, kernel_defines
+from .kernelcall import Kernel
 
 #: pass index of the calibration photon pass (its photons set R0 and are then dropped)
 CAL_PASS = 0xFFFFFFFF
@@ -174,7 +175,7 @@ def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
     pp.set_emission(rc.emission)
     gclass = band_classes(vol.nb, pp.hero)
     prg = dev.build("gather.cl", kernel_defines(vol, hero=pp.hero, estimator=rc.estimator, gclass=gclass))
-    kernels = {k: cl.Kernel(prg, k) for k in ("gather", "gather_beam", "gather_beam_points", "init_radius",
+    kernels = {k: Kernel(prg, k) for k in ("gather", "gather_beam", "gather_beam_points", "init_radius",
                                               "count_within", "photon_slabs", "photon_keys")}
     mf = cl.mem_flags
     hgtab = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hg_table(vol))
@@ -220,9 +221,9 @@ def photon_keys(sc: Scene, n: int):
     import pyopencl.cltypes as cltypes
     k = sc.gbufs.get("kpos", max(n, 1), cltypes.float4)
     if n:
-        sc.kernels["photon_keys"](sc.dev.queue, *launch(sc.kernels["photon_keys"], sc.dev.queue, n), sc.pp.pbuf, sc.vbuf.iface,
-                                  sc.vbuf.heights, sc.vlay, sc.pp.pos_w, sc.pp.dir_b,
-                                  np.uint32(n), k.data)
+        sc.kernels["photon_keys"](
+            sc.dev.queue, n, P=sc.pp.pbuf, iface=sc.vbuf.iface, heights=sc.vbuf.heights, vlay=sc.vlay,
+            pos_w=sc.pp.pos_w, dir_b=sc.pp.dir_b, n=n, kpos=k)
     return k
 
 
@@ -262,9 +263,9 @@ def photon_slabs(sc: Scene, grid: hashgrid.Grid):
     import pyopencl.cltypes as cltypes
     sl = sc.gbufs.get("sslab", max(grid.n, 1), cltypes.float2)
     if grid.n:
-        sc.kernels["photon_slabs"](sc.dev.queue, *launch(sc.kernels["photon_slabs"], sc.dev.queue, grid.n), sc.pp.pbuf, sc.vbuf.iface,
-                                   sc.vbuf.heights, grid.spos_w.data, grid.sdir_b.data,
-                                   np.uint32(grid.n), sl.data)
+        sc.kernels["photon_slabs"](
+            sc.dev.queue, grid.n, P=sc.pp.pbuf, iface=sc.vbuf.iface, heights=sc.vbuf.heights,
+            spos_w=grid.spos_w, sdir_b=grid.sdir_b, n=grid.n, sslab=sl)
     return sl
 
 
@@ -295,9 +296,9 @@ def calibrate(sc: Scene) -> Calibration:
     rmax = 4.0 * r_guess
     R = cla.zeros(q, npts, np.float32)
     grid = build_grid(sc, n, r_guess, rmax)
-    sc.kernels["init_radius"](q, *launch(sc.kernels["init_radius"], q, npts), grid.params, grid.cell_start.data,
-                              sc.eye.pt_pos.data, R.data, np.uint32(npts), np.float32(K),
-                              np.float32(r_guess), np.float32(rmax), np.int32(4))
+    sc.kernels["init_radius"](
+        q, npts, gp=grid.params, cell_start=grid.cell_start, pt_pos=sc.eye.pt_pos, pt_R=R,
+        npts=npts, K=K, R0=r_guess, Rmax=rmax, iters=4)
     stride = max(1, npts // 20000)
     ns = (npts + stride - 1) // stride
     cnt = cla.zeros(q, ns, np.uint32)
@@ -305,10 +306,10 @@ def calibrate(sc: Scene) -> Calibration:
     for _ in range(3):
         radii = R.get()
         grid = build_grid(sc, n, float(np.median(radii)), float(radii.max()))
-        sc.kernels["count_within"](q, *launch(sc.kernels["count_within"], q, ns), grid.params, grid.cell_start.data,
-                                   grid.spos_w.data, grid.sdir_b.data, sc.eye.pt_pos.data,
-                                   sc.eye.pt_dir.data, R.data, sc.layer_z, np.uint32(npts),
-                                   np.uint32(stride), cnt.data)
+        sc.kernels["count_within"](
+            q, ns, gp=grid.params, cell_start=grid.cell_start, spos_w=grid.spos_w, sdir_b=grid.sdir_b,
+            pt_pos=sc.eye.pt_pos, pt_dir=sc.eye.pt_dir, pt_R=R, layer_z=sc.layer_z, npts=npts,
+            stride=stride, out=cnt)
         mean_m = float(cnt.get().mean())
         if mean_m <= 0 or _ == 2:
             break
@@ -368,17 +369,18 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
     t0 = time.perf_counter()
     pass_scale = 1.0 / max(info["emitted"], 1) if sc.global_radius else 1.0
     e = sc.eye
-    tail = (st.R.data, st.N.data, st.M.data, acc.pix.data, acc.pairs.data, np.int32(sc.npix),
-            np.int32(e.camera.spp), np.float32(alpha), np.int32(sc.global_radius), np.float32(scale),
-            np.float64(pass_scale))
     extra = grid.sextra.data if grid.sextra is not None else sc.pp.extra
     if sc.beam:
         gather_beam(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
     else:
-        sc.kernels["gather"](q, *launch(sc.kernels["gather"], q, sc.npix), grid.params, grid.cell_start.data,
-                             grid.spos_w.data, grid.sdir_b.data, extra, sc.hgtab, sc.vbuf.optics,
-                             e.ray_start.data, e.pt_pos.data, e.pt_dir.data, e.pt_piece.data,
-                             e.pieces.data, e.pt_slab.data, sc.layer_z, *tail)
+        sc.kernels["gather"](
+            q, sc.npix, gp=grid.params, cell_start=grid.cell_start, spos_w=grid.spos_w,
+            sdir_b=grid.sdir_b, sextra=extra, hgtab=sc.hgtab, optics=sc.vbuf.optics,
+            ray_start=e.ray_start, pt_pos=e.pt_pos, pt_dir=e.pt_dir, pt_piece=e.pt_piece,
+            pieces=e.pieces, pt_slab=e.pt_slab, layer_z=sc.layer_z, pt_R=st.R, pt_N=st.N,
+            pt_M=st.M, pix_acc=acc.pix, pix_pairs=acc.pairs, npix=sc.npix, spp=e.camera.spp,
+            alpha=alpha, global_radius=int(sc.global_radius), radius_scale=scale,
+            pass_scale=pass_scale)
     q.finish()
     sc.timing["gather"] += time.perf_counter() - t0
     info["radius_scale"] = scale
@@ -387,8 +389,8 @@ def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulat
 
 def gather_beam(sc: Scene, grid: hashgrid.Grid, sslab, extra, st: PointState, acc: Accumulators,
                 alpha: float, scale: float, pass_scale: float) -> None:
-    """The beam gather (issue 20: clppm/beam.py, its layouts)."""
-    from . import beam                                      # issue 20
+    """The beam gather in the scene's layout (clppm/beam.py: gather or scatter)."""
+    from . import beam          # imported here: beam.py imports this module (hg_table)
     beam.run(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
 
 

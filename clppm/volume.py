@@ -390,6 +390,11 @@ class VolumeBuffers:
     def args(self):
         return [self.iface, self.layer_n, self.optics, self.heights]
 
+    def named(self, P) -> dict:
+        """VOLUME_ARGS by name, with ``P`` the kernel's Params buffer (clppm.kernelcall)."""
+        return {"P": P, "iface": self.iface, "layer_n": self.layer_n, "optics": self.optics,
+                "heights": self.heights}
+
 
 def upload_volume(dev, vol: Volume) -> VolumeBuffers:
     """The volume's arrays as read-only device buffers (interface heights and the smooth

@@ -27,6 +27,7 @@
 #define CLPPM_COMMON_H
 
 #include <pyopencl-random123/philox.cl>
+#include "constants.h"
 
 #ifndef NB
 #error "NB (number of bands) must be defined"
@@ -43,7 +44,8 @@
 #define HOT __attribute__((always_inline)) inline
 #define BIG 1e30f
 
-/* Mirrors clppm/params.py PARAMS_DTYPE: 4-byte fields only, in this order. */
+/* Mirrors clppm/structs.py PARAMS_DTYPE (checked by tests/test_structs.py): 4-byte fields
+ * only, in this order. */
 typedef struct {
     /* volume */
     float x0, y0, dx, dy;       /* column grid origin and pitch */
@@ -53,7 +55,7 @@ typedef struct {
     float n_above, n_below;
     float z_top;                /* highest surface point */
     /* source */
-    int src_kind;               /* 0 pencil, 1 wide, 2 point */
+    int src_kind;               /* SRC_PENCIL, SRC_WIDE, SRC_POINT (constants.h) */
     float sx, sy, sz;           /* point position, or beam centre (z unused) */
     float sdx, sdy, sdz;        /* collimated direction */
     float swx, swy;             /* wide beam full widths */
@@ -71,7 +73,7 @@ typedef struct {
     float rcone_cos;            /* exits with cos(theta) above this also go to the cone tally */
     uint offset_hi;             /* high 32 bits of the photon index (traces beyond 2^32 photons) */
     /* storage rule (photon pass): 0 every scattering event, 1 importance-driven */
-    int store_rule;
+    int store_rule;             /* STORE_RULE_ALL, STORE_RULE_IMPORTANCE (constants.h) */
     float store_cos, store_sin; /* half angle of the cone of eye directions around +z */
     float store_scale;          /* storage probability = clamp(scale * importance, qmin, 1) */
     float store_qmin;

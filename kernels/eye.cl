@@ -48,7 +48,7 @@ typedef struct {
     float vox_dx, vox_dz;
     int max_points;
     float max_len;
-    int light_kind;             /* 0 pencil, 1 wide, 2 point */
+    int light_kind;             /* SRC_PENCIL, SRC_WIDE, SRC_POINT (constants.h) */
     float lx, ly, lz;           /* point: position; collimated: unit vector toward the light */
     float alpha;                /* GGX roughness */
     uint seed_lo, seed_hi;
@@ -92,7 +92,7 @@ inline void write_piece(uint j, float len, int L, float3 start, float3 dir, __gl
                         __global float4* geo, int write) {
     if (!write) return;
     pieces[j] = (float2)(len, (float)L);
-    if (write == 2) {
+    if (write == EYE_STORE_GEOMETRY) {
         geo[2 * j] = (float4)(start, len);
         geo[2 * j + 1] = (float4)(dir, (float)L);
     }
@@ -176,7 +176,7 @@ inline float4 entry_normal(__constant const Params* P, __constant const float4* 
 __kernel void eye_pass(VOLUME_ARGS,
                        __constant const EyeParams* E,
                        __constant const float* rate,            /* per layer, um^-1 */
-                       int write,
+                       int write,                               /* EYE_COUNT, EYE_STORE, EYE_STORE_GEOMETRY */
                        __global uint* n_points, __global uint* n_pieces,
                        __global const uint* pt_start, __global const uint* pc_start,
                        __global float4* pt_pos, __global float4* pt_dir, __global uint* pt_piece,
@@ -220,7 +220,7 @@ __kernel void eye_pass(VOLUME_ARGS,
         float3 v = -t.dir;
         float3 l;
         float inv_d2 = 1.0f;
-        if (E->light_kind == 2) {
+        if (E->light_kind == SRC_POINT) {
             float3 lp = (float3)(E->lx, E->ly, E->lz) - t.pos;
             float d2 = dot(lp, lp);
             l = lp * rsqrt(d2);
@@ -229,12 +229,12 @@ __kernel void eye_pass(VOLUME_ARGS,
             l = (float3)(E->lx, E->ly, E->lz);
         }
         spec = specular_geo(sn, v, l, E->alpha, P->n_above, layer_n[0]) * inv_d2;
-        if (E->light_kind == 1) {
+        if (E->light_kind == SRC_WIDE) {
             /* where this surface point's line to the light crosses z = 0 */
             float s0 = -t.pos.z / l.z;
             float fx = t.pos.x + s0 * l.x, fy = t.pos.y + s0 * l.y;
             if (fx < E->bx0 || fx > E->bx1 || fy < E->by0 || fy > E->by1) spec = 0.0f;
-        } else if (E->light_kind == 0) {
+        } else if (E->light_kind == SRC_PENCIL) {
             spec = 0.0f;                /* a pencil beam's highlight has no area */
         }
         float ct;

@@ -1,4 +1,4 @@
-"""Interruption and resume (issue: Hardening, 3).
+"""Interruption and resume: a killed render leaves a checkpoint that resumes to the same bytes.
 
 * A render killed with SIGKILL in the middle of a pass leaves a loadable checkpoint, and
   ``clppm render --resume`` finishes it with an EXR byte-identical to an uninterrupted

@@ -1,4 +1,4 @@
-"""Property-based tests of config validation (issue: Hardening, 1).
+"""Property-based tests of config validation: refused with one message, never a crash.
 
 Broken and random configs, as Python dicts (``config.validate``), as TOML files
 (``config.load``) and as command-line overrides, must end in either a complete config or

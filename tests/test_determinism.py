@@ -1,4 +1,4 @@
-"""Determinism (issue: Hardening, 4): same seed, same device -> byte-identical EXR.
+"""Determinism: same seed, same device -> byte-identical EXR.
 
 Photon i of pass p draws from Philox keyed by (seed, p, i) and every sum over photons is
 integer fixed point, so two runs (in this process, or in another process) write the same

@@ -1,4 +1,4 @@
-"""Distributed passes (issue 12): a Dask cluster gives the in-process bytes, loses no work.
+"""Distributed passes: a Dask cluster gives the in-process bytes, loses no work.
 
 * Two PoCL worker processes (one thread each) render the same EXR bytes as the in-process loop
   with the same seed and ``render.chunk_passes``: chunk sums are added in chunk order.

@@ -15,6 +15,7 @@ import pytest
 cl = pytest.importorskip("pyopencl")
 
 from clppm import config as C, photonpass, ppm, progressive  # noqa: E402
+from clppm.kernelcall import Kernel  # noqa: E402
 from clppm.device import kernel_defines  # noqa: E402
 
 
@@ -44,7 +45,7 @@ def _exact(sc: ppm.Scene) -> ppm.Scene:
     prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=sc.gclass,
                                                    exact_rsqrt=True))
     p = copy.copy(sc)
-    p.kernels = {**sc.kernels, "gather_beam": cl.Kernel(prg, "gather_beam")}
+    p.kernels = {**sc.kernels, "gather_beam": Kernel(prg, "gather_beam")}
     return p
 
 
@@ -54,7 +55,7 @@ def _plain(sc: ppm.Scene) -> ppm.Scene:
     prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=1,
                                                    exact_rsqrt=not _pocl(sc)))
     p = copy.copy(sc)
-    p.kernels = {**sc.kernels, **{k: cl.Kernel(prg, k) for k in ("gather_beam", "gather_beam_points",
+    p.kernels = {**sc.kernels, **{k: Kernel(prg, k) for k in ("gather_beam", "gather_beam_points",
                                                                   "photon_keys")}}
     keys = ppm.depth_keys(sc.vol.iface)
     keys[:, 2] = 0.0                                  # no layer is filed at its conformed depth
@@ -72,7 +73,7 @@ def _pass(sc, cal, p=0, count=False):
         prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=sc.gclass,
                                                         count_candidates=True))
         sc = __import__("copy").copy(sc)
-        sc.kernels = {**sc.kernels, "gather_beam": cl.Kernel(prg, "gather_beam")}
+        sc.kernels = {**sc.kernels, "gather_beam": Kernel(prg, "gather_beam")}
     ppm.run_pass(sc, cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
     pix, pairs = acc.host()
     return pix, pairs, st.M.get()[:sc.npts]

@@ -1,4 +1,4 @@
-"""Numerical guards, device resources and platform failures (issue: Hardening, 2, 5, 6).
+"""Numerical guards, device resources and platform failures.
 
 * Extreme inputs (huge or zero coefficients, g near +-1, n = 1, zero power, light that
   never reaches the viewed region) give finite, non-negative images, accumulators and

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from clppm import hashgrid as hg
+from clppm import testing
 from clppm import structs
 
 NB = 8
@@ -62,8 +63,8 @@ def check_grid(grid, pos, dirb):
 
 def check_gather(dev, grid, pos, dirb, qx, r):
     n = pos.shape[0]
-    g = hg.gather_counts(dev, grid, qx, r, nb=NB)
-    b = hg.gather_bruteforce(dev, pos, dirb, n, qx, r, nb=NB)
+    g = testing.gather_counts(dev, grid, qx, r, nb=NB)
+    b = testing.gather_bruteforce(dev, pos, dirb, n, qx, r, nb=NB)
     assert np.array_equal(g.count, b.count)
     assert np.array_equal(g.wsum, b.wsum)
     assert np.array_equal(g.band, b.band)

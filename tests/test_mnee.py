@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from clppm import checkpoint as ckpt
-from clppm import config, pathtracer as pt, volume
+from clppm import config, pathtracer as pt, testing, volume
 
 
 def lay(name, t, n, mua=10.0, mus=90.0, g=0.75, bottom="flat"):
@@ -138,7 +138,7 @@ def test_found_path_obeys_snell_lies_on_the_surfaces_and_lands_on_the_light(dev,
     verts = _vertices(vol, np.random.default_rng(3), 60)
     checked = 0
     for mode in (0, refl) if refl else (0,):
-        r = pt.mnee_probe(dev, vol, LIGHT, verts, mode)
+        r = testing.mnee_probe(dev, vol, LIGHT, verts, mode)
         built = r["built"]
         assert built.sum() >= 30 and r["ok"][built].all(), (mode, r["ok"], r["layer"])
         for ok, pts in zip(r["ok"], r["points"]):
@@ -174,7 +174,7 @@ def test_geometry_term_is_the_finite_difference_jacobian_of_a_separate_tracer(de
         vol = volume.build(scene(SKINLIKE, relief=FURROWS, papillae=10.0, quantize=True))
     S = Surfaces(vol)
     verts = _vertices(vol, np.random.default_rng(5), 16)
-    r = pt.mnee_probe(dev, vol, LIGHT, verts, 0)
+    r = testing.mnee_probe(dev, vol, LIGHT, verts, 0)
     checked = 0
     for i, v in enumerate(verts):
         if not r["ok"][i]:
@@ -207,10 +207,10 @@ def test_amplitude_to_zero_gives_the_flat_connection(dev):
     flat = volume.build(scene(WAVY))
     verts = _vertices(flat, np.random.default_rng(7), 24, depth=85.0)
     verts[:, 3] = [0 if z > -40.0 else 1 for z in verts[:, 2]]
-    ref = pt.connect_probe(dev, flat, LIGHT, verts, 0)
+    ref = testing.connect_probe(dev, flat, LIGHT, verts, 0)
     errs = []
     for a in (1.0, 0.1, 0.01):
-        r = pt.mnee_probe(dev, volume.build(scene(WAVY, papillae=a)), LIGHT, verts, 0)
+        r = testing.mnee_probe(dev, volume.build(scene(WAVY, papillae=a)), LIGHT, verts, 0)
         far = np.abs(verts[:, 2] + 40.0) > 2 * a               # the vertex's layer is the same
         assert r["ok"][far].all()
         dOdA = ref["domega_dA"][far] / ref["cos_L"][far]        # the flat G
@@ -227,7 +227,7 @@ def test_small_spherical_light_by_brute_force_converges_to_the_manifold_result(d
     vol = volume.build(scene(WAVY, papillae=10.0))
     S = Surfaces(vol)
     verts = np.array([[210.0, 330.0, -70.0, 1], [260.0, 240.0, -60.0, 1]])   # exact in float32
-    r = pt.mnee_probe(dev, vol, LIGHT, verts, 0)
+    r = testing.mnee_probe(dev, vol, LIGHT, verts, 0)
     rng = np.random.default_rng(11)
     L = np.array(LIGHT)
     for i, v in enumerate(verts):
@@ -269,7 +269,7 @@ def _solutions(dev, vol, verts, r):
     sols = [[(u0[i], r["G"][i] * r["F"][i])] if r["ok"][i] else [] for i in range(len(verts))]
     for d in np.linspace(0.02, 0.5, 8):
         for phi in np.arange(12) * (np.pi / 6):
-            rs = pt.mnee_probe(dev, vol, LIGHT, verts, 0, seeds=u0 + d * np.array([np.cos(phi), np.sin(phi)]))
+            rs = testing.mnee_probe(dev, vol, LIGHT, verts, 0, seeds=u0 + d * np.array([np.cos(phi), np.sin(phi)]))
             for i in np.flatnonzero(rs["ok"]):
                 u = np.array([rs["ux"][i], rs["uy"][i]])
                 if all(np.abs(u - q[0]).sum() > 1e-6 for q in sols[i]):
@@ -291,7 +291,7 @@ def test_solutions_sum_to_the_brute_force_irradiance(dev):
     vol = volume.build(scene(FOCUS, papillae=6.0, period=40.0))
     S = Surfaces(vol)
     verts = np.array([[230.0, 260.0, -180.0, 1], [190.0, 310.0, -150.0, 1]])
-    r = pt.mnee_probe(dev, vol, LIGHT, verts, 0)
+    r = testing.mnee_probe(dev, vol, LIGHT, verts, 0)
     sols = _solutions(dev, vol, verts, r)
     assert [len(q) for q in sols] == [3, 1]
     rng = np.random.default_rng(13)
@@ -317,7 +317,7 @@ def test_solutions_sum_to_the_brute_force_irradiance(dev):
         total = sum(q[1] for q in sols[i])
         assert hit.sum() > 300, hit.sum()
         assert abs(brute / total - 1) <= 4 * sb / brute + 0.03, (brute, sb, total, int(hit.sum()))
-        sms = pt.mnee_probe(dev, vol, LIGHT, np.repeat(verts[i:i + 1], 4000, 0), 0)["all_factor"]
+        sms = testing.mnee_probe(dev, vol, LIGHT, np.repeat(verts[i:i + 1], 4000, 0), 0)["all_factor"]
         se = sms.std() / math.sqrt(len(sms))
         assert abs(sms.mean() - total) <= 4 * se + 1e-4 * total, (sms.mean(), se, total)
         if len(sols[i]) == 1:

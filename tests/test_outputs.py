@@ -1,4 +1,4 @@
-"""Nothing lost, nothing hidden (issue 23).
+"""Nothing lost, nothing hidden: every output a render promises is written, every failure said.
 
 * ``-o`` decides the format by its extension (.exr: the EXR and a PNG beside it; .png: the PNG
   alone); anything else, an empty name, a folder or an unwritable place (tried for real: CI runs

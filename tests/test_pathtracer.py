@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from clppm import checkpoint as ckpt
-from clppm import cli, config, pathtracer as pt, photonpass, progressive, volume
+from clppm import cli, config, pathtracer as pt, photonpass, progressive, testing, volume
 from scenes import tiny_toml
 
 
@@ -107,7 +107,7 @@ def test_connection_obeys_snell_and_lands_on_the_light(dev, stack):
     n_med = lambda k: n32[k]  # noqa: E731     (k = -1: air, k = NL: below)
     checked = 0
     for mode in (0, -1, vol.nl if np.isfinite(vol.thickness[-1]) else 2):
-        r = pt.connect_probe(dev, vol, light, verts, mode)
+        r = testing.connect_probe(dev, vol, light, verts, mode)
         for v, ok, p, pts in zip(verts, r["ok"], r["p"], r["points"]):
             if not ok:
                 continue
@@ -139,7 +139,7 @@ def test_divergence_is_the_jacobian_of_the_refraction_map(dev, stack):
     verts = _vertices(vol, rng, 24)
     checked = 0
     for mode in (0, vol.nl if np.isfinite(vol.thickness[-1]) else 2):
-        r = pt.connect_probe(dev, vol, light, verts, mode)
+        r = testing.connect_probe(dev, vol, light, verts, mode)
         for v, ok, p, dOdA in zip(verts, r["ok"], r["p"], r["domega_dA"]):
             Lv = int(v[3])
             refl = mode if mode > 0 else None
@@ -165,7 +165,7 @@ def test_divergence_with_n_1_is_cos_over_r2(dev):
     vol = volume.build(cfg)
     verts = _vertices(vol, np.random.default_rng(7), 50)
     light = np.array([100.0, 50.0, 4000.0])
-    r = pt.connect_probe(dev, vol, tuple(light), verts, 0)
+    r = testing.connect_probe(dev, vol, tuple(light), verts, 0)
     d = light - verts[:, :3]
     r2 = (d * d).sum(1)
     np.testing.assert_allclose(r["domega_dA"], d[:, 2] / np.sqrt(r2) / r2, rtol=1e-9)

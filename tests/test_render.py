@@ -199,7 +199,7 @@ def forearm_volume():
 def test_table1_sample_counts(dev, forearm_volume):
     """Paper Table 1: mean sample points per eye ray per layer, six methods x five layers.
     Within 10 % in at least 23 of 30 cells and within 25 % in all (the cells outside 10 % are
-    explained in docs/method.md).  The issue's bar was 25 of 30, met with two cells at +9.8 % and
+    explained in docs/method.md).  The bar was first 25 of 30, met with two cells at +9.8 % and
     -9.99 %; since the eye rays refract at the smooth surfaces instead of the staircase's faces
     (docs/relief.md, section 1) those two are at +10.5 % and -10.02 %, every cell within 1.1
     points of before."""
