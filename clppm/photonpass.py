@@ -104,6 +104,21 @@ def tile_bounds(vol: Volume, tile: int = TILE) -> np.ndarray:
     return np.ascontiguousarray(np.stack([blocks.min((2, 4)), blocks.max((2, 4))], -1), np.float32)
 
 
+def band_table(vol: Volume, hero: int) -> np.ndarray:
+    """float32 (spectral.h): per layer and band log mu_t, then log albedo (at least -1e4: 0 for mu_s = 0), then per
+    layer and hero class (h mod NB/hero) the largest albedo over the bands such a path carries."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logmu = np.log(np.maximum(vol.mut, 1e-30))
+        alb = np.where(vol.mut > 0, 1.0 - vol.mua / np.where(vol.mut > 0, vol.mut, 1.0), 0.0)
+        logalb = np.maximum(np.log(np.maximum(alb, 1e-300)), -1e4)   # exp_neg gives 0 (mu_s = 0)
+    # the kernel's albedo is 1 - optics.x in float32: bound that one
+    alb32 = 1.0 - vol.optics_table().reshape(vol.nl, vol.nb, 4)[:, :, 0].astype(np.float64)
+    step = vol.nb // hero
+    maxalb = np.max(np.maximum(alb, alb32).reshape(vol.nl, hero, step), axis=1)
+    return np.ascontiguousarray(np.concatenate([logmu.ravel(), logalb.ravel(), maxalb.ravel() * (1 + 1e-6)]),
+                                np.float32)
+
+
 def persistent_items(dev: Device) -> int:
     """Work items of a photon-pass launch: they take the launch's photons from a shared counter
     until none is left (photon.cl), so a few hundred per compute unit keep every SIMD lane and
@@ -208,9 +223,7 @@ class PhotonPass:
         if self.band >= 0:
             spi[:] = 1.0                    # every photon is of the one band: weight 1
         self.band_spi = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spi)
-        with np.errstate(divide="ignore"):
-            logmu = np.log(np.maximum(vol.mut, 1e-30)).astype(np.float32).ravel()
-        self.logmu = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(logmu))
+        self.logmu = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=band_table(vol, self.hero))
         p = S.new_params()
         volume_params(p, vol)
         self.light = light or Light.from_config(cfg)

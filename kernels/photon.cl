@@ -376,7 +376,7 @@ __kernel void photon_pass(VOLUME_ARGS,
                           __global const float2* store_imp,  /* [NL*NB] see store_probability */
                           __global const float* band_cdf,    /* hero selection pi, as a cdf */
                           __global const float2* band_spi,   /* [NB] light power s, pi (spectral.h) */
-                          __global const float* logmu,       /* [NL*NB] log mu_t (spectral.h) */
+                          __global const float* logmu,       /* the band table (spectral.h) */
                           __global float4* store_pos_w,      /* x, y, z, weight of the hero band */
                           __global float4* store_dir_b,      /* direction, hero band + 256 layer */
                           __global float* store_extra,       /* HERO_C-1 weights of the other bands */
@@ -435,8 +435,8 @@ __kernel void photon_pass(VOLUME_ARGS,
             /* ---- collision: absorb by weight, store, scatter, roulette */
             COUNT(K_COLLISIONS);
             t.pos += s * t.dir;
-            sw_flight(&sw, optics, t.L, mut, s);
-            sw_collide(&sw, optics, logmu, t.L, op);
+            sw_flight(&sw, optics, logmu, t.L, mut, s);
+            sw_collide(&sw, logmu, t.L);
             long dw = convert_long_rte((float)W * op.x);
             dw = dw < 0 ? 0 : (dw > W ? W : dw);
             f.absorbed[t.L] += dw; W -= dw;
@@ -454,12 +454,12 @@ __kernel void photon_pass(VOLUME_ARGS,
                                           P->store_qmin, 1.0f);
 #endif
                         if (keep) {
-                            sw_weights(&sw, a_h, band_spi, F);
+                            sw_weights(&sw, a_h, band_spi, optics, logmu, F);
                             q = store_probability(P, ce, t.L, b, F, band_spi, optics, store_imp, t.pos.z);
                             keep = u <= q;
                         }
                     } else {
-                        sw_weights(&sw, a_h, band_spi, F);
+                        sw_weights(&sw, a_h, band_spi, optics, logmu, F);
                     }
                     if (keep) {
                         const float iq = 1.0f / q;
@@ -494,7 +494,7 @@ __kernel void photon_pass(VOLUME_ARGS,
         }
         /* ---- boundary */
         t.pos += db * t.dir;
-        sw_flight(&sw, optics, t.L, mut, db);
+        sw_flight(&sw, optics, logmu, t.L, mut, db);
         if (mut > 0.0f) { tau -= db * mut; tau = tau > 0.0f ? tau : 0.0f; }
         if (ev == EV_NONE) { f.lost += W; W = 0; continue; }   /* semi-infinite, direction flat */
         if (ev == EV_TOP || ev == EV_BOTTOM) {
