@@ -26,6 +26,22 @@ the fastest run is the rate, the median beside it: on a shared machine interfere
 by +-25 %.
 
     python bench/photons.py [--quick] [--out out/bench_photons.json] [--device P:D] [--no-mcx]
+
+Events and A/B (``--events``): per implementation (pocl, intel) and scene (the MCML slab, the flat
+forearm, the relief forearm; the renderer's bands per path, importance storage and QMC emission),
+this tree against another (``--base DIR``: a checkout with its own ``.venv``, e.g. a git worktree
+of the commit before), each timed in its own process, alternating A B A B (``--rounds``): photons
+emitted and entered (reaching the model) per second, median and best, and from a build with the
+event counters (photon.cl PHOTON_COUNTERS, this tree only) per entered photon: loop steps
+(events), collisions, stored events, crossings by kind; events/s, cycles per event (the clock
+from /proc/cpuinfo times the compute units), and lane utilisation: sum of loop steps over
+(width x the longest) in groups of 8 and 16 neighbouring work items, what a SIMD compiler that
+runs neighbouring work items in lanes (Intel's) can use at best.  ``--render``: the same
+alternation for ``clppm render configs/forearm.toml`` (seconds.photon and the total from the
+run report).
+
+    python bench/photons.py --events --base /tmp/photons-base [--rounds 3] [--impl pocl,intel]
+    python bench/photons.py --render --base /tmp/photons-base [--rounds 2] [--impl intel]
 """
 from __future__ import annotations
 
@@ -320,6 +336,169 @@ def mcx_compare(vol, nphoton, device_name, workdir: Path, timeout: float):
     return res, None
 
 
+# ----------------------------------------------------------------------------- events, A/B
+EVENT_SCENES = {"slab": "slab_mcml", "flat": "forearm_flat", "relief": "forearm"}
+STORE_CONE_DEG = 12.0          # the forearm eye pass's cone of eye directions (about 11-12 deg)
+
+
+def cpu_hz() -> float:
+    try:
+        mhz = [float(l.split(":")[1]) for l in open("/proc/cpuinfo") if l.startswith("cpu MHz")]
+        return 1e6 * float(np.median(mhz))
+    except (OSError, ValueError):
+        return float("nan")
+
+
+def lane_utilisation(steps: list, width: int) -> float:
+    """transport steps / (width x the group's most loop iterations) over groups of neighbouring
+    work items; steps: per launch, per work item (steps, iterations) (one photon per work item
+    before the refill loop: its steps alone)"""
+    num = den = 0
+    for s in steps:
+        s = np.asarray(s).reshape(len(s), -1)
+        n = len(s) // width * width
+        g = s[:n, 0].reshape(-1, width).astype(np.int64)
+        it = s[:n, -1].reshape(-1, width).astype(np.int64)
+        num += int(g.sum())
+        den += int(it.max(1).sum()) * width
+    return num / den if den else float("nan")
+
+
+def events_worker(spec: dict) -> dict:
+    """One tree, one implementation, one scene: timed traces (and counters if asked and built)."""
+    import inspect
+    from clppm import config, device, photonpass, volume
+    from clppm.bands import Bands
+    from clppm.config import render_settings
+    cfg = config.load(str(ROOT / "configs" / (spec["scene"] + ".toml")))
+    vol = volume.build(cfg, spec["scene"])
+    dev = device.open_device(spec["impl"])
+    rc = render_settings(cfg)
+    kw = {}
+    if spec.get("counters"):
+        if "counters" not in inspect.signature(photonpass.PhotonPass).parameters:
+            return {"counters": None}
+        kw["counters"] = True
+    target = spec["stored"]
+    pp = photonpass.PhotonPass(dev, vol, cfg, seed=1, bands=Bands.from_config(cfg),
+                               capacity=int(target * 1.2) + 4096, **kw)
+    pp.set_storage(rc.storage, STORE_CONE_DEG, rc.store_scale, rc.store_min)
+    pp.set_emission(rc.emission)
+    pp.run_pass(99, min(target, 4096))                     # build + first launches
+
+    def one(k):
+        tal = photonpass.Tallies(vol.nb, vol.nl)
+        t0 = _now()
+        r = pp.run_pass(k, target, tal)
+        dt = _now() - t0
+        missed = sum(tal.counts[b][6] for b in range(vol.nb)) / (photonpass.W0 * r["emitted"])
+        return dt, r, missed
+
+    if kw:
+        pp.counts()
+        _, r, missed = one(0)
+        c = pp.counts()
+        steps = c.pop("lane_steps")
+        c["lane_util_8"] = lane_utilisation(steps, 8)
+        c["lane_util_16"] = lane_utilisation(steps, 16)
+        c["missed_fraction"] = missed
+        c["emitted"] = r["emitted"]
+        return {"counters": c}
+    times, emitted, missed = [], [], []
+    for k in range(spec["repeats"]):
+        dt, r, m = one(k)
+        times.append(dt); emitted.append(r["emitted"]); missed.append(m)
+    return {"times": times, "emitted": emitted, "missed": missed}
+
+
+def run_worker(tree: Path, spec: dict) -> dict:
+    import subprocess
+    py = tree / ".venv" / "bin" / "python"
+    r = subprocess.run([str(py), str(Path(__file__).resolve()), "--events-worker", json.dumps(spec)],
+                       capture_output=True, text=True, cwd=str(tree))
+    lines = [l for l in r.stdout.splitlines() if l.startswith("{")]
+    if r.returncode != 0 or not lines:
+        raise RuntimeError(f"worker in {tree} failed: {r.stderr.strip().splitlines()[-3:]}")
+    return json.loads(lines[-1])
+
+
+def events_ab(base: Path | None, impls: list, rounds: int, photons: dict, out_path: Path) -> int:
+    trees = [("A", ROOT)] + ([("B", base)] if base else [])
+    hz = cpu_hz()
+    res = {"cpu_hz": hz, "rounds": rounds, "trees": {k: str(t) for k, t in trees}, "rows": []}
+    print(f"{'impl':6s} {'scene':7s} {'tree':4s} {'emitted/s':>10s} {'entered/s':>10s} {'best':>10s} "
+          f"{'missed':>7s} {'events/ph':>9s} {'events/s':>9s} {'cyc/event':>9s} {'lanes8':>6s} {'lanes16':>7s}")
+    for impl in impls:
+        for scene, name in EVENT_SCENES.items():
+            n = photons[scene]
+            cnt = run_worker(ROOT, {"impl": impl, "scene": name, "stored": n, "counters": True})["counters"]
+            times = {k: [] for k, _ in trees}
+            meta = {}
+            for r in range(rounds):                          # A B A B
+                for k, tree in trees:
+                    w = run_worker(tree, {"impl": impl, "scene": name, "stored": n, "repeats": 2})
+                    for dt, e, m in zip(w["times"], w["emitted"], w["missed"]):
+                        times[k].append((dt, e, e * (1 - m)))
+            rows = {}
+            for k, _ in trees:
+                em = np.array([e / dt for dt, e, _ in times[k]])
+                en = np.array([e / dt for dt, _, e in times[k]])
+                missed = 1 - sum(x[2] for x in times[k]) / sum(x[1] for x in times[k])
+                ev = cnt["steps"] / max(cnt["entered"], 1)
+                row = {"impl": impl, "scene": scene, "tree": k, "emitted_per_s": float(np.median(em)),
+                       "entered_per_s": float(np.median(en)), "entered_per_s_best": float(en.max()),
+                       "seconds_per_pass": float(np.median([x[0] for x in times[k]])),
+                       "missed": missed, "events_per_entered": ev,
+                       "events_per_s": ev * float(np.median(en)), "runs": times[k]}
+                row["cycles_per_event"] = hz * 2 / row["events_per_s"]
+                rows[k] = row
+                print(f"{impl:6s} {scene:7s} {k:4s} {row['emitted_per_s']:10.3e} {row['entered_per_s']:10.3e} "
+                      f"{row['entered_per_s_best']:10.3e} {row['missed']:7.4f} {ev:9.1f} "
+                      f"{row['events_per_s']:9.2e} {row['cycles_per_event']:9.0f} "
+                      f"{cnt['lane_util_8']:6.2f} {cnt['lane_util_16']:7.2f}", flush=True)
+            if "B" in rows:
+                print(f"{'':19s} A/B entered photons/s (median): {rows['A']['entered_per_s'] / rows['B']['entered_per_s']:.2f}x, "
+                      f"seconds per pass B/A {rows['B']['seconds_per_pass'] / rows['A']['seconds_per_pass']:.2f}x")
+            e = max(cnt["entered"], 1)
+            print("  per entered photon: " + ", ".join(f"{k} {v / e:.2f}" for k, v in cnt.items()
+                                                       if isinstance(v, int) and k not in ("entered",)))
+            res["rows"] += list(rows.values())
+            res["rows"][-1]["counters"] = cnt
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(res, indent=1, default=str))
+    print(f"wrote {out_path}")
+    return 0
+
+
+def render_ab(base: Path | None, impls: list, rounds: int, extra: list, out_path: Path) -> int:
+    """clppm render configs/forearm.toml in each tree, alternating: the run report's seconds."""
+    import subprocess
+    trees = [("A", ROOT)] + ([("B", base)] if base else [])
+    res = []
+    for impl in impls:
+        for r in range(rounds):
+            for k, tree in trees:
+                o = Path(tempfile.mkdtemp(prefix="clppm_ab_")) / "forearm.exr"
+                env = {**os.environ, "PYOPENCL_CTX": impl}
+                subprocess.run([str(tree / ".venv" / "bin" / "clppm"), "render", str(ROOT / "configs" / "forearm.toml"),
+                                "-o", str(o), "-q", *extra], check=True, env=env, cwd=str(tree))
+                rep = json.loads(o.with_suffix(".json").read_text())
+                sec = rep["seconds"]
+                row = {"impl": impl, "tree": k, "round": r, "photon": sec["photon"], "gather": sec.get("gather"),
+                       "total": sec["total"], "emitted": rep["photons_emitted"], "stored": rep["photons_stored"]}
+                res.append(row)
+                print(json.dumps(row), flush=True)
+        for key in ("photon", "total"):
+            med = {k: float(np.median([x[key] for x in res if x["impl"] == impl and x["tree"] == k])) for k, _ in trees}
+            line = f"{impl}: seconds.{key} median " + ", ".join(f"{k} {v:.1f}" for k, v in med.items())
+            if "B" in med:
+                line += f"  B/A {med['B'] / med['A']:.2f}x"
+            print(line, flush=True)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(res, indent=1))
+    return 0
+
+
 # ----------------------------------------------------------------------------- main
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -328,9 +507,27 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default=None, help="only this device ('P:D' or name part)")
     ap.add_argument("--no-mcx", action="store_true", help="skip the MCX-CL comparison")
     ap.add_argument("--mcx-child", nargs=2, metavar=("SPEC", "OUT"), help=argparse.SUPPRESS)
+    ap.add_argument("--events", action="store_true", help="events per photon and A/B photons/s (see above)")
+    ap.add_argument("--render", action="store_true", help="A/B of the forearm render's seconds")
+    ap.add_argument("--base", default=None, help="the other tree (with its own .venv) for --events/--render")
+    ap.add_argument("--rounds", type=int, default=3, help="A B rounds for --events/--render")
+    ap.add_argument("--impl", default="pocl,intel", help="implementations for --events/--render")
+    ap.add_argument("--render-args", default="", help="extra arguments of clppm render (--render)")
+    ap.add_argument("--events-worker", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.mcx_child:
         return mcx_child(*a.mcx_child)
+    if a.events_worker:
+        print(json.dumps(events_worker(json.loads(a.events_worker))))
+        return 0
+    base = Path(a.base).resolve() if a.base else None
+    impls = [x for x in a.impl.split(",") if x]
+    if a.events:
+        ph = {"slab": 100_000, "flat": 50_000, "relief": 50_000} if a.quick else \
+             {"slab": 400_000, "flat": 200_000, "relief": 200_000}      # stored events per pass
+        return events_ab(base, impls, a.rounds, ph, ROOT / "out" / "bench_photons_events.json")
+    if a.render:
+        return render_ab(base, impls, a.rounds, a.render_args.split(), ROOT / "out" / "bench_photons_render.json")
 
     from clppm import config, device, volume
 

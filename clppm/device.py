@@ -374,7 +374,8 @@ ESTIMATORS = {"sphere": 0, "clip": 1, "layer": 2, "beam": 3}
 
 def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator: str | None = None,
                    gclass: int | None = None, pt_fp64: bool | None = None,
-                   count_candidates: bool = False, exact_rsqrt: bool = False) -> dict:
+                   count_candidates: bool = False, exact_rsqrt: bool = False,
+                   photon_counters: bool = False) -> dict:
     """Every ``-D`` switch of clppm's kernels, assembled in this one place (as MCX-CL does).
 
     From the volume: NB bands, NL layers, FLAT (no relief or papillae: the flat code paths);
@@ -384,7 +385,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     GCLASS (the beam gather's band classes), PT_FP64 (pt.cl: double-precision sums; relief
     builds of every pass: the smooth surfaces in double, kernels/surface.h: ``surface_fp64``),
     COUNT_CANDIDATES (gather.cl: count the photons a query visits, for bench/gather.py),
-    EXACT_RSQRT (gather.cl: rsqrt for native_rsqrt, to compare layouts off PoCL to float rounding)."""
+    EXACT_RSQRT (gather.cl: rsqrt for native_rsqrt, to compare layouts off PoCL to float rounding),
+    PHOTON_COUNTERS (photon.cl: count events, crossings and loop steps, for bench/photons.py)."""
     if vol is None:
         return {"NB": int(nb)} if nb is not None else {}
     d = {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
@@ -400,6 +402,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
         d["COUNT_CANDIDATES"] = 1
     if exact_rsqrt:
         d["EXACT_RSQRT"] = 1
+    if photon_counters:
+        d["PHOTON_COUNTERS"] = 1
     return d
 
 

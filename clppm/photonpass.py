@@ -27,9 +27,29 @@ from .volume import Volume, VolumeBuffers, upload_volume, volume_params
 W0 = 2 ** 38
 CATEGORIES = ["specular", "diffuse", "transmitted", "lost", "rr_gain", "rr_loss", "missed",
               "diffuse_cone"]
+# photon.cl's event counters (PHOTON_COUNTERS), in its order: photons that entered the model or
+# missed it, loop steps, collisions, stored events, crossings of layer interfaces (and those at a
+# smooth surface's normal), core- and tile-plane, column-wall and domain-side crossings,
+# re-entries, tile-wall crossings
+COUNTERS = ["entered", "missed", "steps", "collisions", "stored", "interface", "interface_smooth",
+            "zone", "wall", "domain", "reenter", "tile"]
 NA = len(CATEGORIES)        # index of the first per-layer absorption tally
 BALANCE = [i for i, c in enumerate(CATEGORIES) if c != "diffuse_cone"]
 MAX_LAUNCH = 1 << 20          # photons per launch: tallies stay far below 2^63
+
+
+def footprint_solid_angle(pos, rect, z: float) -> float:
+    """Solid angle of the rectangle rect = (x0, y0, x1, y1) in the plane at height z, seen from
+    pos above it: the sum over its corners, with signs, of the solid angle of the rectangle
+    between the foot of the perpendicular and the corner, atan(a b / (h sqrt(a^2 + b^2 + h^2)))."""
+    h = float(pos[2]) - z
+
+    def corner(a, b):
+        return math.atan(a * b / (h * math.sqrt(a * a + b * b + h * h)))
+    x0, y0, x1, y1 = (float(v) for v in rect)
+    px, py = float(pos[0]), float(pos[1])
+    return (corner(x1 - px, y1 - py) - corner(x0 - px, y1 - py) - corner(x1 - px, y0 - py)
+            + corner(x0 - px, y0 - py))
 
 
 def source_params(p: np.ndarray, light: Light, vol: Volume) -> float:
@@ -59,11 +79,53 @@ def source_params(p: np.ndarray, light: Light, vol: Volume) -> float:
         omc = 1.0 - cosmin
         p["cone_omc"] = omc
         p["cax"], p["cay"], p["caz"] = axis
-        return omc / 2.0                                         # solid angle / 4 pi
+        if vol.lateral == "infinite":
+            return omc / 2.0                                     # solid angle / 4 pi
+        # photon.cl footprint_dir: only the directions through the top face, by rejection
+        return footprint_solid_angle(pos, (x0, y0, x1, y1), vol.z_top) / (4.0 * math.pi)
     p["sx"], p["sy"] = light.center
     if light.kind == "wide":
         p["swx"], p["swy"] = light.width
     return 1.0
+
+
+TILE = 4          # columns per side of a tile (photon.cl TILE)
+
+
+def tile_bounds(vol: Volume, tile: int = TILE) -> np.ndarray:
+    """(nvar, nty, ntx, 2) float32: the lowest and highest height of every varying interface over
+    each tile of tile x tile columns (photon.cl tile mode); the edge tiles of a grid that tile
+    does not divide cover the columns left."""
+    h = vol.heights
+    nv, ny, nx = h.shape
+    nty, ntx = -(-ny // tile), -(-nx // tile)
+    pad = np.pad(h, ((0, 0), (0, nty * tile - ny), (0, ntx * tile - nx)), mode="edge")
+    blocks = pad.reshape(nv, nty, tile, ntx, tile)
+    return np.ascontiguousarray(np.stack([blocks.min((2, 4)), blocks.max((2, 4))], -1), np.float32)
+
+
+def band_table(vol: Volume, hero: int) -> np.ndarray:
+    """float32 (spectral.h): per layer and band log mu_t, then log albedo (at least -1e4: 0 for mu_s = 0), then per
+    layer and hero class (h mod NB/hero) the largest albedo over the bands such a path carries."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logmu = np.log(np.maximum(vol.mut, 1e-30))
+        alb = np.where(vol.mut > 0, 1.0 - vol.mua / np.where(vol.mut > 0, vol.mut, 1.0), 0.0)
+        logalb = np.maximum(np.log(np.maximum(alb, 1e-300)), -1e4)   # exp_neg gives 0 (mu_s = 0)
+    # the kernel's albedo is 1 - optics.x in float32: bound that one
+    alb32 = 1.0 - vol.optics_table().reshape(vol.nl, vol.nb, 4)[:, :, 0].astype(np.float64)
+    step = vol.nb // hero
+    maxalb = np.max(np.maximum(alb, alb32).reshape(vol.nl, hero, step), axis=1)
+    return np.ascontiguousarray(np.concatenate([logmu.ravel(), logalb.ravel(), maxalb.ravel() * (1 + 1e-6)]),
+                                np.float32)
+
+
+def persistent_items(dev: Device) -> int:
+    """Work items of a photon-pass launch: they take the launch's photons from a shared counter
+    until none is left (photon.cl), so a few hundred per compute unit keep every SIMD lane and
+    core busy to the end of a launch (a GPU's compute unit holds more of them resident)."""
+    cu = int(dev.info()["compute_units"])
+    per = 256 if dev.device.type & 1 << 1 else 4096       # CL_DEVICE_TYPE_CPU = 2
+    return max(64, cu * per)
 
 
 @dataclass
@@ -135,15 +197,19 @@ class PhotonPass:
 
     def __init__(self, dev: Device, vol: Volume, cfg: dict, capacity: int = 0,
                  vbuf: VolumeBuffers | None = None, seed: int | None = None, bands: Bands | None = None,
-                 light: Light | None = None):
+                 light: Light | None = None, counters: bool = False):
         """``bands``: the spectral sampling (default: one band per path, the hero drawn from the
         light's spectrum).  The tallies follow the hero band alone, so it does not change them.
-        ``light``: the config's light (default: read from ``cfg``)."""
+        ``light``: the config's light (default: read from ``cfg``).  ``counters``: build with
+        the event counters (photon.cl PHOTON_COUNTERS; read them with :meth:`counts`)."""
         import pyopencl as cl
         self.dev, self.vol, self.cfg = dev, vol, cfg
         self.bands = bands or Bands.from_config(cfg, hero=1, sampling="power")
         self.hero = self.bands.hero
-        self.prg = dev.build("photon.cl", kernel_defines(vol, hero=self.hero, pt_fp64=surface_fp64(dev, vol)))
+        self.counters = bool(counters)
+        self.items = persistent_items(dev)
+        self.prg = dev.build("photon.cl", kernel_defines(vol, hero=self.hero, pt_fp64=surface_fp64(dev, vol),
+                                                         photon_counters=self.counters))
         self.kernel = cl.Kernel(self.prg, "photon_pass")
         self.vbuf = vbuf or upload_volume(dev, vol)
         self.spectrum = self.bands.spectrum
@@ -157,13 +223,16 @@ class PhotonPass:
         if self.band >= 0:
             spi[:] = 1.0                    # every photon is of the one band: weight 1
         self.band_spi = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=spi)
-        with np.errstate(divide="ignore"):
-            logmu = np.log(np.maximum(vol.mut, 1e-30)).astype(np.float32).ravel()
-        self.logmu = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(logmu))
+        self.logmu = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=band_table(vol, self.hero))
         p = S.new_params()
         volume_params(p, vol)
         self.light = light or Light.from_config(cfg)
         self.power_fraction = source_params(p, self.light, vol)
+        # of the light's cone, the part the photons are emitted into (the footprint's solid angle
+        # for a point light, photon.cl footprint_dir): trace_report gives the tallies per photon
+        # of the cone, with the rest as missed, comparable whatever the emission
+        self.emission_share = (self.power_fraction / (float(p["cone_omc"][0]) / 2.0)
+                               if self.light.kind == "point" else 1.0)
         s = render_settings(cfg).seed if seed is None else seed
         self.seed = int(s)
         p["seed_lo"], p["seed_hi"] = S.split_seed(s)
@@ -175,7 +244,7 @@ class PhotonPass:
         self.nc = len(CATEGORIES) + vol.nl
         self.tally_host = np.zeros((vol.nb, self.nc), np.int64)
         self.tally_buf = cl.Buffer(dev.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=self.tally_host)
-        self.count_buf = cl.Buffer(dev.ctx, mf.READ_WRITE, 4)
+        self.count_buf = cl.Buffer(dev.ctx, mf.READ_WRITE, 8)      # stored events, photons taken
         self.capacity = int(capacity)
         cap = max(self.capacity, 1)
         self.pos_w = cl.Buffer(dev.ctx, mf.READ_WRITE, 16 * cap)
@@ -185,6 +254,13 @@ class PhotonPass:
         self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY, S.PARAMS_DTYPE.itemsize)
         self.truncated = False
         self.store_imp = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=storage_importance(vol))
+        self.tile_z = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                                hostbuf=np.zeros(2, np.float32) if vol.flat else tile_bounds(vol))
+        if self.counters:
+            self.counter_host = np.zeros(len(COUNTERS), np.int64)
+            self.counter_buf = cl.Buffer(dev.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=self.counter_host)
+            self.lane_buf = cl.Buffer(dev.ctx, mf.READ_WRITE, 8 * (self.items + 64))
+            self.lane_steps: list[np.ndarray] = []
 
     def set_emission(self, how: str) -> None:
         """"random" (Philox per photon) or "qmc" (a randomly shifted R3 sequence per pass)."""
@@ -211,9 +287,30 @@ class PhotonPass:
             self.p["qmc_s0"], self.p["qmc_s1"], self.p["qmc_s2"] = qmc_shift(self.seed, pass_index)
         self.p["count"] = n
         cl.enqueue_copy(q, self.pbuf, self.p)
-        self.kernel(q, *launch(self.kernel, q, n), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
+        cl.enqueue_copy(q, self.count_buf, np.zeros(1, np.uint32), dst_offset=4)   # no photon taken yet
+        extra = (self.counter_buf, self.lane_buf) if self.counters else ()
+        items = min(n, self.items)
+        self.kernel(q, *launch(self.kernel, q, items), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
                     self.band_spi, self.logmu, self.pos_w, self.dir_b, self.extra, self.count_buf, self.tally_buf,
-                    self.vbuf.smooth)
+                    self.vbuf.smooth, self.tile_z, *extra)
+        if self.counters:
+            steps = np.empty((launch(self.kernel, q, items)[0][0], 2), np.uint32)
+            cl.enqueue_copy(q, steps, self.lane_buf)
+            self.lane_steps.append(steps[:items])
+
+    def counts(self, reset: bool = True) -> dict:
+        """The event counters summed over the launches so far (``counters=True`` builds), and per
+        work item launched its transport steps and loop iterations (``lane_steps``, one (items, 2)
+        array per launch)."""
+        import pyopencl as cl
+        cl.enqueue_copy(self.dev.queue, self.counter_host, self.counter_buf)
+        out = dict(zip(COUNTERS, (int(v) for v in self.counter_host)))
+        out["lane_steps"] = self.lane_steps
+        if reset:
+            self.counter_host[:] = 0
+            cl.enqueue_copy(self.dev.queue, self.counter_buf, self.counter_host)
+            self.lane_steps = []
+        return out
 
     def _flush(self, emitted: int, into: Tallies | None = None) -> np.ndarray:
         import pyopencl as cl
@@ -314,6 +411,10 @@ def trace_report(pp: PhotonPass, n_photons: int, batches: int = 10) -> dict:
     tot = sum(a.sum(0).astype(object) for a in arrs)
     mean = np.array([int(t) / (W0 * n_photons) for t in tot])
     se = fr.std(0, ddof=1) / math.sqrt(len(arrs)) if len(arrs) > 1 else np.zeros_like(mean)
+    # per photon of the light's cone: the directions not emitted into missed the model
+    share = pp.emission_share
+    mean, se = mean * share, se * share
+    mean[6] += 1.0 - share
     nl = pp.vol.nl
     names = CATEGORIES + [f"absorbed[{n}]" for n in pp.vol.names]
     band_tot = sum(a.astype(object) for a in arrs)
@@ -325,10 +426,10 @@ def trace_report(pp: PhotonPass, n_photons: int, batches: int = 10) -> dict:
         n_b = max(w / W0, 1e-300)
         per_band[f"{wl:g}"] = {
             "photons": round(n_b, 3),
-            "specular": int(row[0]) / W0 / n_b, "Rd": int(row[1]) / W0 / n_b,
-            "Tt": int(row[2]) / W0 / n_b,
-            "A": sum(int(row[NA + i]) for i in range(nl)) / W0 / n_b,
-            "Rd_cone": int(row[7]) / W0 / n_b,
+            "specular": share * int(row[0]) / W0 / n_b, "Rd": share * int(row[1]) / W0 / n_b,
+            "Tt": share * int(row[2]) / W0 / n_b,
+            "A": share * sum(int(row[NA + i]) for i in range(nl)) / W0 / n_b,
+            "Rd_cone": share * int(row[7]) / W0 / n_b,
         }
     A = float(mean[NA:].sum())
     A_se = float(np.sqrt((se[NA:] ** 2).sum()))
@@ -339,7 +440,7 @@ def trace_report(pp: PhotonPass, n_photons: int, batches: int = 10) -> dict:
         "Rd": float(mean[1]), "Rd_se": float(se[1]),
         "Tt": float(mean[2]), "Tt_se": float(se[2]),
         "A": A, "A_se": A_se,
-        "lost": float(mean[3]), "missed": float(mean[6]),
+        "lost": float(mean[3]), "missed": float(mean[6]), "missed_excluded": 1.0 - share,
         "roulette_net": float(mean[4] - mean[5]),
         "energy_balance_error": abs(total_bal - W0 * n_photons) / (W0 * n_photons),
         "Rd_cone": float(mean[7]), "Rd_cone_se": float(se[7]),

@@ -30,6 +30,19 @@
 enum { T_SPEC = 0, T_RD, T_TT, T_LOST, T_RRGAIN, T_RRLOSS, T_MISS, T_RCONE, T_ABS0 };
 #define NC (T_ABS0 + NL)
 
+/* Event counters for bench/photons.py (-DPHOTON_COUNTERS; compiled out otherwise): per launch,
+ * what the photons did, and per work item its loop steps (the host groups neighbouring work
+ * items as SIMD lanes to estimate lane utilisation).  Not part of the estimator. */
+enum { K_ENTERED = 0, K_MISSED, K_STEPS, K_COLLISIONS, K_STORED, K_IFACE, K_IFACE_SMOOTH,
+       K_ZONE, K_WALL, K_DOMAIN, K_REENTER, K_TILE, K_NCOUNT };
+#ifdef PHOTON_COUNTERS
+#define COUNT(k) (cnt[k]++)
+#define COUNTER_ARGS , __global long* counters, __global uint* lane_steps
+#else
+#define COUNT(k)
+#define COUNTER_ARGS
+#endif
+
 inline int sample_band(__global const float* cdf, float u) {
     int lo = 0, hi = NB - 1;
     while (lo < hi) {
@@ -95,7 +108,7 @@ inline int cross_face(float4* dir, float4 gn, int k, int L, int L2, float x, flo
  * Every band enters, not the hero alone: a path whose hero is strongly absorbed (577 nm, the
  * haemoglobin peak) while a band it carries is not (620 nm) had a hero-only I near 0, so q fell
  * to store_qmin, and the carried band's F_j / q made single photons 10^3 times the median
- * photon's contribution (bench/spots.py; issue 20).  With I over all bands every stored photon
+ * photon's contribution (bench/spots.py).  With I over all bands every stored photon
  * obeys F_j / q hrel_j T_j <= s_j / (pi_j store_scale) for every band it carries
  * (tests/test_spectral.py checks it); store_probability below computes q, store_bound a
  * per-layer upper bound of it. */
@@ -141,25 +154,162 @@ inline float store_probability(__constant const Params* P, float ce, int L, int 
     return clamp(P->store_scale * I, P->store_qmin, 1.0f);
 }
 
-__kernel void photon_pass(VOLUME_ARGS,
-                          __global const float2* store_imp,  /* [NL*NB] see store_probability */
-                          __global const float* band_cdf,    /* hero selection pi, as a cdf */
-                          __global const float2* band_spi,   /* [NB] light power s, pi (spectral.h) */
-                          __global const float* logmu,       /* [NL*NB] log mu_t (spectral.h) */
-                          __global float4* store_pos_w,      /* x, y, z, weight of the hero band */
-                          __global float4* store_dir_b,      /* direction, hero band + 256 layer */
-                          __global float* store_extra,       /* HERO_C-1 weights of the other bands */
-                          __global volatile uint* store_count,
-                          __global long* tallies,
-                          __global const float* smooth)      /* Volume.smooth (relief builds) */
-{
-    if ((uint)get_global_id(0) >= P->count) return;
-    const uint id = P->photon_offset + (uint)get_global_id(0);
-    Rng rng;
-    rng_init(&rng, id, P->pass, 2u * P->offset_hi, P->seed_lo, P->seed_hi);   /* eye rays: odd domain */
+
+#ifndef FLAT
+/* Tiles: the column grid in squares of TILE columns a side (photonpass.py TILE, tile_bounds),
+ * with the lowest and highest point of every varying interface over each.  Where a photon's depth
+ * lies between the lowest point of its layer's top and the highest of its bottom over the tile
+ * it is in, no column of the tile can change its layer: it flies to the tile's walls or those
+ * two planes instead of from column wall to column wall ("tile mode", between the core and the
+ * column modes of common.h next_boundary).  Under the relief most of the skin's surface is a
+ * plateau, so the depth band where layers vary somewhere is mostly flat over a tile: the column
+ * walls crossed there were a third of all the photon's steps (bench/photons.py --events). */
+#define TILE 4
+enum { EV_TILE_X = 8, EV_TILE_Y, EV_TILE_Z };
+
+/* lowest and highest point of interface k over tile (tx, ty) */
+HOT float2 tile_bound(__constant const Params* P, __constant const float4* iface,
+                      __global const float2* tile_z, int k, int tx, int ty) {
+    const int v = IF_VAR(k);
+    if (v < 0) return (float2)(IF_ZMIN(k), IF_ZMAX(k));
+    const int ntx = (P->nx + TILE - 1) / TILE, nty = (P->ny + TILE - 1) / TILE;
+    return tile_z[((size_t)v * nty + ty) * ntx + tx];
+}
+
+/* Distance to the next boundary of the photon's constant region, by next_boundary (common.h)
+ * in the core and where tile mode does not hold; in tile mode the tile's planes (*plane: the
+ * one ahead), its inner walls and the domain's sides. */
+HOT float photon_boundary(const Track* t, VOLUME_ARGS, __global const float2* tile_z, int* ev,
+                          float* plane) {
+    const float3 d = t->dir;
+    const float z = t->pos.z;
+    const int L = t->L;
+    const int in_core = (d.z > 0.0f ? z < IF_ZMIN(L) : z <= IF_ZMIN(L)) &&
+                        (d.z < 0.0f ? z > IF_ZMAX(L + 1) : z >= IF_ZMAX(L + 1));
+    const int tx = t->ix / TILE, ty = t->iy / TILE;
+    const float top = in_core ? 0.0f : tile_bound(P, iface, tile_z, L, tx, ty).x;
+    const float bot = in_core ? 0.0f : tile_bound(P, iface, tile_z, L + 1, tx, ty).y;
+    const int in_tile = !in_core && (d.z > 0.0f ? z < top : z <= top) && (d.z < 0.0f ? z > bot : z >= bot);
+    if (!in_tile) return next_boundary(t, P, iface, heights, ev);
+    float best = BIG;
+    int e = EV_NONE;
+    if (d.z > 0.0f) { best = (top - z) / d.z; e = EV_TILE_Z; *plane = top; }
+    else if (d.z < 0.0f && bot > -BIG) { best = (bot - z) / d.z; e = EV_TILE_Z; *plane = bot; }
+    /* inner walls only: at the domain's edge domain_sides decides (leaving or wrapping) */
+    const int ntx = (P->nx + TILE - 1) / TILE, nty = (P->ny + TILE - 1) / TILE;
+    if (d.x > 0.0f ? tx + 1 < ntx : (d.x < 0.0f && tx > 0)) {
+        const float w = P->x0 + P->dx * (float)((tx + (d.x > 0.0f)) * TILE);
+        const float s = (w - t->pos.x) / d.x;
+        if (s < best) { best = s; e = EV_TILE_X; }
+    }
+    if (d.y > 0.0f ? ty + 1 < nty : (d.y < 0.0f && ty > 0)) {
+        const float w = P->y0 + P->dy * (float)((ty + (d.y > 0.0f)) * TILE);
+        const float s = (w - t->pos.y) / d.y;
+        if (s < best) { best = s; e = EV_TILE_Y; }
+    }
+    domain_sides(t->pos, d, P, &best, &e);
+    *ev = e;
+    return best > 0.0f ? best : 0.0f;
+}
+
+/* The column of coordinate c (origin c0, pitch dc, n columns) that a photon moving by dd is in
+ * or enters: on a wall, the one ahead (locate_column's floor gives the one above whatever the
+ * direction, and tile mode would then meet that wall again at distance 0). */
+HOT int column_ahead(float c, float c0, float dc, int n, float dd) {
+    const float g = (c - c0) / dc;
+    const float f = floor(g);
+    return clamp((int)f - (g == f && dd < 0.0f), 0, n - 1);
+}
+
+HOT void locate_column_ahead(Track* t, __constant const Params* P) {
+    t->ix = column_ahead(t->pos.x, P->x0, P->dx, P->nx, t->dir.x);
+    t->iy = column_ahead(t->pos.y, P->y0, P->dy, P->ny, t->dir.y);
+}
+
+/* Onto the next tile across its wall on axis (0: x, 1: y): the wall's coordinate exactly and
+ * the column beyond it, the other coordinate's column from the position. */
+HOT void cross_tile(Track* t, __constant const Params* P, int axis) {
+    if (axis == 0) {
+        const int tx = t->ix / TILE, up = t->dir.x > 0.0f;
+        t->pos.x = P->x0 + P->dx * (float)((tx + up) * TILE);
+        t->ix = up ? (tx + 1) * TILE : tx * TILE - 1;
+        t->iy = column_ahead(t->pos.y, P->y0, P->dy, P->ny, t->dir.y);
+    } else {
+        const int ty = t->iy / TILE, up = t->dir.y > 0.0f;
+        t->pos.y = P->y0 + P->dy * (float)((ty + up) * TILE);
+        t->iy = up ? (ty + 1) * TILE : ty * TILE - 1;
+        t->ix = column_ahead(t->pos.x, P->x0, P->dx, P->nx, t->dir.x);
+    }
+}
+#endif
+
+/* The fates of one photon's weight, summed while it travels and added to the tallies of its
+ * hero band when it ends (one atomic per fate that occurred, not per event). */
+typedef struct {
+    long spec, rd, tt, lost, gain, loss, rcone;
+    long absorbed[NL];
+} Fates;
+
+HOT void fates_clear(Fates* f) {
+    f->spec = f->rd = f->tt = f->lost = f->gain = f->loss = f->rcone = 0;
+    for (int i = 0; i < NL; ++i) f->absorbed[i] = 0;
+}
+
+HOT void fates_flush(const Fates* f, __global long* tal) {
+    if (f->spec) atom_add(tal + T_SPEC, f->spec);
+    if (f->rd) atom_add(tal + T_RD, f->rd);
+    if (f->tt) atom_add(tal + T_TT, f->tt);
+    if (f->lost) atom_add(tal + T_LOST, f->lost);
+    if (f->gain) atom_add(tal + T_RRGAIN, f->gain);
+    if (f->loss) atom_add(tal + T_RRLOSS, f->loss);
+    if (f->rcone) atom_add(tal + T_RCONE, f->rcone);
+    for (int i = 0; i < NL; ++i)
+        if (f->absorbed[i]) atom_add(tal + T_ABS0 + i, f->absorbed[i]);
+}
+
+/* A direction of the point light's cone (around the model's top face, photonpass.py
+ * source_params) from two uniforms. */
+HOT float3 cone_dir(__constant const Params* P, float u1, float u2) {
+    const float s = u1 * P->cone_omc;      /* 1 - cos(theta): exact for a narrow cone */
+    const float2 cs = azimuth_cs(u2);
+    return rotate_dir_cst((float3)(P->cax, P->cay, P->caz), 1.0f - s, sqrt(fmax(s * (2.0f - s), 0.0f)), cs.x, cs.y);
+}
+
+/* Whether the ray from the point light along d crosses the plane of the highest surface point
+ * inside the model's footprint: the test hit_surface makes, in the same arithmetic.  A ray
+ * outside it can only meet a side of the model below that plane, which takes no light. */
+HOT int reaches_footprint(__constant const Params* P, float3 d) {
+    if (d.z >= 0.0f) return 0;
+    const float s = (P->z_top - P->sz) / d.z;
+    const float x = P->sx + s * d.x, y = P->sy + s * d.y;
+    return !(x < P->x0 || x > P->x0 + P->xw || y < P->y0 || y > P->y0 + P->yw);
+}
+
+/* The point light's emission: uniform over the solid angle of the model's footprint (the
+ * rectangle of its top face) as seen from the light, by rejection from the cone around it.  The
+ * first try takes the emission's uniforms (QMC or not), later ones the photon's own stream: each
+ * accepted direction is uniform over the footprint's solid angle whatever the tries before it,
+ * so the photon carries the light's power over that solid angle (photonpass.py
+ * footprint_solid_angle), and the directions excluded are exactly those that missed the model.
+ * Without a footprint (infinite sides, or the light at or below the top) the cone alone. */
+HOT float3 footprint_dir(__constant const Params* P, float u1, float u2, Rng* rng) {
+    float3 d = cone_dir(P, u1, u2);
+    if (P->lateral == 0 || P->sz <= P->z_top) return d;
+    for (int k = 0; k < 256 && !reaches_footprint(P, d); ++k)
+        d = cone_dir(P, rng_u01(rng), rng_u01(rng));
+    return d;
+}
+
+/* Emit photon id of the pass from the light: its random streams, hero band, position and
+ * direction; then its first hit with the skin and the deterministic Fresnel split there (the
+ * reflected part to f->spec).  Returns the weight that enters layer 0 (0 if it missed the
+ * model: then the whole weight went to the missed tally). */
+HOT long emit_photon(uint id, VOLUME_ARGS, __global const float* band_cdf, __global const float* smooth,
+                     __global long* tallies, Rng* rng, Rng* srng, Track* t, Spectral* sw, int* band,
+                     Fates* f) {
+    rng_init(rng, id, P->pass, 2u * P->offset_hi, P->seed_lo, P->seed_hi);   /* eye rays: odd domain */
     /* storage decisions draw from a stream of their own: the path is the same under every rule */
-    Rng srng;
-    rng_init(&srng, id, P->pass, (2u * P->offset_hi) | 0x80000001u, P->seed_lo, P->seed_hi);
+    rng_init(srng, id, P->pass, (2u * P->offset_hi) | 0x80000001u, P->seed_lo, P->seed_hi);
 
     /* the emission's three uniforms: band, then direction (point) or footprint (wide beam) */
     float ue0, ue1, ue2;
@@ -168,22 +318,17 @@ __kernel void photon_pass(VOLUME_ARGS,
         ue1 = r3_u01(id, R3_A1, P->qmc_s1);
         ue2 = r3_u01(id, R3_A2, P->qmc_s2);
     } else {
-        ue0 = P->fixed_band >= 0 ? 0.5f : rng_u01(&rng);
-        ue1 = P->src_kind != 0 ? rng_u01(&rng) : 0.5f;
-        ue2 = P->src_kind != 0 ? rng_u01(&rng) : 0.5f;
+        ue0 = P->fixed_band >= 0 ? 0.5f : rng_u01(rng);
+        ue1 = P->src_kind != 0 ? rng_u01(rng) : 0.5f;
+        ue2 = P->src_kind != 0 ? rng_u01(rng) : 0.5f;
     }
     const int b = P->fixed_band >= 0 ? P->fixed_band : sample_band(band_cdf, ue0);
-    __global long* tal = tallies + (size_t)b * NC;     /* the tallies follow the hero band alone */
-    Spectral sw;
-    sw_init(&sw, b);
+    *band = b;
+    sw_init(sw, b);
 
-    Track t;
-    /* ---- launch */
-    if (P->src_kind == 2) {                       /* isotropic point light, cone-sampled */
-        const float s = ue1 * P->cone_omc;      /* 1 - cos(theta): exact for a narrow cone */
-        const float2 cs = azimuth_cs(ue2);
-        t.dir = rotate_dir_cst((float3)(P->cax, P->cay, P->caz), 1.0f - s, sqrt(fmax(s * (2.0f - s), 0.0f)), cs.x, cs.y);
-        t.pos = (float3)(P->sx, P->sy, P->sz);
+    if (P->src_kind == 2) {                       /* isotropic point light */
+        t->dir = footprint_dir(P, ue1, ue2, rng);
+        t->pos = (float3)(P->sx, P->sy, P->sz);
     } else {
         float3 d = (float3)(P->sdx, P->sdy, P->sdz);
         float fx = P->sx, fy = P->sy;
@@ -193,65 +338,119 @@ __kernel void photon_pass(VOLUME_ARGS,
         }
         /* start above the relief on the line through the footprint point (fx, fy, 0) */
         float back = (P->z_top + 1.0f) / (-d.z);
-        t.pos = (float3)(fx, fy, 0.0f) - back * d;
-        t.dir = d;
+        t->pos = (float3)(fx, fy, 0.0f) - back * d;
+        t->dir = d;
     }
-    t.L = -1; t.ix = 0; t.iy = 0;
+    t->L = -1; t->ix = 0; t->iy = 0;
     float3 gn;
-    if (!hit_surface(&t, P, iface, heights, &gn)) {
-        atom_add(tal + T_MISS, W0L);
-        return;
+    if (!hit_surface(t, P, iface, heights, &gn)) {
+        atom_add(tallies + (size_t)b * NC + T_MISS, W0L);
+        t->L = -1;
+        return 0;
     }
 
+    /* deterministic Fresnel split at the smooth surface's normal */
     long W = W0L;
-    long spec = 0, rd = 0, tt = 0, lost = 0, gain = 0, loss = 0, rcone = 0;
-    long absorbed[NL];
-    for (int i = 0; i < NL; ++i) absorbed[i] = 0;
-
-    /* ---- enter: deterministic Fresnel split at the smooth surface's normal */
-    {
 #ifdef FLAT
-        float3 sn = (float3)(0.0f, 0.0f, 1.0f);
+    float3 sn = (float3)(0.0f, 0.0f, 1.0f);
 #else
-        float3 sn = smooth_normal(P, iface, smooth, 0, t.pos.x, t.pos.y).xyz;
+    float3 sn = smooth_normal(P, iface, smooth, 0, t->pos.x, t->pos.y).xyz;
 #endif
-        float ci = -dot(t.dir, sn);
-        if (ci <= 1e-6f) { sn = gn; ci = -dot(t.dir, gn); }
-        float ct;
-        float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
-        long ws = convert_long_rte((float)W * R);
-        ws = clamp(ws, 0L, W);
-        spec += ws; W -= ws;
-        if (W > 0) {
-            float3 d = refract3(t.dir, sn, P->n_above / layer_n[0], ci, ct);
-            if (dot(d, gn) >= 0.0f) d = reflect3(d, gn);
-            t.dir = unit3(d);
-        }
+    float ci = -dot(t->dir, sn);
+    if (ci <= 1e-6f) { sn = gn; ci = -dot(t->dir, gn); }
+    float ct;
+    const float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
+    long ws = convert_long_rte((float)W * R);
+    ws = clamp(ws, 0L, W);
+    f->spec += ws; W -= ws;
+    if (W > 0) {
+        float3 d = refract3(t->dir, sn, P->n_above / layer_n[0], ci, ct);
+        if (dot(d, gn) >= 0.0f) d = reflect3(d, gn);
+        t->dir = unit3(d);
     }
+    sw_scale(sw, (float)W * (1.0f / W0F));           /* the entry's Fresnel transmission */
+    return W;
+}
 
-    sw_scale(&sw, (float)W * (1.0f / W0F));           /* the entry's Fresnel transmission */
+/* The photons of a launch are drawn from a shared counter by a fixed number of work items
+ * (persistent threads): a work item whose photon has ended takes the next one at the top of the
+ * same loop, so neighbouring work items that a SIMD compiler runs in lanes (Intel's CPU runtime,
+ * a GPU) stay busy however unequal the paths are (one photon per work item left on average
+ * three quarters of the lanes idle, bench/photons.py --events).  A photon's path depends on its
+ * id alone, and the tallies are integer sums: the same results whichever work item traces it. */
+__kernel void photon_pass(VOLUME_ARGS,
+                          __global const float2* store_imp,  /* [NL*NB] see store_probability */
+                          __global const float* band_cdf,    /* hero selection pi, as a cdf */
+                          __global const float2* band_spi,   /* [NB] light power s, pi (spectral.h) */
+                          __global const float* logmu,       /* the band table (spectral.h) */
+                          __global float4* store_pos_w,      /* x, y, z, weight of the hero band */
+                          __global float4* store_dir_b,      /* direction, hero band + 256 layer */
+                          __global float* store_extra,       /* HERO_C-1 weights of the other bands */
+                          __global volatile uint* store_count,   /* [0] stored, [1] photons taken */
+                          __global long* tallies,
+                          __global const float* smooth,     /* Volume.smooth (relief builds) */
+                          __global const float2* tile_z     /* tile_bounds (relief builds) */
+                          COUNTER_ARGS)
+{
+#ifdef PHOTON_COUNTERS
+    uint cnt[K_NCOUNT];
+    for (int k = 0; k < K_NCOUNT; ++k) cnt[k] = 0u;
+    uint iterations = 0u;
+#endif
     const long rr_w = (long)(P->rr_threshold * W0F);
-    float tau = neg_log_u01(rng_u01(&rng));
-    int events = 0;
+    Rng rng, srng;
+    Spectral sw;
+    Track t;
+    Fates f;
+    fates_clear(&f);
+    long W = 0;
+    int b = 0, events = 0, live = 0;
     int still = 0;                                     /* boundary events in a row under TRAP_UM */
-    while (W > 0) {
-        if (++events > P->max_events) { lost += W; W = 0; break; }
+    float tau = 0.0f;
+    for (;;) {
+#ifdef PHOTON_COUNTERS
+        iterations++;
+#endif
+        if (W <= 0) {
+            /* ---- the photon has ended (or none yet): its tallies, then the next photon */
+            if (live) { fates_flush(&f, tallies + (size_t)b * NC); fates_clear(&f); live = 0; }
+            const uint k = atomic_inc(store_count + 1);
+            if (k >= P->count) break;
+            W = emit_photon(P->photon_offset + k, VOLUME_PASS, band_cdf, smooth, tallies, &rng, &srng,
+                            &t, &sw, &b, &f);
+#ifdef PHOTON_COUNTERS
+            if (t.L < 0) COUNT(K_MISSED); else COUNT(K_ENTERED);
+#endif
+            live = t.L >= 0;
+            events = 0;
+            still = 0;
+            tau = neg_log_u01(rng_u01(&rng));
+            continue;
+        }
+        if (++events > P->max_events) { f.lost += W; W = 0; continue; }
+        COUNT(K_STEPS);
         const float4 op = optics[t.L * NB + b];     /* mua/mut, g, 1/(2g), mut in um^-1 */
         const float mut = op.w;
         int ev;
+#ifdef FLAT
         const float db = next_boundary(&t, P, iface, heights, &ev);
+#else
+        float plane = 0.0f;
+        const float db = photon_boundary(&t, VOLUME_PASS, tile_z, &ev, &plane);
+#endif
         const float s = mut > 0.0f ? tau / mut : BIG;
         if (s < db) {
             /* ---- collision: absorb by weight, store, scatter, roulette */
+            COUNT(K_COLLISIONS);
             t.pos += s * t.dir;
-            sw_flight(&sw, optics, t.L, mut, s);
-            sw_collide(&sw, optics, logmu, t.L, op);
+            sw_flight(&sw, optics, logmu, t.L, mut, s);
+            sw_collide(&sw, logmu, t.L);
             long dw = convert_long_rte((float)W * op.x);
 #ifdef CLPPM_FAULT_WRONG                /* the self-test's tests only: a miscompiled absorption */
             dw = convert_long_rte((float)dw * 1.5f);
 #endif
             dw = dw < 0 ? 0 : (dw > W ? W : dw);
-            absorbed[t.L] += dw; W -= dw;
+            f.absorbed[t.L] += dw; W -= dw;
             if (W > 0 && op.x < 1.0f) {
                 if (P->capacity > 0u && t.pos.z > P->store_zmin) {
                     const float a_h = (float)W * (1.0f / W0F);
@@ -266,16 +465,17 @@ __kernel void photon_pass(VOLUME_ARGS,
                                           P->store_qmin, 1.0f);
 #endif
                         if (keep) {
-                            sw_weights(&sw, a_h, band_spi, F);
+                            sw_weights(&sw, a_h, band_spi, optics, logmu, F);
                             q = store_probability(P, ce, t.L, b, F, band_spi, optics, store_imp, t.pos.z);
                             keep = u <= q;
                         }
                     } else {
-                        sw_weights(&sw, a_h, band_spi, F);
+                        sw_weights(&sw, a_h, band_spi, optics, logmu, F);
                     }
                     if (keep) {
                         const float iq = 1.0f / q;
                         for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
+                        COUNT(K_STORED);
                         uint i = atomic_inc(store_count);
                         if (i < P->capacity) {
                             store_pos_w[i] = (float4)(t.pos, F[0]);
@@ -290,55 +490,66 @@ __kernel void photon_pass(VOLUME_ARGS,
                 if (W < rr_w) {
                     if (rng_u01(&rng) * P->rr_m <= 1.0f) {
                         long g2 = W * (long)(P->rr_m) - W;
-                        gain += g2; W += g2;
+                        f.gain += g2; W += g2;
                         sw_scale(&sw, P->rr_m);
                     } else {
-                        loss += W; W = 0;
+                        f.loss += W; W = 0;
                     }
                 }
             } else if (W > 0) {
                 /* pure absorber reached here only when mus = 0 and mua > 0: all absorbed */
-                absorbed[t.L] += W; W = 0;
+                f.absorbed[t.L] += W; W = 0;
             }
             tau = neg_log_u01(rng_u01(&rng));
             continue;
         }
         /* ---- boundary */
         still = db < TRAP_UM ? still + 1 : 0;
-        if (still > TRAPPED_STEPS) { lost += W; W = 0; break; }
+        if (still > TRAPPED_STEPS) { f.lost += W; W = 0; continue; }
         t.pos += db * t.dir;
-        sw_flight(&sw, optics, t.L, mut, db);
+        sw_flight(&sw, optics, logmu, t.L, mut, db);
         if (mut > 0.0f) { tau -= db * mut; tau = tau > 0.0f ? tau : 0.0f; }
-        if (ev == EV_NONE) { lost += W; W = 0; break; }   /* semi-infinite, direction flat */
+        if (ev == EV_NONE) { f.lost += W; W = 0; continue; }   /* semi-infinite, direction flat */
         if (ev == EV_TOP || ev == EV_BOTTOM) {
             const int up = (ev == EV_TOP);
+            COUNT(K_IFACE);
             const int L2 = up ? t.L - 1 : t.L + 1;
             /* snap onto the interface (in core mode only flat interfaces raise TOP/BOTTOM) */
             t.pos.z = iface_z(iface, heights, P, up ? t.L : t.L + 1, col_index(P, t.ix, t.iy));
             const float n1 = layer_n[t.L];
             const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
             const float4 gn2 = (float4)(0.0f, 0.0f, up ? 1.0f : -1.0f, 0.0f);
+#ifndef FLAT
+            if (n1 != n2 && IF_VAR(up ? t.L : t.L + 1) >= 0) COUNT(K_IFACE_SMOOTH);
+#endif
             float4 d = (float4)(t.dir, 0.0f);
             const int through = cross_face(&d, gn2, up ? t.L : t.L + 1, t.L, L2, t.pos.x, t.pos.y, n1, n2,
                                            P, iface, smooth, rng_u01(&rng));
             t.dir = d.xyz;
             if (through) {
-                if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) { events++; continue; }
-                if (L2 < 0) { rd += W; if (t.dir.z > P->rcone_cos) rcone += W; W = 0; break; }
-                if (L2 >= NL) { tt += W; W = 0; break; }
+                if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) { events++; COUNT(K_REENTER); continue; }
+                if (L2 < 0) { f.rd += W; if (t.dir.z > P->rcone_cos) f.rcone += W; W = 0; continue; }
+                if (L2 >= NL) { f.tt += W; W = 0; continue; }
                 t.L = L2;
             }
             continue;
         }
-        if (ev == EV_ZONE) { locate_column(&t, P); continue; }
+        if (ev == EV_ZONE) { COUNT(K_ZONE); locate_column(&t, P); continue; }
+#ifndef FLAT
+        if (ev == EV_TILE_Z) { COUNT(K_ZONE); t.pos.z = plane; locate_column_ahead(&t, P); continue; }
+        if (ev == EV_TILE_X || ev == EV_TILE_Y) { COUNT(K_TILE); cross_tile(&t, P, ev == EV_TILE_Y); continue; }
+#endif
         /* lateral: column wall or domain side */
         const int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
         const int domain_only = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
+#ifdef PHOTON_COUNTERS
+        if (domain_only) COUNT(K_DOMAIN); else COUNT(K_WALL);
+#endif
 #ifndef FLAT
         const int oix = t.ix, oiy = t.iy;
         const float3 opos = t.pos;
 #endif
-        if (cross_wall(&t, P, axis, domain_only)) { lost += W; W = 0; break; }
+        if (cross_wall(&t, P, axis, domain_only)) { f.lost += W; W = 0; continue; }
 #ifdef FLAT
         continue;
 #else
@@ -348,6 +559,8 @@ __kernel void photon_pass(VOLUME_ARGS,
         if (L2 == t.L) continue;
         const float n1 = layer_n[t.L];
         const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+        if (n1 != n2 && IF_VAR(L2 < t.L ? t.L : t.L + 1) >= 0) COUNT(K_IFACE_SMOOTH);
+        COUNT(K_IFACE);
         const float4 gnw = axis == 0 ? (float4)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f, 0.0f)
                                      : (float4)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f);
         float4 d = (float4)(t.dir, 0.0f);
@@ -355,23 +568,19 @@ __kernel void photon_pass(VOLUME_ARGS,
                                        P, iface, smooth, rng_u01(&rng));
         t.dir = d.xyz;
         if (through) {
-            if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) continue;
-            if (L2 < 0) { rd += W; if (t.dir.z > P->rcone_cos) rcone += W; W = 0; break; }
-            if (L2 >= NL) { tt += W; W = 0; break; }
+            if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) { COUNT(K_REENTER); continue; }
+            if (L2 < 0) { f.rd += W; if (t.dir.z > P->rcone_cos) f.rcone += W; W = 0; continue; }
+            if (L2 >= NL) { f.tt += W; W = 0; continue; }
             t.L = L2;
         } else {
             t.ix = oix; t.iy = oiy; t.pos = opos;      /* reflected back into the old column */
         }
 #endif
     }
-
-    if (spec) atom_add(tal + T_SPEC, spec);
-    if (rd) atom_add(tal + T_RD, rd);
-    if (tt) atom_add(tal + T_TT, tt);
-    if (lost) atom_add(tal + T_LOST, lost);
-    if (gain) atom_add(tal + T_RRGAIN, gain);
-    if (loss) atom_add(tal + T_RRLOSS, loss);
-    if (rcone) atom_add(tal + T_RCONE, rcone);
-    for (int i = 0; i < NL; ++i)
-        if (absorbed[i]) atom_add(tal + T_ABS0 + i, absorbed[i]);
+#ifdef PHOTON_COUNTERS
+    for (int k = 0; k < K_NCOUNT; ++k)
+        if (cnt[k]) atom_add(counters + k, (long)cnt[k]);
+    lane_steps[2 * get_global_id(0)] = cnt[K_STEPS];
+    lane_steps[2 * get_global_id(0) + 1] = iterations;
+#endif
 }

@@ -41,9 +41,13 @@
 typedef struct {
     int h;
 #if HERO_C > 1
-    float lr[HERO_C];   /* log of the flight part of rho: -(mu_t(b_k) - mu_t(h)) l, log mu_t ratios */
+    float lr[HERO_C];   /* log of the flight part of rho, up to the pending part below */
     float hr[HERO_C];   /* the phase-function part of rho, renormalised by its largest entry */
-    float A[HERO_C];
+    float la[HERO_C];   /* log of the albedo product, up to the pending collisions */
+    float scale;        /* the band-independent factors of the albedo products (Fresnel, roulette) */
+    float amax;         /* an upper bound of the largest albedo product (sw_amax) */
+    int pL, pn;         /* pending: the layer, the collisions in it */
+    float pl;           /* pending: the path length in it */
 #endif
 } Spectral;
 
@@ -59,31 +63,63 @@ inline int sw_band(int h, int j) {
 inline void sw_init(Spectral* w, int h) {
     w->h = h;
 #if HERO_C > 1
-    for (int j = 0; j < HERO_C; ++j) { w->lr[j] = 0.0f; w->hr[j] = 1.0f; w->A[j] = 1.0f; }
+    for (int j = 0; j < HERO_C; ++j) { w->lr[j] = 0.0f; w->hr[j] = 1.0f; w->la[j] = 0.0f; }
+    w->scale = 1.0f; w->amax = 1.0f;
+    w->pL = 0; w->pn = 0; w->pl = 0.0f;
 #endif
 }
 
-/* a free-flight segment of length l in layer L (hero mu_t mut_h), ending anywhere: kept in the
- * log domain, one multiply-add per band (no exponential on the hot path) */
-inline void sw_flight(Spectral* w, __global const float4* optics, int L, float mut_h, float l) {
+/* The band table (photonpass.py band_table): [NL*NB] log mu_t, [NL*NB] log albedo (1 - mu_a/mu_t,
+ * at least e^-10000: none without scattering), [NL*HERO_STEP] the largest albedo over the bands a path of each hero class
+ * h mod HERO_STEP carries. */
+#define TAB_LOGMU(L, b) tab[(L) * NB + (b)]
+#define TAB_LOGALB(L, b) tab[NL * NB + (L) * NB + (b)]
+#define TAB_MAXALB(L, h) tab[2 * NL * NB + (L) * HERO_STEP + (h) % HERO_STEP]
+
+/* Lazy per-band work.  Within one layer the per-band factors of a flight and of a collision are
+ * constants, so a path keeps only its length and its collisions in the current layer (two
+ * scalars per event) and applies them to every band when it leaves the layer: the per-band loop
+ * runs once per layer visited and per stored event, not at every event (the sums are the same
+ * up to float rounding).  A stored event reads the pending part without applying it (sw_weights),
+ * so the weights do not depend on which events were looked at before. */
+inline float sw_lr_pending(const Spectral* w, __global const float4* optics, __global const float* tab, int b) {
 #if HERO_C > 1
-    for (int j = 1; j < HERO_C; ++j)
-        w->lr[j] -= (optics[L * NB + sw_band(w->h, j)].w - mut_h) * l;
+    const int L = w->pL;
+    return (float)w->pn * (TAB_LOGMU(L, b) - TAB_LOGMU(L, w->h))
+           - w->pl * (optics[L * NB + b].w - optics[L * NB + w->h].w);
+#else
+    return 0.0f;
 #endif
 }
 
-/* a collision in layer L: the mu_t ratio of the collision density (log mu_t from the table
- * logmu), absorption per band */
-inline void sw_collide(Spectral* w, __global const float4* optics, __global const float* logmu,
-                       int L, float4 op_h) {
+inline void sw_sync(Spectral* w, __global const float4* optics, __global const float* tab) {
 #if HERO_C > 1
-    w->A[0] *= 1.0f - op_h.x;
-    const float lh = logmu[L * NB + w->h];
-    for (int j = 1; j < HERO_C; ++j) {
+    if (w->pn == 0 && w->pl == 0.0f) return;
+    for (int j = 0; j < HERO_C; ++j) {
         const int b = sw_band(w->h, j);
-        w->lr[j] += logmu[L * NB + b] - lh;
-        w->A[j] *= 1.0f - optics[L * NB + b].x;
+        w->lr[j] += sw_lr_pending(w, optics, tab, b);
+        w->la[j] += (float)w->pn * TAB_LOGALB(w->pL, b);
     }
+    w->pn = 0; w->pl = 0.0f;
+#endif
+}
+
+/* a free-flight segment of length l in layer L (hero mu_t mut_h), ending anywhere: its length
+ * joins the pending path in the layer (the per-band factor exp(-(mu_t(b_k) - mu_t(h)) l) later) */
+inline void sw_flight(Spectral* w, __global const float4* optics, __global const float* tab,
+                      int L, float mut_h, float l) {
+#if HERO_C > 1
+    if (L != w->pL) { sw_sync(w, optics, tab); w->pL = L; }
+    w->pl += l;
+#endif
+}
+
+/* a collision in layer L, right after its flight (sw_flight): the mu_t ratio of the collision
+ * density and the absorption per band, pending; the bound of the largest albedo product now */
+inline void sw_collide(Spectral* w, __global const float* tab, int L) {
+#if HERO_C > 1
+    w->pn++;
+    w->amax *= TAB_MAXALB(L, w->h);
 #endif
 }
 
@@ -110,35 +146,42 @@ inline void sw_scatter(Spectral* w, __global const float4* optics, int L, float 
 /* a band-independent weight factor (the Fresnel transmission at entry, Russian roulette's m) */
 inline void sw_scale(Spectral* w, float m) {
 #if HERO_C > 1
-    for (int j = 0; j < HERO_C; ++j) w->A[j] *= m;
+    w->scale *= m;
+    w->amax *= m;
 #endif
 }
 
-/* the largest albedo product of the bands carried (a_h: the hero's, for one band per path) */
+/* an upper bound of the largest albedo product of the bands carried (a_h: the hero's, for one
+ * band per path): the product over the collisions of the largest albedo among the bands */
 inline float sw_amax(const Spectral* w, float a_h) {
 #if HERO_C > 1
-    float m = w->A[0];
-    for (int j = 1; j < HERO_C; ++j) m = fmax(m, w->A[j]);
-    return m;
+    return w->amax;
 #else
     return a_h;
 #endif
 }
 
 /* F_j of a stored event (see above); a_h is the hero's albedo product (its fixed-point weight) */
-inline void sw_weights(const Spectral* w, float a_h, __global const float2* band_spi, float* F) {
+inline void sw_weights(const Spectral* w, float a_h, __global const float2* band_spi, __global const float4* optics,
+                       __global const float* tab, float* F) {
 #if HERO_C > 1
-    float lm = w->lr[0];
-    for (int j = 1; j < HERO_C; ++j) lm = fmax(lm, w->lr[j]);
+    float lr[HERO_C], la[HERO_C];
+    for (int j = 0; j < HERO_C; ++j) {
+        const int b = sw_band(w->h, j);
+        lr[j] = w->lr[j] + sw_lr_pending(w, optics, tab, b);
+        la[j] = w->la[j] + (float)w->pn * TAB_LOGALB(w->pL, b);
+    }
+    float lm = lr[0];
+    for (int j = 1; j < HERO_C; ++j) lm = fmax(lm, lr[j]);
     float rho[HERO_C];
     float den = 0.0f;
     for (int j = 0; j < HERO_C; ++j) {
-        rho[j] = w->hr[j] * exp_neg(lm - w->lr[j]);
+        rho[j] = w->hr[j] * exp_neg(lm - lr[j]);
         den += band_spi[sw_band(w->h, j)].y * rho[j];
     }
-    const float inv = den > 0.0f ? 1.0f / den : 0.0f;
+    const float inv = den > 0.0f ? w->scale / den : 0.0f;
     for (int j = 0; j < HERO_C; ++j)
-        F[j] = band_spi[sw_band(w->h, j)].x * w->A[j] * rho[j] * inv;
+        F[j] = band_spi[sw_band(w->h, j)].x * exp_neg(-la[j]) * rho[j] * inv;
 #else
     const float2 sp = band_spi[w->h];
     F[0] = sp.x / sp.y * a_h;
