@@ -315,7 +315,7 @@ def test_pyopencl_missing(monkeypatch):
 def test_unknown_device_spec(dev):
     with pytest.raises(D.DeviceError, match="clppm devices"):
         D.select_device("99:0")
-    with pytest.raises(D.DeviceError, match="no device name contains"):
+    with pytest.raises(D.DeviceError, match="no implementation, platform or device name contains"):
         D.select_device("no such accelerator")
 
 
