@@ -9,14 +9,36 @@ _icd.own_pocl_cache()
 
 
 def render(config, integrator="ppm", **kwargs):
-    """Render a config (a path, a shipped config's name, or a validated dict); returns a
-    RenderResult (image + report).
+    """Render a skin scene; return a :class:`clppm.film.RenderResult` (the image and its report).
 
-    Keyword arguments as ``clppm render``: method, passes, photons, resolution, seed,
-    spacing, device, out, progress, resume; ``devices`` ("all" or "P:D,P:D") or ``scheduler``
-    (an address) render on a Dask cluster (:func:`clppm.executor.render_distributed`).
-    ``integrator="pt"``: the path tracer (``clppm.pathtracer.render_pt``: passes, seed,
-    resolution, device, out, progress, resume).
+    ``config``: a TOML file, a shipped config's name (``"forearm"``, ``"cheek"``; see
+    ``clppm config --example``) or a dict from :func:`clppm.config.load` (changed with
+    :func:`clppm.config.set_item`).  ``integrator``: ``"ppm"`` (progressive photon mapping, the
+    default) or ``"pt"`` (the unbiased path tracer).
+
+    Keyword arguments, as the options of ``clppm render`` (None or absent: the config's value):
+
+    * ``method``: ``"a"`` .. ``"f"``, how sample points are placed on eye rays;
+    * ``passes``, ``photons`` (stored per pass), ``seed``: ints;
+    * ``resolution``: ``(width, height)`` in pixels;
+    * ``spacing``: an equal sample spacing along eye rays, um (overrides a-c's);
+    * ``spp``: eye rays per pixel;
+    * ``device``: a device as ``--device`` takes it (``"1:0"``, ``"intel"``, ``"pocl"``);
+    * ``out``: a path ``NAME.exr`` (writes the EXR, PNG, JSON report and checkpoint, as the
+      command does) or ``NAME.png``; None writes nothing;
+    * ``progress``: print progress to stderr;
+    * ``resume``: a checkpoint ``NAME.ckpt.npz`` to continue (``passes`` the new total);
+    * ``devices`` (``"all"`` or ``"P:D,P:D"``) or ``scheduler`` (an address): render on a
+      Dask cluster (:func:`clppm.executor.render_distributed`), the same bytes as in-process.
+
+    With ``integrator="pt"``: ``passes``, ``seed``, ``resolution``, ``device``, ``out``,
+    ``progress`` and ``resume`` (:func:`clppm.pathtracer.render_pt`).
+
+    Raises :class:`clppm.config.ConfigError` for a bad value (exit 2 on the command line) and
+    :class:`clppm.device.DeviceError` when no device can run it (exit 3).
+
+    >>> res = clppm.render("forearm", resolution=(64, 48), passes=2, photons=100_000)
+    >>> res.spectral.shape, res.rgb.shape        # ((48, 64, 81), (48, 64, 3))
     """
     from . import config as _config
     from . import progressive as _render

@@ -451,7 +451,17 @@ def _cross_checks(src: str, cfg: dict) -> None:
 
 def load(path: str) -> dict:
     """Read and validate a TOML config file, or a shipped config by name (``"forearm"``; as
-    :func:`find` finds it, so as ``clppm render`` does)."""
+    :func:`find` finds it, so as ``clppm render`` does).
+
+    Returns a dict of sections (``render``, ``camera``, ``light``, ...; every key, defaults
+    filled, lengths as in the file: docs/config.md) and ``layer``, a list of one dict per
+    ``[[layer]]`` table, outermost first.  Raises :class:`ConfigError` naming the file, the key
+    and the value for an unknown key, a wrong type, a value out of range or a missing file.
+
+    >>> cfg = load("forearm")
+    >>> [L["name"] for L in cfg["layer"]][:3], cfg["layer"][2]["melanin"]
+    (['stratum corneum', 'granular + spinous', 'basal'], 0.1)
+    """
     path = find(path)
     src = os.path.basename(path)
     try:
@@ -470,7 +480,8 @@ def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
     """A copy of ``cfg`` with one value changed by ``SECTION.KEY=VALUE`` or
     ``layer.N.KEY=VALUE`` (N: index into the ``[[layer]]`` tables; VALUE in TOML syntax, a bare
     word is a string), validated like the file's value.  ``cfg`` itself is left unchanged, as by
-    :func:`override`: ``cfg = set_item(cfg, "layer.0.n=1.45")``."""
+    :func:`override`: ``cfg = set_item(cfg, "layer.0.n=1.45")``.  The same strings as
+    ``clppm render --set``; raises :class:`ConfigError` for an unknown key or a bad value."""
     key_part = item.split("=", 1)[0].strip()
     section_part, _, rest = key_part.partition(".")
     if "=" not in item or not section_part or not rest:

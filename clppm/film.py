@@ -27,6 +27,20 @@ UNITS = "spectral radiance W m^-2 sr^-1 nm^-1 (EXR spectral channels); RGB linea
 
 @dataclass
 class RenderResult:
+    """What :func:`clppm.render` returns: the image in three forms and the run report.
+
+    * ``spectral``: (H, W, NB) float spectral radiance, W m^-2 sr^-1 nm^-1, one value per band
+      (the EXR's ``S0.*`` channels); ``wl``: (NB,) the band centres, nm (380, 385, .. 780 by
+      default);
+    * ``xyz``: (H, W, 3) CIE 1931 XYZ of ``spectral`` (rectangle rule over the bands, without
+      the 683 lm/W factor);
+    * ``rgb``: (H, W, 3) linear sRGB (D65), unexposed (the EXR's R, G, B channels);
+    * ``exposure``: the factor the PNG applies to ``rgb`` (a white diffuser at the image
+      centre comes out white, unless ``render.exposure`` sets it): the PNG is
+      ``clppm.image.write_png(path, res.rgb, res.exposure)``;
+    * ``report``: the run report, the dict written to ``NAME.json`` (docs/outputs.md lists
+      its fields).
+    """
     spectral: np.ndarray          # (H, W, NB) spectral radiance W m^-2 sr^-1 nm^-1
     xyz: np.ndarray               # (H, W, 3)
     rgb: np.ndarray               # (H, W, 3) linear sRGB

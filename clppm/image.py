@@ -187,7 +187,11 @@ def read_exr(path) -> dict:
     (or Y replicated if only Y exists; None if neither). ``spectral`` gathers the
     Stokes-0 emissive channels (``S0.*``) sorted by wavelength. ``header`` contains
     every string-valued attribute of the file (user header plus e.g.
-    ``spectralLayoutVersion``), not the structural ones.
+    ``spectralLayoutVersion``; a render's ``clppm_report``, a JSON string), not the
+    structural ones.  Raises ValueError naming the file when it is missing or not an EXR.
+
+    >>> exr = read_exr("out/forearm.exr")
+    >>> exr["spectral"].shape, exr["wl"][[0, -1]]      # ((240, 320, 81), array([380., 780.]))
     """
     path = os.fspath(path)
     if not os.path.isfile(path):
