@@ -189,7 +189,7 @@ class _Scatter:
         self.k = {n: Kernel(prg, n) for n in ("piece_points", "piece_od", "piece_cells",
                                                   "scatter_beam", "scatter_finish",
                                                   "point_pixels")}
-        self.spots = None                # bench/spots.py: per pixel the largest pair (float bits)
+        self.spots = None                # bench/studies/spots.py: per pixel the largest pair (float bits)
         self.pt_pix = cla.zeros(q, max(e.npoints, 1), np.uint32)
         npc = max(e.npieces, 1)
         self.piece_pt = cla.zeros(q, npc, np.uint32)
@@ -207,7 +207,7 @@ class _Scatter:
         return self.piece_pt.nbytes + self.od.nbytes + self.pinfo.nbytes
 
     def measure_spots(self, sc) -> None:
-        """bench/spots.py: from now on each pass records per pixel its largest single pair
+        """bench/studies/spots.py: from now on each pass records per pixel its largest single pair
         (``self.spots``, float bits; clear it before a pass)."""
         import pyopencl.array as cla
         q, e = sc.dev.queue, sc.eye

@@ -15,7 +15,7 @@ bias plus the noise left at that scale:
 * ``group_max``: largest relative error of the mean skin radiance in a 50-nm band group,
 * RMSE of linear XYZ, mean signed Δb*, chromaticity of the mean colour (as before).
 
-The per-pixel noise of one image is measured by ``bench/noise.py`` (two seeds).
+The per-pixel noise of one image is measured by ``bench/studies/noise.py`` (two seeds).
 
 Time is the render's own stage time (eye + calibration + photon + grid + gather seconds, or
 the path tracer's trace seconds): the host-side volume build (memoised here) and the snapshot

@@ -191,7 +191,7 @@ def accuracy_of_seeds(images: list, ref) -> dict:
 
 
 #: the bias bound per 10x10-pixel square the default mode is held to against the path tracer
-#: (bench/bias.py; the README's bias table counts the squares beyond it)
+#: (bench/studies/bias.py; the README's bias table counts the squares beyond it)
 BIAS_BOUND = 0.02
 
 

@@ -5,7 +5,7 @@
   must agree exactly (tests/test_hashgrid.py, and the self-test's tiny scene, clppm/tiny.py).
 * The path tracer's light connections (kernels/pt.cl's t_connect and t_mnee):
   :func:`connect_probe` through flat interfaces, :func:`mnee_probe` through relief
-  (tests/test_pathtracer.py, tests/test_mnee.py, bench/mnee_solutions.py).
+  (tests/test_pathtracer.py, tests/test_mnee.py, bench/studies/mnee_solutions.py).
 """
 from __future__ import annotations
 

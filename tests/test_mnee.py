@@ -371,7 +371,7 @@ def test_relief_same_seed_same_bytes_and_resume_is_byte_identical(dev, tmp_path)
 
 
 def test_compare_and_bias_take_the_path_tracer_as_the_relief_reference():
-    """clppm compare (and bench/bias.py through clppm.reference) use the path tracer on relief
+    """clppm compare (and bench/studies/bias.py through clppm.reference) use the path tracer on relief
     scenes now, with the manifold kernels in the reference's cache key."""
     from clppm.compare import QUICK, reference_spec
     from clppm.reference import RefSpec, reference_key

@@ -247,7 +247,7 @@ def _forearm_pass(dev, scale, qmin, exact=False, seed=4):
 
 
 def test_importance_storage_bounds_every_carried_band(dev):
-    """The storage probability weighs every band a photon carries (against the bright single-photon spots of bench/spots.py): on
+    """The storage probability weighs every band a photon carries (against the bright single-photon spots of bench/studies/spots.py): on
     the forearm (81 bands, 9 per path), for every stored photon
         store_scale * sum_j F_j/q (pi_j/s_j) hrel_j T_j <= 1,
     with hrel_j the band's HG toward the most favourable eye direction in the cone over its peak

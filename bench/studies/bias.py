@@ -19,7 +19,7 @@ switched off (the GGX term is the same deterministic function in both integrator
 only dilute the relative errors).  This is a long run (hours on 2 cores at 320x240): use
 --methods / --resolutions / --modes to do part of it; results go to out/bench/bias.{json,md}.
 
-    python bench/bias.py --resolutions 80x60
+    python bench/studies/bias.py --resolutions 80x60
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 
 from clppm import config as C, volume              # noqa: E402

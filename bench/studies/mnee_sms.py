@@ -4,7 +4,7 @@ flat-seeded solution alone (0 trials) and with specular manifold sampling (1 and
 per connection); the image sums' ratios are the light carried by the solutions the flat seed
 misses, with the noise the trials add.  Small: 8x6 pixels, 64 paths each by default.
 
-    python bench/mnee_sms.py [--spp 64] [--passes 4]
+    python bench/studies/mnee_sms.py [--spp 64] [--passes 4]
 """
 import argparse
 import os
@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 from clppm import config as C, volume, pathtracer as pt   # noqa: E402
 from clppm.device import open_device                       # noqa: E402

@@ -8,7 +8,7 @@ sample point) pair's contribution over all passes (kernels/scatter.cl, ``spots``
 the bands, against the pixel's total.  Reported per seed: the largest share of a pixel taken by
 one pair, where it is, and how many pixels one pair holds more than 10 %, 25 %, 50 % of.
 
-    python bench/spots.py [--seeds 1-8] [--res 80 60] [--passes 6] [--device pocl]
+    python bench/studies/spots.py [--seeds 1-8] [--res 80 60] [--passes 6] [--device pocl]
                           [--out out/bench_spots.json]
 
 A pair is one photon with one eye-ray sample point; with one ray per pixel a photon meets a
@@ -31,7 +31,7 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
+ROOT = os.path.dirname(os.path.dirname(HERE))
 
 
 def seeds_of(s: str) -> list[int]:

@@ -13,9 +13,9 @@ where seconds are the render's own stage seconds (eye + calibration + photon + g
 of one image.  Bias is not in these numbers (the two images share it): see `clppm compare`
 and the path-tracing reference for that.
 
-    python bench/noise.py                      # 80x60 and 320x240, paper mode and default
-    python bench/noise.py --quick              # 80x60 only, short budgets
-    python bench/noise.py --set storage=all --set estimator=layer --label variant
+    python bench/studies/noise.py                      # 80x60 and 320x240, paper mode and default
+    python bench/studies/noise.py --quick              # 80x60 only, short budgets
+    python bench/studies/noise.py --set storage=all --set estimator=layer --label variant
 
 Prints a table, writes out/bench/noise.json, noise.md and noise.png (noise against seconds,
 log-log, one curve per mode and resolution), and each mode's last image of the first seed
@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 
 from clppm import colorimetry, config as C, image, volume                # noqa: E402
@@ -175,7 +175,7 @@ def main(argv=None) -> int:
         modes[a.label] = dict(a.set)
     results = {}
     t0 = time.perf_counter()
-    print(f"bench/noise.py on {dev.name}, method {a.method}")
+    print(f"bench/studies/noise.py on {dev.name}, method {a.method}")
     with volume.memoised():
         for res in res_list:
             c = C.override(cfg, "camera", "resolution", list(res))

@@ -1,7 +1,7 @@
 """Where the noise of one image comes from: controlled runs that remove one source at a time.
 
 Each row renders the forearm at 80x60 twice (two photon seeds) with the same number of passes
-and reports the per-pixel noise of one image (bench/noise.py's measure: relative RMS of Y and
+and reports the per-pixel noise of one image (bench/studies/noise.py's measure: relative RMS of Y and
 mean CIEDE2000, from the two images) and the seconds.  Starting from the paper's mode, one
 thing changes per row:
 
@@ -18,7 +18,7 @@ thing changes per row:
 The "variance removed" column is 1 - (noise / baseline noise)^2 at equal passes (a positive
 number: the share of the baseline's variance that source was).
 
-    python bench/variance.py [--passes 40]
+    python bench/studies/variance.py [--passes 40]
 """
 from __future__ import annotations
 
@@ -30,9 +30,9 @@ import sys
 import time
 
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "bench"))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))   # bench/studies/noise.py
 
 from clppm import config as C, photonpass, ppm, progressive, volume  # noqa: E402
 from clppm.bands import Bands                                        # noqa: E402

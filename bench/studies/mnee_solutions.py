@@ -13,7 +13,7 @@ summed over the layer's vertices, by the dense search (a lower bound: seeds find
 do not prove there are no more) and by the render's connection (unbiased, with its standard
 error).  Results go to out/bench/mnee_solutions.json.
 
-    python bench/mnee_solutions.py --vertices 400 --samples 1000
+    python bench/studies/mnee_solutions.py --vertices 400 --samples 1000
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ import sys
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 
 from clppm import config as C                      # noqa: E402

@@ -8,7 +8,7 @@ the median over the skin pixels; each path carries one band), and the efficiency
 1 / (variance x seconds per path): relief / flat of it is the cost to reach the same error.
 The solver's statistics are summed over the relief runs.  Results go to out/bench/mnee.json.
 
-    python bench/mnee.py --resolution 8x6 --spp 128 --passes 2 --repeat 3
+    python bench/studies/mnee.py --resolution 8x6 --spp 128 --passes 2 --repeat 3
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 
 from clppm import config as C                      # noqa: E402

@@ -1,0 +1,135 @@
+"""Small renders are byte-identical to stored hashes: in-process, stopped and resumed, on a
+2-worker Dask cluster, the path tracer (straight and resumed) and paper mode.
+
+A change meant to leave the pictures alone (a refactor, a faster kernel) must keep these.  Each
+hash is SHA-256 over the EXR's channels (names and float32 pixels), from the command line as a
+user runs it.  The bytes depend on the OpenCL implementation, its version and the device (the
+same seed on the same device gives the same bytes, not across devices), so tests/data/identity.json
+holds one set per ``implementation driver-version on device-name``; on a device without a stored
+set the tests skip and say so.  About a minute on 2 idle cores.
+
+    python tests/test_identity.py            # hashes on PYOPENCL_CTX's device, against the stored
+    python tests/test_identity.py --store    # store them for this device (on a tree known right)
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+
+import numpy as np
+import pytest
+
+STORE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "identity.json")
+
+BASE = ["forearm", "--resolution", "32x24", "--photons", "20000", "--seed", "3"]
+PT = ["forearm_flat", "--integrator", "pt", "--resolution", "12x9", "--seed", "2",
+      "--set", "render.pt_samples_per_pass=4"]
+
+
+def cases(tmp: str, spec: str) -> dict[str, list[list[str]]]:
+    """Each case: the ``clppm render`` runs in order; the last one's ``-o`` is hashed."""
+    return {
+        "in-process": [[*BASE, "--passes", "3", "-o", f"{tmp}/a.exr"]],
+        "resumed": [[*BASE, "--passes", "2", "-o", f"{tmp}/b.exr"],
+                    [*BASE, "--passes", "3", "-o", f"{tmp}/b.exr", "--resume", f"{tmp}/b.ckpt.npz"]],
+        "dask, 2 workers": [[*BASE, "--passes", "3", "--devices", f"{spec},{spec}", "-o", f"{tmp}/c.exr"]],
+        "path tracer": [[*PT, "--passes", "2", "-o", f"{tmp}/d.exr"]],
+        "path tracer, resumed": [[*PT, "--passes", "1", "-o", f"{tmp}/e.exr"],
+                                 [*PT, "--passes", "2", "-o", f"{tmp}/e.exr", "--resume", f"{tmp}/e.ckpt.npz"]],
+        "paper mode": [["forearm", "--paper", "--resolution", "24x18", "--photons", "20000", "--passes", "2",
+                        "--seed", "4", "-o", f"{tmp}/f.exr"]],
+    }
+
+
+CASES = list(cases("", "0:0"))
+
+
+def exr_hash(path: str) -> str:
+    import OpenEXR
+    ch = OpenEXR.File(path).channels()
+    h = hashlib.sha256()
+    for k in sorted(ch):
+        h.update(k.encode())
+        h.update(np.ascontiguousarray(ch[k].pixels).tobytes())
+    return h.hexdigest()[:16]
+
+
+def device_spec(device) -> str:
+    """``P:D`` of an opened pyopencl device (``--devices`` takes indices)."""
+    from clppm.device import list_devices
+    return next(f"{ip}:{idev}" for ip, idev, _, d in list_devices() if d.int_ptr == device.int_ptr)
+
+
+def implementation_key(info: dict) -> str:
+    """What the stored hashes are keyed by: ``intel 2026.22.10.0.01_160000 on Intel(R) Xeon(R)
+    Processor``; PoCL's device name holds the CPU target it compiles for."""
+    return f"{info['implementation']} {info['driver_version']} on {info['name']}"
+
+
+def render_case(runs: list[list[str]], spec: str) -> str:
+    """Run one case's renders on device ``spec``; the hash of the last image."""
+    env = dict(os.environ, PYOPENCL_CTX=spec)
+    for args in runs:
+        r = subprocess.run([sys.executable, "-m", "clppm.cli", "render", *args, "-q"], env=env,
+                           capture_output=True, text=True)
+        assert r.returncode == 0, f"clppm render {' '.join(args)} exited {r.returncode}\n{r.stderr[-2000:]}"
+    return exr_hash(runs[-1][runs[-1].index("-o") + 1])
+
+
+def load_store() -> dict:
+    with open(STORE, encoding="utf-8") as f:
+        return json.load(f)
+
+
+@pytest.fixture(scope="module")
+def stored(dev):
+    """(P:D, the stored hashes) of the session's device; skips where none are stored."""
+    from clppm.device import describe
+    key = implementation_key(describe(dev.device))
+    sets = {k: v for k, v in load_store().items() if not k.startswith("_")}
+    if key not in sets:
+        pytest.skip(f"no stored hashes for {key!r} (the bytes depend on the implementation and "
+                    f"device; stored: {'; '.join(sets)})")
+    return device_spec(dev.device), sets[key]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", CASES)
+def test_render_is_byte_identical_to_the_stored_hash(stored, case, tmp_path):
+    spec, hashes = stored
+    if case.startswith("dask"):
+        pytest.importorskip("distributed")
+    runs = cases(str(tmp_path), spec)[case]
+    assert render_case(runs, spec) == hashes[case], (
+        f"{case}: the image's bytes changed (rendered with clppm render {' '.join(runs[-1])})")
+
+
+def main(argv: list[str]) -> int:
+    from clppm.device import describe, open_device
+    dev = open_device(None)
+    spec, key = device_spec(dev.device), implementation_key(describe(dev.device))
+    store = load_store()
+    old = store.get(key, {})
+    tmp = tempfile.mkdtemp(prefix="clppm-identity-")
+    new = {}
+    print(f"{key} ({spec})")
+    for name, runs in cases(tmp, spec).items():
+        new[name] = render_case(runs, spec)
+        print(f"  {name:22s} {new[name]}  {'same' if old.get(name) == new[name] else 'stored: ' + old.get(name, '-')}",
+              flush=True)
+    if "--store" in argv:
+        store[key] = new
+        with open(STORE, "w", encoding="utf-8") as f:
+            json.dump(store, f, indent=1, sort_keys=True)
+            f.write("\n")
+        print(f"stored in {STORE}")
+        return 0
+    return 0 if new == old else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
