@@ -108,7 +108,7 @@ inline int cross_face(float4* dir, float4 gn, int k, int L, int L2, float x, flo
  * Every band enters, not the hero alone: a path whose hero is strongly absorbed (577 nm, the
  * haemoglobin peak) while a band it carries is not (620 nm) had a hero-only I near 0, so q fell
  * to store_qmin, and the carried band's F_j / q made single photons 10^3 times the median
- * photon's contribution (bench/spots.py).  With I over all bands every stored photon
+ * photon's contribution (bench/studies/spots.py).  With I over all bands every stored photon
  * obeys F_j / q hrel_j T_j <= s_j / (pi_j store_scale) for every band it carries
  * (tests/test_spectral.py checks it); store_probability below computes q, store_bound a
  * per-layer upper bound of it. */

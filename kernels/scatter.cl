@@ -115,7 +115,7 @@ __kernel void scatter_beam(const GridParams gp, __constant const Params* P,
                            __global const float* od,           /* piece_od */
                            const uint n, volatile __global long* acc,   /* [npts][NB] */
                            volatile __global uint* pt_M,
-                           /* bench/spots.py only (spots != 0): per pixel the largest single
+                           /* bench/studies/spots.py only (spots != 0): per pixel the largest single
                             * pair's share, f_i x its fixed-point terms summed over the bands,
                             * as float bits (positive floats order as their bits) */
                            const int spots, __global const uint* pt_pix,
@@ -183,7 +183,7 @@ __kernel void scatter_beam(const GridParams gp, __constant const Params* P,
     }
 }
 
-/* bench/spots.py: the pixel of each sample point */
+/* bench/studies/spots.py: the pixel of each sample point */
 __kernel void point_pixels(__global const uint* ray_start, const int npix, const int spp,
                            __global uint* pt_pix)
 {
