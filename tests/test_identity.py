@@ -5,8 +5,8 @@ A change meant to leave the pictures alone (a refactor, a faster kernel) must ke
 hash is SHA-256 over the EXR's channels (names and float32 pixels), from the command line as a
 user runs it.  The bytes depend on the OpenCL implementation, its version and the device (the
 same seed on the same device gives the same bytes, not across devices), so tests/data/identity.json
-holds one set per ``implementation driver-version on device-name``; on a device without a stored
-set the tests skip and say so.  About a minute on 2 idle cores.
+holds one set per implementation, driver version and device; on a device without a stored set
+the tests skip and say so.  About a minute on 2 idle cores.
 
     python tests/test_identity.py            # hashes on PYOPENCL_CTX's device, against the stored
     python tests/test_identity.py --store    # store them for this device (on a tree known right)
@@ -65,9 +65,10 @@ def device_spec(device) -> str:
 
 
 def implementation_key(info: dict) -> str:
-    """What the stored hashes are keyed by: ``intel 2026.22.10.0.01_160000 on Intel(R) Xeon(R)
-    Processor``; PoCL's device name holds the CPU target it compiles for."""
-    return f"{info['implementation']} {info['driver_version']} on {info['name']}"
+    """What the stored hashes are keyed by: the implementation, its driver version, the device's
+    name and OpenCL version string (PoCL's names the CPU target it compiles for), e.g.
+    ``intel 2026.22.10.0.01_160000 on Intel(R) Xeon(R) Processor (OpenCL 3.1 (Build 0))``."""
+    return f"{info['implementation']} {info['driver_version']} on {info['name']} ({info['version']})"
 
 
 def render_case(runs: list[list[str]], spec: str) -> str:
