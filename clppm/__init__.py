@@ -16,19 +16,18 @@ def render(config, integrator="ppm", **kwargs):
     spacing, device, out, progress, resume; ``devices`` ("all" or "P:D,P:D") or ``scheduler``
     (an address) render on a Dask cluster (:func:`clppm.executor.render_distributed`).
     ``integrator="pt"``: the path tracer (``clppm.pathtracer.render_pt``: passes, seed,
-    resolution, device, out, progress, resume).
+    resolution, device, out, progress, resume).  The call becomes one
+    :class:`clppm.request.RenderRequest` (:meth:`~clppm.request.RenderRequest.of`).
     """
     from . import config as _config
-    from . import progressive as _render
+    from .request import RenderRequest
     cfg = _config.load(_config.find(config)) if isinstance(config, str) else config
-    if integrator == "pt":
+    req = RenderRequest.of(cfg, integrator, **kwargs)
+    if req.integrator == "pt":
         from .pathtracer import render_pt
-        return render_pt(cfg, **kwargs)
-    if integrator != "ppm":
-        raise _config.ConfigError("clppm.render", "integrator", integrator, "must be 'ppm' or 'pt'")
-    if kwargs.get("devices") or kwargs.get("scheduler"):
+        return render_pt(req)
+    if req.cluster is not None and (req.cluster.devices or req.cluster.scheduler):
         from .executor import render_distributed
-        return render_distributed(cfg, **kwargs)
-    kwargs.pop("devices", None)
-    kwargs.pop("scheduler", None)
-    return _render.render(cfg, **kwargs)
+        return render_distributed(req)
+    from . import progressive
+    return progressive.render(req.replace(cluster=None))
