@@ -39,14 +39,60 @@ ROOT = os.path.dirname(HERE)
 
 # --------------------------------------------------------------------------- worker
 
+class _FreeFunctions:
+    """A tree before clppm.ppm.Pipeline: its Scene and free functions, as the pipeline's methods."""
+
+    def __init__(self, ppm, sc):
+        self.ppm, self.sc = ppm, sc
+
+    def __getattr__(self, name):
+        return getattr(self.sc, name)
+
+    def calibrate(self):
+        return self.ppm.calibrate(self.sc)
+
+    def apply(self, cal):
+        self.ppm.prepare(self.sc, cal)
+
+    def point_state(self, cal):
+        return self.ppm.point_state(self.sc, cal)
+
+    def run_pass(self, cal, st, p, acc, tal):
+        return self.ppm.run_pass(self.sc, cal, st, p, acc, tal)
+
+
+def _pipeline(ppm, cfg, dev):
+    """This tree's PPM pipeline on ``cfg`` (an older tree's Scene behind the same methods)."""
+    if hasattr(ppm, "Pipeline"):
+        return ppm.Pipeline.build(cfg, dev)
+    return _FreeFunctions(ppm, ppm.setup(cfg, dev))
+
+
+def _kernels(sc) -> dict:
+    """The gather's and the scatter's kernels by name (this tree's estimator, or an older
+    tree's ``kernels`` dict)."""
+    est = getattr(sc, "estimator", None)
+    if est is None:
+        ks = dict(sc.kernels)
+        bs = getattr(sc, "_beam", None)
+        if bs is not None and getattr(bs, "scatter", None) is not None:
+            ks.update(bs.scatter.k)
+        return ks
+    import dataclasses
+    if hasattr(est, "kernels"):             # the beam: its kernels' dataclass
+        ks = {f.name: getattr(est.kernels, f.name) for f in dataclasses.fields(est.kernels)}
+    else:
+        ks = {"gather": est.kernel}
+    state = getattr(getattr(est, "layout", None), "state", None)
+    if state is not None:
+        ks.update(state.k)
+    return ks
+
+
 def _private_mem(sc) -> dict:
     import pyopencl as cl
     out = {}
-    ks = dict(sc.kernels)
-    bs = getattr(sc, "_beam", None)
-    if bs is not None and getattr(bs, "scatter", None) is not None:
-        ks.update(bs.scatter.k)
-    for name, k in ks.items():
+    for name, k in _kernels(sc).items():
         if name.startswith("gather") or name.startswith("scatter"):
             out[name] = int(k.get_work_group_info(cl.kernel_work_group_info.PRIVATE_MEM_SIZE,
                                                   sc.dev.device))
@@ -56,28 +102,38 @@ def _private_mem(sc) -> dict:
 def _candidates(sc, cal, st, info, ppm, photonpass, flat: bool) -> int | None:
     """Photons tested by the beam gather's queries (trees with device.kernel_defines), with flat
     or cubic cells."""
-    import pyopencl as cl
+    import dataclasses
     import numpy as np
     try:
         from clppm.device import kernel_defines
     except ImportError:                     # a tree before kernel_defines
         return None
-    if not hasattr(ppm, "photon_slabs") or not sc.beam:
+    if not sc.beam:
         return None
     prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", count_candidates=True))
-    saved_k, saved_hz = sc.kernels["gather_beam"], sc.hz
-    try:                                    # kernels called by parameter name
-        from clppm.kernelcall import Kernel
-    except ImportError:                     # a tree before clppm.kernelcall
-        Kernel = cl.Kernel
-    sc.kernels["gather_beam"] = Kernel(prg, "gather_beam")
-    if not flat:
-        sc.hz = None
+    from clppm.kernelcall import Kernel
     acc = ppm.Accumulators.zeros(sc)
+    if hasattr(ppm, "Pipeline"):
+        est = sc.estimator
+        saved = est.kernels, est.hz
+        est.kernels = dataclasses.replace(est.kernels, gather_beam=Kernel(prg, "gather_beam"))
+        est.hz = est.hz if flat else None
+        try:
+            sc.run_pass(cal, st, 0, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
+        finally:
+            est.kernels, est.hz = saved
+        return int(acc.pairs.get().astype(np.int64).sum())
+    if not hasattr(ppm, "photon_slabs"):
+        return None
+    inner = sc.sc
+    saved_k, saved_hz = inner.kernels["gather_beam"], inner.hz
+    inner.kernels["gather_beam"] = Kernel(prg, "gather_beam")
+    if not flat:
+        inner.hz = None
     try:
-        ppm.run_pass(sc, cal, st, 0, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
+        sc.run_pass(cal, st, 0, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
     finally:
-        sc.kernels["gather_beam"], sc.hz = saved_k, saved_hz
+        inner.kernels["gather_beam"], inner.hz = saved_k, saved_hz
     return int(acc.pairs.get().astype(np.int64).sum())
 
 
@@ -101,26 +157,26 @@ def _tree_kernels() -> str:
 def worker(a) -> dict:
     kdir = _tree_kernels()
     import numpy as np
-    from clppm import config as C, ppm, progressive
+    from clppm import config as C, ppm
     from clppm.device import open_device
     try:
         from clppm import photonpass
     except ImportError:                     # a tree before the photon pass's module had its name
         from clppm import transport as photonpass
     cfg = C.load(a.config)
-    cfg = progressive.apply_overrides(cfg, resolution=tuple(a.res))
+    cfg = C.override(cfg, "camera", "resolution", [int(r) for r in a.res])
     if a.layout and "layout" in C.SCHEMA.get("render", {}):
         cfg = C.override(cfg, "render", "layout", a.layout)
     dev = open_device(a.device)
     t0 = time.perf_counter()
-    sc = ppm.setup(cfg, dev)
-    cal = ppm.calibrate(sc)
-    ppm.prepare(sc, cal)
+    sc = _pipeline(ppm, cfg, dev)
+    cal = sc.calibrate()
+    sc.apply(cal)
     setup_s = time.perf_counter() - t0
-    st = ppm.point_state(sc, cal)
+    st = sc.point_state(cal)
     acc = ppm.Accumulators.zeros(sc)
     tal = photonpass.Tallies(sc.vol.nb, sc.vol.nl)
-    info = ppm.run_pass(sc, cal, st, 0, acc, tal)
+    info = sc.run_pass(cal, st, 0, acc, tal)
     photon_s = sc.timing["photon"]
     first = acc.host()
     sc.pp.run_pass = lambda p, n, tallies=None: info        # the same photons again
@@ -128,17 +184,13 @@ def worker(a) -> dict:
     for _ in range(a.reps):
         before = dict(sc.timing)
         acc.clear()
-        ppm.run_pass(sc, cal, st, 0, acc, tal)
+        sc.run_pass(cal, st, 0, acc, tal)
         grid_s.append(sc.timing["grid"] - before["grid"])
         gather_s.append(sc.timing["gather"] - before["gather"])
     pix, pairs = acc.host()
     assert np.array_equal(pix, first[0]), "the same photons gave other bytes"
     npairs = int(pairs.astype(np.int64).sum())
-    try:
-        from clppm import beam as _beam
-        lay = _beam.layout(sc)
-    except ImportError:                     # a tree before the layouts
-        lay = "gather"
+    lay = getattr(getattr(sc.estimator, "layout", None), "name", "gather")
     out = {"device": dev.device.name.strip(), "kernels": kdir, "layout_used": lay, "platform": dev.device.platform.name.strip(),
            "setup_s": setup_s, "photon_s": photon_s,
            "grid_s": {"best": min(grid_s), "median": statistics.median(grid_s)},

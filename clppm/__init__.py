@@ -39,18 +39,27 @@ def render(config, integrator="ppm", **kwargs):
 
     >>> res = clppm.render("forearm", resolution=(64, 48), passes=2, photons=100_000)
     >>> res.spectral.shape, res.rgb.shape        # ((48, 64, 81), (48, 64, 3))
+
+    The call becomes one :class:`clppm.request.RenderRequest`
+    (:meth:`~clppm.request.RenderRequest.of`).
     """
     from . import config as _config
-    from . import progressive as _render
+    from .request import RenderRequest
     cfg = _config.load(_config.find(config)) if isinstance(config, str) else config
-    if integrator == "pt":
+    req = RenderRequest.of(cfg, integrator, **kwargs)
+    if req.integrator == "pt":
         from .pathtracer import render_pt
-        return render_pt(cfg, **kwargs)
-    if integrator != "ppm":
-        raise _config.ConfigError("clppm.render", "integrator", integrator, "must be 'ppm' or 'pt'")
-    if kwargs.get("devices") or kwargs.get("scheduler"):
+        return render_pt(req)
+    if req.cluster is not None and (req.cluster.devices or req.cluster.scheduler):
         from .executor import render_distributed
-        return render_distributed(cfg, **kwargs)
-    kwargs.pop("devices", None)
-    kwargs.pop("scheduler", None)
-    return _render.render(cfg, **kwargs)
+        return render_distributed(req)
+    from . import progressive
+    return progressive.render(req.replace(cluster=None))
+
+
+def __getattr__(name):
+    """``clppm.config`` and ``clppm.image`` without importing them first (PEP 562)."""
+    if name in ("config", "image"):
+        import importlib
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module 'clppm' has no attribute {name!r}")

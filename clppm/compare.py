@@ -217,7 +217,8 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
 def _shift_renders(cfg: dict, spacings, photons, passes: int, resolution, seed, dev, log):
     """Every (photons, spacing) render: its row (mean skin colour, reuse ...), its image
     (xyz, exposure) by (spacing, photons), and the skin mask."""
-    from .progressive import apply_overrides, render
+    from .progressive import render
+    from .request import resolved_config
     rows, imgs = [], {}
     with volume.memoised():
         mask = None
@@ -227,7 +228,7 @@ def _shift_renders(cfg: dict, spacings, photons, passes: int, resolution, seed, 
                 res = render(cfg, spacing=float(s), passes=int(passes), photons=int(n), resolution=resolution,
                              seed=seed, dev=dev, on_pass=lambda p, st, last=last: last.update(pt_R=st["pt_R"]))
                 if mask is None:
-                    mask = skin_mask(apply_overrides(cfg, resolution=resolution, spacing=float(s)), dev)
+                    mask = skin_mask(resolved_config(cfg, resolution=resolution, spacing=float(s)), dev)
                 row = {"spacing_um": float(s), "photons": int(n), "passes": int(passes),
                        **_mean_colour(res, last, mask)}
                 imgs[(float(s), int(n))] = (res.xyz, res.exposure)

@@ -5,22 +5,22 @@ per listed device, ``--scheduler`` (or ``CLPPM_SCHEDULER``) joins a running ``da
 with its ``dask worker``s.  Nothing here schedules, retries or moves data itself.
 
 Client (:func:`render_distributed`): one worker builds the scene and calibrates (R0 per sample
-point, the storage depth); the config and the calibration then travel to the workers once, as
+point, the storage depth); the request and the calibration then travel to the workers once, as
 task results the chunks depend on (a lost copy is recomputed, unlike scattered data).  Each
-task is one chunk of passes (:func:`clppm.ppm.run_chunk`) and returns its sums.  The client
+task is one chunk of passes (:meth:`clppm.ppm.Pipeline.run_chunk`) and returns its sums.  The client
 adds the chunk sums in chunk order, holding chunks that arrive early
 (:class:`Reduction`), so the float64 total rounds exactly as in the in-process loop: the EXR
 is byte-identical to ``progressive.render`` with the same seed and ``render.chunk_passes`` on
 the same kind of device.  A chunk whose worker dies is rerun by Dask; since a chunk is a pure
-function of (config, calibration, passes), the rerun gives the same bits, and each chunk is
+function of (request, calibration, passes), the rerun gives the same bits, and each chunk is
 added once, by its first pass.  Checkpoints hold the reduced sums, the held chunks and which
 passes they cover (:mod:`clppm.checkpoint`); they are in-process checkpoints too, and an
 in-process checkpoint taken inside a chunk resumes here by continuing that chunk from its sums
-(:func:`clppm.ppm.run_chunk` from those sums).
+(:meth:`clppm.ppm.Pipeline.run_chunk` from those sums).
 
 Worker (:class:`ClppmWorker`, a ``WorkerPlugin``): the device is the one the worker process
 was started with (``PYOPENCL_CTX``, else clppm's default choice); the scene (volume, eye pass,
-buffers, kernels) is built once per config hash and kept, one at a time.  A lock runs one chunk
+buffers, kernels) is built once per scene key (``RenderRequest.scene_key``) and kept, one at a time.  A lock runs one chunk
 at a time per worker, whatever ``--nthreads`` says: a scene's buffers are not shared.
 
 Only ``render.radius = "global"`` distributes.  With the per-point radius ("ppm") pass p needs
@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import os
 import threading
 import time
@@ -45,9 +44,9 @@ from distributed import WorkerPlugin
 
 from . import checkpoint as ckpt
 from . import driver, film, paths, photonpass, ppm, progressive, scene
-from . import config as C
-from .config import ConfigError, render_settings
+from .config import ConfigError, RenderSettings
 from .device import DeviceError
+from .request import Cluster, RenderRequest
 
 CONNECT_TIMEOUT = 5.0        # s: an unreachable scheduler fails this fast
 WORKER_WAIT = 10.0           # s: a scheduler without workers fails this fast
@@ -65,15 +64,15 @@ class _Loaded:
     """A scene on a worker's device and what the current calibration put on it."""
 
     key: str
-    sc: ppm.Scene
+    sc: ppm.Pipeline
     cal_key: str | None = None
     points: ppm.PointState | None = None
     acc: ppm.Accumulators | None = None
 
     def calibrated(self, cal: ppm.Calibration, cal_key: str) -> "_Loaded":
         if self.cal_key != cal_key:
-            ppm.prepare(self.sc, cal)
-            self.points = ppm.point_state(self.sc, cal)
+            self.sc.apply(cal)
+            self.points = self.sc.point_state(cal)
             self.acc = self.acc or ppm.Accumulators.zeros(self.sc)
             self.cal_key = cal_key
         return self
@@ -89,12 +88,12 @@ class ClppmWorker(WorkerPlugin):
         self.lock = threading.Lock()
         self.loaded: _Loaded | None = None
 
-    def scene(self, cfg: dict, key: str, source: str = "<config>", fresh: bool = False) -> _Loaded:
-        """The scene of ``cfg`` on this worker's device, built on first use (the lock is held)."""
+    def scene(self, req: RenderRequest, key: str, fresh: bool = False) -> _Loaded:
+        """The scene of ``req`` on this worker's device, built on first use (the lock is held)."""
         from .device import open_device
         if fresh or self.loaded is None or self.loaded.key != key:
             self.loaded = None           # free the previous scene's device memory first
-            self.loaded = _Loaded(key=key, sc=ppm.setup(cfg, open_device(None), source))
+            self.loaded = _Loaded(key=key, sc=ppm.Pipeline.build(req, open_device(None)))
         return self.loaded
 
 
@@ -145,19 +144,19 @@ def probe_device() -> dict:
 
 
 @_worker_errors
-def scene_task(cfg: dict, key: str, source: str, calibrate: bool) -> dict:
+def scene_task(req: RenderRequest, key: str, calibrate: bool) -> dict:
     """Build the scene; calibrate it on a fresh one (as the in-process run does)."""
     plug = _plugin()
     with plug.lock:
-        ld = plug.scene(cfg, key, source, fresh=calibrate)
+        ld = plug.scene(req, key, fresh=calibrate)
         sc = ld.sc
         cal = None
         if calibrate:
             t0 = time.perf_counter()
-            cal = ppm.calibrate(sc)
+            cal = sc.calibrate()
             sc.dev.queue.finish()
             sc.timing["calibration"] = time.perf_counter() - t0
-        meta = progressive.run_identity(cfg, sc.dev, sc.eye)
+        meta = progressive.run_identity(req, sc)
         timing = {k: v for k, v in sc.timing.items() if k not in ppm.STAGES}
         return {"meta": meta, "cal": cal, "timing": timing, "npix": sc.npix, "nb": sc.vol.nb,
                 "tallies": photonpass.Tallies(sc.vol.nb, sc.vol.nl).counts}
@@ -173,28 +172,28 @@ class ChunkDone:
 
 
 @_worker_errors
-def chunk_task(cfg: dict, key: str, cal: ppm.Calibration, cal_key: str, passes: list,
-               source: str = "<config>", start: np.ndarray | None = None) -> ChunkDone:
+def chunk_task(req: RenderRequest, key: str, cal: ppm.Calibration, cal_key: str, passes: list,
+               start: np.ndarray | None = None) -> ChunkDone:
     """One chunk of passes (``start``: the sums of the chunk's earlier passes, to continue)."""
     from distributed import get_worker
     plug = _plugin()
     with plug.lock:
         t0 = time.perf_counter()
-        ld = plug.scene(cfg, key, source).calibrated(cal, cal_key)
-        chunk = passes[0] // int(render_settings(cfg).chunk_passes)
-        res = ppm.run_chunk(ld.sc, cal, ld.points, chunk, passes, ld.acc, start)
+        ld = plug.scene(req, key).calibrated(cal, cal_key)
+        chunk = passes[0] // int(req.settings.chunk_passes)
+        res = ld.sc.run_chunk(cal, ld.points, chunk, passes, ld.acc, start)
         return ChunkDone(result=res, worker=get_worker().address, wall=time.perf_counter() - t0)
 
 
 @_worker_errors
-def finish_task(cfg: dict, key: str, cal: ppm.Calibration, cal_key: str, pix: np.ndarray,
+def finish_task(req: RenderRequest, key: str, cal: ppm.Calibration, cal_key: str, pix: np.ndarray,
                 pairs: int, emitted_total: int, passes_done: int, timing: dict, stats: dict,
-                elapsed: float, interrupted: bool, source: str = "<config>"):
+                elapsed: float, interrupted: bool):
     """The image and report of the reduced sums (:func:`progressive.finish`, on a worker: it
     needs the scene's volume, eye pass and light spectrum)."""
     plug = _plugin()
     with plug.lock:
-        ld = plug.scene(cfg, key, source).calibrated(cal, cal_key)
+        ld = plug.scene(req, key).calibrated(cal, cal_key)
         return progressive.finish(ld.sc, pix, pairs, emitted_total, passes_done, timing, stats,
                                   time.perf_counter() - elapsed, interrupted)
 
@@ -205,8 +204,8 @@ def _value(x):
 
 
 # ----------------------------------------------------------------------------------- client side
-def check_distributable(cfg: dict, how: str) -> None:
-    radius = render_settings(cfg).radius
+def check_distributable(rs: RenderSettings, how: str) -> None:
+    radius = rs.radius
     if radius != "global":
         raise ConfigError(how, "render.radius", radius,
                           "the per-point radius makes every pass depend on all earlier ones; "
@@ -309,13 +308,6 @@ def check_workers(client, where: str) -> dict:
     return found
 
 
-def scene_hash(cfg: dict) -> str:
-    """What a worker's scene depends on: the config but the pass count and the host's cadences
-    (a longer or resumed render reuses the scenes its workers hold)."""
-    keep = dict(cfg, render={k: v for k, v in cfg["render"].items() if k not in C.NOT_PICTURE})
-    return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
 def cal_hash(cal: ppm.Calibration) -> str:
     h = hashlib.sha256(np.ascontiguousarray(cal.R0).tobytes())
     h.update(repr((cal.store_zmin, cal.first_search_mean)).encode())
@@ -412,51 +404,47 @@ class Reduction:
         return red
 
 
-def render_distributed(cfg: dict, *, scheduler: str | None = None, devices=None, client=None,
-                       method=None, passes=None, photons=None, resolution=None, seed=None,
-                       spacing=None, spp=None, out: str | None = None, progress: bool = False,
-                       resume: str | None = None, checkpoint_path: str | None = None,
-                       source: str = "<config>", stop_after: int | None = None, on_chunk=None,
-                       scheduler_flag: str = "--scheduler") -> film.RenderResult:
-    """Render ``cfg`` on a Dask cluster; the same bytes as :func:`progressive.render`.
+def render_distributed(req: RenderRequest | dict, **kw) -> film.RenderResult:
+    """Render a request on a Dask cluster; the same bytes as :func:`progressive.render`.
 
-    ``scheduler``: address of a running scheduler; ``devices``: ``P:D`` strings (or ``"all"``)
-    for a local cluster, one worker each; ``client``: an existing ``distributed.Client``; none
-    of these: one in-process worker.  ``stop_after``: stop once this many passes are finished
-    (a checkpoint is written).  ``on_chunk(ChunkDone)``: called as each chunk arrives."""
+    ``req``: a :class:`clppm.request.RenderRequest`, or a config and
+    :meth:`RenderRequest.of`'s keywords.  Its cluster: ``scheduler``, the address of a running
+    scheduler; ``devices``, ``P:D`` strings (or ``"all"``) for a local cluster, one worker each;
+    ``client``, an existing ``distributed.Client``; none of these: one in-process worker.  The
+    budget's ``stop_after``: stop once this many passes are finished (a checkpoint is written);
+    ``on_chunk(ChunkDone)``: called as each chunk arrives."""
     t_start = time.perf_counter()
-    cfg = progressive.apply_overrides(cfg, method, passes, photons, resolution, seed, spacing, spp)
-    check_distributable(cfg, scheduler_flag if scheduler else "--devices" if devices else "executor")
-    ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
-    paths.check_outputs(out=out, checkpoint=ckpath)
-    if resume:
-        ckpt.load(resume)                               # fail fast on a missing or corrupt file
-        ckpt.check_matches(resume, config=progressive.config_identity(cfg))
-    scene.warn_scene(cfg, source)
-    if isinstance(devices, str):
-        devices = parse_devices(devices)
-    where = scheduler or ("local cluster" if devices else "client" if client else "in-process")
-    with connect(scheduler, devices, client, scheduler_flag) as c:
-        workers = check_workers(c, f"scheduler {scheduler}" if scheduler else "the cluster")
-        job = _Job.start(c, cfg, source, resume, t_start, workers)
-        run = DaskRun(job, job.reduction(resume), ckpath, on_chunk, where, workers)
-        cad = driver.Cadence.of(render_settings(cfg), out, ckpath, stop_after=stop_after, progress=progress)
+    req = req if isinstance(req, RenderRequest) else RenderRequest.of(req, **kw)
+    cl_ = req.cluster or Cluster()
+    rs, out, ckpath = req.settings, req.outputs, req.checkpoint
+    check_distributable(rs, cl_.how)
+    paths.check_outputs(out=out.out, checkpoint=ckpath)
+    if req.resume:
+        ckpt.load(req.resume)                           # fail fast on a missing or corrupt file
+        ckpt.check_matches(req.resume, config=req.config_identity())
+    scene.warn_scene(req.resolved(), req.source)
+    devices = parse_devices(cl_.devices) if isinstance(cl_.devices, str) else cl_.devices
+    where = cl_.scheduler or ("local cluster" if devices else "client" if cl_.client else "in-process")
+    with connect(cl_.scheduler, devices, cl_.client, cl_.flag) as c:
+        workers = check_workers(c, f"scheduler {cl_.scheduler}" if cl_.scheduler else "the cluster")
+        job = _Job.start(c, req, t_start, workers)
+        run = DaskRun(job, job.reduction(req.resume), ckpath, req.budget.on_chunk, where, workers)
+        cad = driver.Cadence.of(rs, out.out, ckpath, stop_after=req.budget.stop_after, progress=out.progress)
         with c.as_current():
-            return driver.drive(run, cad, t_start, resumed=bool(resume))
+            return driver.drive(run, cad, t_start, resumed=bool(req.resume))
 
 
 @dataclass
 class _Job:
-    """One render on a cluster: the config and calibration as futures, and the run's identity."""
+    """One render on a cluster: the request and calibration as futures, and the run's identity."""
 
     client: object
-    cfg: dict
-    key: str                         # scene hash
+    req: RenderRequest               # as the workers get it (RenderRequest.portable)
+    key: str                         # scene hash (RenderRequest.scene_key)
     run: str                         # this call's token: task keys never collide across calls
-    cfg_f: object
+    req_f: object
     meta: dict
     first: dict                      # scene_task's answer
-    source: str
     t_start: float
     cal: ppm.Calibration | None = None
     cal_f: object = None
@@ -464,33 +452,33 @@ class _Job:
     timing: dict = field(default_factory=dict)
 
     @classmethod
-    def start(cls, c, cfg, source, resume, t_start, workers) -> "_Job":
-        """Ship the config; one worker builds the scene and (no resume) calibrates."""
-        key, run = scene_hash(cfg), uuid.uuid4().hex[:8]
-        cfg_f = c.submit(_value, cfg, key=f"clppm-config-{key}-{run}", pure=False)
-        first = c.submit(scene_task, cfg_f, key, source, not resume, key=f"clppm-scene-{key}-{run}",
+    def start(cls, c, req: RenderRequest, t_start, workers) -> "_Job":
+        """Ship the request; one worker builds the scene and (no resume) calibrates."""
+        key, run = req.scene_key(), uuid.uuid4().hex[:8]
+        wreq = req.portable()
+        req_f = c.submit(_value, wreq, key=f"clppm-config-{key}-{run}", pure=False)
+        first = c.submit(scene_task, req_f, key, not req.resume, key=f"clppm-scene-{key}-{run}",
                          pure=False).result()
         meta = first["meta"]
         kinds = sorted({w["device"] for w in workers.values()})
         if len(kinds) > 1:                   # chunks may land on any kind: say so in the identity
             meta["device"] = " + ".join(kinds)
-        return cls(client=c, cfg=cfg, key=key, run=run, cfg_f=cfg_f, meta=meta, first=first,
-                   source=source, t_start=t_start)
+        return cls(client=c, req=wreq, key=key, run=run, req_f=req_f, meta=meta, first=first,
+                   t_start=t_start)
 
     @property
     def n_passes(self) -> int:
-        return int(render_settings(self.cfg).passes)
+        return int(self.req.settings.passes)
 
     @property
     def k(self) -> int:
-        return int(render_settings(self.cfg).chunk_passes)
+        return int(self.req.settings.chunk_passes)
 
     def reduction(self, resume: str | None) -> Reduction:
         """The calibration (new, or the checkpoint's) on every worker, and the sums so far."""
         if resume:
             st = ckpt.load(resume, self.meta)
-            self.cal = ppm.Calibration(R0=st["R0"].astype(np.float32), store_zmin=st["store_zmin"],
-                                       first_search_mean=st["stats"].get("first_search_mean"))
+            self.cal = ppm.Calibration.from_checkpoint(st)
             red = Reduction.load(st, os.path.basename(resume), self.k, self.n_passes)
             self.timing = {k: v for k, v in st["timing"].items() if k not in ppm.STAGES}
         else:
@@ -500,15 +488,15 @@ class _Job:
         self.cal_key = cal_hash(self.cal)
         self.cal_f = self.client.submit(_value, self.cal, key=f"clppm-cal-{self.cal_key}-{self.run}",
                                         pure=False)
-        self.client.replicate([self.cfg_f, self.cal_f])    # on every worker: no pull toward one
+        self.client.replicate([self.req_f, self.cal_f])    # on every worker: no pull toward one
         return red
 
     def submit_chunk(self, passes: list, red: Reduction):
         start = None
         if red.open_pix is not None and passes[0] == red.next_pass:
             start = self.client.scatter(red.open_pix, hash=False)
-        return self.client.submit(chunk_task, self.cfg_f, self.key, self.cal_f, self.cal_key, passes,
-                                  self.source, start, key=f"clppm-chunk-{passes[0]}-{self.key}-{self.run}",
+        return self.client.submit(chunk_task, self.req_f, self.key, self.cal_f, self.cal_key, passes,
+                                  start, key=f"clppm-chunk-{passes[0]}-{self.key}-{self.run}",
                                   pure=False)
 
     def save(self, red: Reduction, path: str | None) -> None:
@@ -520,9 +508,9 @@ class _Job:
         c = self.client
         pix_f = c.scatter(red.pix, hash=False)
         stats = {"stored": red.stored, "first_search_mean": self.cal.first_search_mean}
-        f = c.submit(finish_task, self.cfg_f, self.key, self.cal_f, self.cal_key, pix_f,
+        f = c.submit(finish_task, self.req_f, self.key, self.cal_f, self.cal_key, pix_f,
                      int(red.pairs.sum()), sum(red.emitted), red.next_pass, {**self.timing, **red.seconds},
-                     stats, time.perf_counter() - self.t_start, interrupted, self.source, pure=False)
+                     stats, time.perf_counter() - self.t_start, interrupted, pure=False)
         return f.result()
 
 

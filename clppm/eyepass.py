@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import structs as S
-from .config import render_settings
+from .config import RenderSettings, render_settings
 from .camera import Camera, from_config
 from .light import Light
 from .device import Device, DeviceError, check_alloc, kernel_defines, surface_fp64
@@ -114,18 +114,20 @@ def light_fields(e: np.ndarray, light: Light) -> None:
 
 
 def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
-        sch: Scheme | None = None, max_points: int = 1 << 16, geometry: bool | None = None) -> EyeData:
+        sch: Scheme | None = None, max_points: int = 1 << 16, geometry: bool | None = None,
+        rs: RenderSettings | None = None, cam: Camera | None = None) -> EyeData:
     """Eye rays, sample points and path pieces; ``geometry`` (default: when the estimator is
-    the beam) also writes each piece's start and direction.
+    the beam) also writes each piece's start and direction.  ``rs`` and ``cam``: a render
+    request's settings and camera (default: ``cfg``'s own).
 
     The kernel runs twice: it counts each ray's sample points and pieces, the counts become
     offsets by a prefix sum, and it runs again to store them there."""
     import pyopencl.cltypes as cltypes
-    rc = render_settings(cfg)
+    rc = rs or render_settings(cfg)
     sch = sch or scheme(rc.method, rc.spacing_um)
-    cam = from_config(cfg["camera"])
+    cam = cam or from_config(cfg["camera"])
     rates = layer_rates(vol, sch.stat) if sch.kind == "extinction" else np.zeros(vol.nl, np.float32)
-    eye = _EyeKernel(dev, vol, vbuf, eye_params(cfg, cam, sch, max_points), rates, cam)
+    eye = _EyeKernel(dev, vol, vbuf, eye_params(cfg, cam, sch, max_points, rc), rates, cam)
     if geometry is None:
         geometry = rc.estimator == "beam"
     counts, npoints, npieces = eye.count()
@@ -148,9 +150,11 @@ def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
                    depth=-np.asarray(pos["z"], float) if npoints else np.zeros(0))
 
 
-def eye_params(cfg: dict, cam: Camera, sch: Scheme, max_points: int) -> np.ndarray:
-    """The kernel's ``EyeParams``: camera, sampling scheme, transmittance cut, voxels, light."""
-    rc = render_settings(cfg)
+def eye_params(cfg: dict, cam: Camera, sch: Scheme, max_points: int,
+               rs: RenderSettings | None = None) -> np.ndarray:
+    """The kernel's ``EyeParams``: camera, sampling scheme, transmittance cut, voxels, light
+    (``rs``: the run's render settings, default ``cfg``'s)."""
+    rc = rs or render_settings(cfg)
     e = np.zeros(1, S.EYE_DTYPE)
     e["cam"], e["spp"] = cam.struct(), cam.spp
     e["scheme"] = 0 if sch.kind == "equal" else 1

@@ -193,7 +193,8 @@ def _kernels(dev: Device) -> dict:
     return k
 
 
-def _scan(dev: Device):
+def exclusive_scan(dev: Device):
+    """The exclusive prefix sum of uint32 (pyopencl ExclusiveScanKernel), one per context."""
     s = _SCANS.get(dev.ctx)
     if s is None:
         from pyopencl.scan import ExclusiveScanKernel
@@ -358,7 +359,7 @@ def _counting_sort(dev, k, bufs, params, un, kpos, pos, dirb, cell_start, spos, 
     k["grid_count"](q, n, want=WG, gp=params, n=n, pos_w=kpos, counts=cell_start, rank=rank)
     stage("count")
     # in place: counts -> exclusive prefix sums, cell_start[ncells] == n
-    _scan(dev)(cell_start, allocator=bufs.pool)
+    exclusive_scan(dev)(cell_start, allocator=bufs.pool)
     stage("scan")
     perm = bufs.get("idx", n, np.int32)
     k["grid_scatter"](q, n, want=WG, gp=params, n=n, pos_w=kpos, cell_start=cell_start,

@@ -27,23 +27,22 @@ Scope: a point light above the surface; anything else is refused before any work
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 
 import numpy as np
 
 from . import checkpoint as ckpt
-from . import colorimetry, driver, film, paths, progressive, volume
+from . import colorimetry, driver, film, paths, volume
 from .scene import warn_scene
 from . import structs as S
 from .bands import Bands, band_width
-from .camera import from_config
+from .camera import Camera, from_config
 from .light import Light
-from . import config as C
-from .config import ConfigError, render_settings
+from .config import ConfigError, RenderSettings, render_settings
 from .device import Device, check_alloc, kernel_defines, open_device
 from .kernelcall import Kernel
+from .request import RenderRequest
 
 NBIN = 8
 BIN_LABELS = ["1", "2", "3", "4", "5-8", "9-16", "17-64", "65+"]
@@ -134,13 +133,17 @@ def build(dev: Device, vol: volume.Volume):
 class PathTracer:
     """Device state of one path-traced render: the volume, the parameters, the pixel sums."""
 
-    def __init__(self, dev: Device, vol: volume.Volume, cfg: dict):
+    def __init__(self, dev: Device, vol: volume.Volume, cfg: dict, rs: RenderSettings | None = None,
+                 cam: Camera | None = None):
+        """``cfg``: the scene; ``rs`` and ``cam``: a request's settings and camera (default:
+        ``cfg``'s own)."""
         import pyopencl as cl
         import pyopencl.array as cla
         self.dev, self.vol, self.cfg = dev, vol, cfg
-        self.cam = cam = from_config(cfg["camera"])
+        self.rs = rc = rs or render_settings(cfg)
+        self.cam = cam = cam or from_config(cfg["camera"])
         self.npix = cam.width * cam.height
-        self.nspp = int(render_settings(cfg).pt_samples_per_pass)
+        self.nspp = int(rc.pt_samples_per_pass)
         q, mf = dev.queue, cl.mem_flags
         self.kernel = Kernel(build(dev, vol), "pt_pass")
         self.vbuf = volume.upload_volume(dev, vol)
@@ -150,7 +153,7 @@ class PathTracer:
         self.chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
         e = np.zeros(1, S.PT_DTYPE)
         e["cam"] = cam.struct()
-        rc, self.light = render_settings(cfg), Light.from_config(cfg)
+        self.light = Light.from_config(cfg)
         e["nspp"] = self.nspp
         e["seed_lo"], e["seed_hi"] = S.split_seed(rc.seed)
         e["lx"], e["ly"], e["lz"] = self.light.position
@@ -220,10 +223,10 @@ class PathTracer:
         self.pix_bins.set(np.ascontiguousarray(st["pix_bins"].reshape(-1), np.float64))
 
 
-def run_identity(cfg: dict, dev: Device, tracer: PathTracer) -> dict:
+def run_identity(req: RenderRequest, tracer: PathTracer) -> dict:
     """What a path-tracer checkpoint must match to be resumed."""
-    return {"integrator": "pt", "config": progressive.config_identity(cfg), "device": dev.name, "npix": tracer.npix,
-            "nb": tracer.vol.nb, "nbin": NBIN, **({} if tracer.vol.flat else {"mnee": ["sms", MNEE_TRIALS]})}
+    return req.checkpoint_identity(tracer.dev.name, npix=tracer.npix, nb=tracer.vol.nb, nbin=NBIN,
+                                   **({} if tracer.vol.flat else {"mnee": ["sms", MNEE_TRIALS]}))
 
 
 def band_scale(light: Light, bands: Bands) -> np.ndarray:
@@ -264,8 +267,9 @@ def noise(sums, sq, counts, scale, wl) -> dict:
 
 
 def _finish(tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_start,
-            interrupted) -> film.RenderResult:
-    """The path tracer's sums -> radiance (the film does the rest) and the run report."""
+            interrupted, record: dict) -> film.RenderResult:
+    """The path tracer's sums -> radiance (the film does the rest) and the run report
+    (``record``: the config as the run rendered it, RenderRequest.resolved)."""
     cfg, vol = tracer.cfg, tracer.vol
     wl = vol.wl
     samples = passes_done * tracer.nspp
@@ -278,7 +282,7 @@ def _finish(tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_start,
     btot = float(bins.sum())
     trace_s = timing.get("trace", 0.0)
     res.report = {
-        **film.common_report(cfg, "pt", dev, passes_done, interrupted),
+        **film.common_report(record, "pt", dev, passes_done, interrupted),
         "method": "pt", "scheme": SCHEME if vol.flat else SCHEME_RELIEF,
         "samples_per_pass": tracer.nspp, "samples_per_pixel": samples,
         "samples_per_pixel_per_band": [int(counts.min()), int(counts.max())] if counts.size else [0, 0],
@@ -329,32 +333,30 @@ def mnee_report(tot: list[int]) -> dict:
     return d
 
 
-def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str | None = None,
-              dev: Device | None = None, out: str | None = None, progress: bool = False,
-              resume: str | None = None, checkpoint_path: str | None = None,
-              source: str = "<config>", stop_after: int | None = None, snapshot_every: int = 0,
-              on_snapshot=None) -> film.RenderResult:
-    """Path-trace ``cfg`` (point light); the image and report as ``render``, stepped by
-    :func:`clppm.driver.drive` (``on_snapshot(passes, wall seconds, result)`` every
-    ``snapshot_every`` passes, True to stop)."""
+def render_pt(req: RenderRequest | dict, **kw) -> film.RenderResult:
+    """Path-trace a request (point light); the image and report as ``render``, stepped by
+    :func:`clppm.driver.drive` (the budget's ``on_snapshot(passes, wall seconds, result)`` every
+    ``snapshot_every`` passes, True to stop).  ``req``: a :class:`clppm.request.RenderRequest`,
+    or a config and :meth:`RenderRequest.of`'s keywords."""
     t_start = time.perf_counter()
-    cfg = progressive.apply_overrides(cfg, passes=passes, resolution=resolution, seed=seed)
+    req = req if isinstance(req, RenderRequest) else RenderRequest.of(req, "pt", **kw)
+    cfg, rc, source = req.scene, req.settings, req.source
     check_scene(cfg, source)
-    rc = render_settings(cfg)
-    w, h = cfg["camera"]["resolution"]
+    cam = req.camera
+    w, h = cam.width, cam.height
     if w * h * rc.pt_samples_per_pass > 2**32:
         raise ConfigError(source, "render.pt_samples_per_pass", rc.pt_samples_per_pass,
                           f"{w}x{h} pixels x {rc.pt_samples_per_pass} exceeds the 2^32 path ids "
                           "of a pass")
-    ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
-    paths.check_outputs(out=out, checkpoint=ckpath)
-    if resume:
-        ckpt.load(resume, integrator="pt")      # fail fast on a missing or corrupt file
-        ckpt.check_matches(resume, config=progressive.config_identity(cfg))
-    warn_scene(cfg, source)
-    dev = dev or open_device(device)
-    if resume:
-        ckpt.check_matches(resume, device=dev.name)
+    ckpath = req.checkpoint
+    paths.check_outputs(out=req.outputs.out, checkpoint=ckpath)
+    if req.resume:
+        ckpt.load(req.resume, integrator="pt")      # fail fast on a missing or corrupt file
+        ckpt.check_matches(req.resume, config=req.config_identity())
+    warn_scene(req.resolved(), source)
+    dev = req.dev or open_device(req.device)
+    if req.resume:
+        ckpt.check_matches(req.resume, device=dev.name)
     t0 = time.perf_counter()
     vol = volume.build(cfg, source)
     timing = {"volume": time.perf_counter() - t0, "trace": 0.0, "output": 0.0}
@@ -362,12 +364,13 @@ def render_pt(cfg: dict, *, passes=None, seed=None, resolution=None, device: str
                       "pixel statistics": w * h * 64, "value by vertex index": w * h * NBIN * 8,
                       "smooth heights": 0 if vol.smooth is None else int(vol.smooth.nbytes),
                       **vol.device_bytes()})
-    run = PTRun(PathTracer(dev, vol, cfg), timing, t_start)
-    if resume:
-        run.restore(resume)
-    cad = driver.Cadence.of(rc, out, ckpath, snapshot_every=snapshot_every, on_snapshot=on_snapshot,
-                            stop_after=stop_after, progress=progress)
-    return driver.drive(run, cad, t_start, resumed=bool(resume))
+    run = PTRun(PathTracer(dev, vol, cfg, rc, cam), req, timing, t_start)
+    if req.resume:
+        run.restore(req.resume)
+    b = req.budget
+    cad = driver.Cadence.of(rc, req.outputs.out, ckpath, snapshot_every=b.snapshot_every,
+                            on_snapshot=b.on_snapshot, stop_after=b.stop_after, progress=req.outputs.progress)
+    return driver.drive(run, cad, t_start, resumed=bool(req.resume))
 
 
 class PTRun:
@@ -376,11 +379,11 @@ class PTRun:
 
     resume_flags = "--integrator pt --resume"
 
-    def __init__(self, tracer: PathTracer, timing: dict, t_start: float):
-        self.tracer, self.timing, self.t_start = tracer, timing, t_start
-        self.meta = run_identity(tracer.cfg, tracer.dev, tracer)
+    def __init__(self, tracer: PathTracer, req: RenderRequest, timing: dict, t_start: float):
+        self.tracer, self.req, self.timing, self.t_start = tracer, req, timing, t_start
+        self.meta = run_identity(req, tracer)
         self.p = 0
-        self.n_passes = int(render_settings(tracer.cfg).passes)
+        self.n_passes = int(req.settings.passes)
         self.device_name = tracer.dev.name
 
     @property
@@ -406,7 +409,7 @@ class PTRun:
 
     def image(self, interrupted: bool) -> film.RenderResult:
         return _finish(self.tracer, self.tracer.state_arrays(), self.p, self.timing, self.tracer.dev,
-                       self.t_start, interrupted)
+                       self.t_start, interrupted, self.req.resolved())
 
     def close(self) -> None:
         pass

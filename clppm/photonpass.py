@@ -192,6 +192,17 @@ def storage_importance(vol: Volume) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate([t, b]), np.float32)
 
 
+#: photons one launch may store beyond a pass's target (its last photons overshoot it)
+OVERSHOOT = 4096
+#: a render's photon buffer holds this many times the target, plus OVERSHOOT
+CAPACITY_FACTOR = 1.2
+
+
+def capacity_for(target: int) -> int:
+    """The photon buffer a render with ``target`` stored photons per pass allocates."""
+    return int(target * CAPACITY_FACTOR) + OVERSHOOT
+
+
 class PhotonPass:
     """Device state for photon passes of one scene."""
 
@@ -356,9 +367,9 @@ class PhotonPass:
         The exit and absorption tallies go to ``tallies`` (default: this pass object's own).
         """
         cap = self.capacity
-        if target + 4096 > cap:
+        if target + OVERSHOOT > cap:
             raise ValueError(f"photon buffer capacity {cap} must exceed the target {target} "
-                             "by at least 4096 (one launch's last photons overshoot it)")
+                             f"by at least {OVERSHOOT} (one launch's last photons overshoot it)")
         self._set_count(0)
         stored, emitted, launches = 0, 0, 0
         per_photon = None

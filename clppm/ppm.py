@@ -1,10 +1,12 @@
-"""Progressive photon mapping on the skin volume, as named pieces.
+"""Progressive photon mapping on the skin volume: one :class:`Pipeline` per scene and device.
 
-One render is: :func:`setup` (the scene on a device: volume, eye pass, photon and grid
-buffers, kernels), :func:`calibrate` (the initial radius and the storage depth, from a photon
-pass of its own that never reaches the image), then passes.  A pass (:func:`run_pass`) is a
-photon pass, a grid build and a gather; it adds the pass's radiance into an
-:class:`Accumulators` and, with the per-point radius, updates the points' R and N.
+:meth:`Pipeline.build` puts the scene on a device (volume, eye pass, photon and grid buffers,
+kernels, the density estimate); :meth:`Pipeline.calibrate` finds the initial radius and the
+storage depth from a photon pass of its own that never reaches the image; then passes.  A pass
+(:meth:`Pipeline.run_pass`) is the stages in order: photon pass, grid, density estimate (the
+pipeline's estimator, :mod:`clppm.estimators`: the sphere gather or the beam gather), which
+accumulates the pass's radiance into an :class:`Accumulators` and, with the per-point radius,
+updates the points' R and N.
 
 Passes are grouped in chunks of ``render.chunk_passes``.  A chunk starts from zeroed
 accumulators, and chunk sums are added to the total in chunk order, here and in a distributed
@@ -23,21 +25,24 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import eyepass, hashgrid, photonpass, volume
+from .beam import BeamGather
+from .estimators import PassGrid, SphereGather
 from .bands import Bands
 from .config import RenderSettings, render_settings
 from .device import Device, check_alloc, kernel_defines
 from .kernelcall import Kernel
+from .request import RenderRequest
 
 #: pass index of the calibration photon pass (its photons set R0 and are then dropped)
 CAL_PASS = 0xFFFFFFFF
+#: the calibration pass stores this fraction of a pass's photons (from CAL_FRACTION_FROM on)
+CAL_FRACTION = 0.25
+CAL_FRACTION_FROM = 4 * 20_000
+CAL_RADIUS_ITERS = 4             # init_radius's refinements of the cell-count estimate
+CAL_SUBSAMPLE = 20_000           # points whose exact counts set the global factor (about)
+CAL_ROUNDS = 3                   # rounds of counting and scaling
+CAL_CLAMP = (0.5, 2.0)           # the global factor of one round, at most
 STAGES = ("photon", "grid", "gather")
-
-
-def hg_table(vol: volume.Volume) -> np.ndarray:
-    """Per layer and band: 1 + g^2, 2g, (1 - g^2)/(4 pi): HG(cos) = h.z (h.x - h.y cos)^-3/2."""
-    g = vol.g.astype(np.float64)
-    t = np.stack([1 + g * g, 2 * g, (1 - g * g) / (4 * math.pi), np.zeros_like(g)], -1)
-    return np.ascontiguousarray(t.reshape(-1, 4), np.float32)
 
 
 def radius_scale(p: int, alpha: float, dim: int = 3) -> float:
@@ -52,27 +57,98 @@ def radius_scale(p: int, alpha: float, dim: int = 3) -> float:
 
 
 @dataclass
-class Scene:
-    """One scene on one device: what every pass of a render shares."""
+class Calibration:
+    """What the calibration pass decides for every later pass."""
 
-    cfg: dict
-    rs: RenderSettings               # cfg's [render] table, typed
+    R0: np.ndarray                   # (npts,) float32 initial radius per sample point (um)
+    store_zmin: float | None         # photons below this z are never gathered (not stored)
+    first_search_mean: float | None  # photons the first search finds per point, on average
+
+    @classmethod
+    def from_checkpoint(cls, st: dict) -> "Calibration":
+        """The calibration a checkpoint's state holds (clppm.checkpoint.load)."""
+        return cls(R0=st["R0"].astype(np.float32), store_zmin=st["store_zmin"],
+                   first_search_mean=st["stats"].get("first_search_mean"))
+
+
+@dataclass
+class Accumulators:
+    """Pixel x band radiance sums (float64) and photon-point pair counts, on the device."""
+
+    pix: object
+    pairs: object
+
+    @classmethod
+    def zeros(cls, sc: "Pipeline") -> "Accumulators":
+        import pyopencl.array as cla
+        q = sc.dev.queue
+        return cls(cla.zeros(q, sc.npix * sc.vol.nb, np.float64), cla.zeros(q, sc.npix, np.uint64))
+
+    def clear(self) -> None:
+        self.pix.fill(0)
+        self.pairs.fill(0)
+
+    def add(self, other: "Accumulators") -> None:
+        """Accumulate: a closed chunk's sums into the total (in chunk order)."""
+        self.pix += other.pix
+        self.pairs += other.pairs
+
+    def host(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.pix.get(), self.pairs.get()
+
+
+@dataclass
+class PointState:
+    """Per sample point: R (the radius of the next pass; R0 with the global radius) and N."""
+
+    R: object
+    N: object
+    M: object                        # photons found in the last pass (statistics, tests)
+
+
+def device_needs(cfg: dict, vol: volume.Volume, eye_bytes: int, npix: int, photons: int | None = None) -> dict:
+    """Device bytes of a render of ``cfg`` (``photons`` stored per pass; None: the config's)."""
+    capacity = photonpass.capacity_for(int(render_settings(cfg).photons if photons is None else photons))
+    from .config import bands_per_path
+    rec = 32 + 4 * (bands_per_path(cfg) - 1)                   # photon record bytes
+    return {"stored photons": capacity * rec, "sorted photons": capacity * (rec + 4),
+            "grid cells": 4 * (hashgrid.DEFAULT_MAX_CELLS + 1) * 2,
+            "sample points": eye_bytes,
+            "pixel accumulators": 2 * (npix * vol.nb * 8 + npix * 8), **vol.device_bytes()}
+
+
+@dataclass
+class Pipeline:
+    """One scene on one device: its buffers and kernels, and a method per stage of a pass."""
+
+    req: RenderRequest
     dev: Device
     vol: volume.Volume
     vbuf: volume.VolumeBuffers
     eye: eyepass.EyeData
     pp: photonpass.PhotonPass
-    kernels: dict
-    hgtab: object
-    layer_z: object
-    vlay: object                     # [NL+1] float4: the beam grid's depth keys (depth_keys)
+    prg: object                      # kernels/gather.cl built for this scene (kernel_defines)
+    init_radius: Kernel
+    count_within: Kernel
+    hgtab: object                    # [NL*NB] float4: Volume.hg_table
+    layer_z: object                  # [NL] float2: each layer's lowest top and highest bottom
     gbufs: hashgrid.GridBuffers
     target: int                      # stored photons per pass
     capacity: int
     box: tuple                       # x0, y0, x1, y1, deepest sample point z, top z
-    hz: float | None = None          # the beam's grid cell depth (um; None: cubic cells)
     gclass: int = 1                  # the beam gather's band classes (band_classes)
+    estimator: SphereGather | BeamGather | None = None   # the density estimate, made by build
     timing: dict = field(default_factory=lambda: {k: 0.0 for k in STAGES})
+
+    @property
+    def cfg(self) -> dict:
+        """The scene's config (the request's; the run's values are in :attr:`rs`)."""
+        return self.req.scene
+
+    @property
+    def rs(self) -> RenderSettings:
+        """The [render] table with the run's values (RenderRequest.settings)."""
+        return self.req.settings
 
     @property
     def npix(self) -> int:
@@ -93,305 +169,229 @@ class Scene:
     @property
     def dim(self) -> int:
         """Dimension of the density estimate's kernel: the radius update's exponent."""
-        return 2 if self.beam else 3
+        return self.estimator.dim
 
-
-@dataclass
-class Calibration:
-    """What the calibration pass decides for every later pass."""
-
-    R0: np.ndarray                   # (npts,) float32 initial radius per sample point (um)
-    store_zmin: float | None         # photons below this z are never gathered (not stored)
-    first_search_mean: float | None  # photons the first search finds per point, on average
-
-
-@dataclass
-class Accumulators:
-    """Pixel x band radiance sums (float64) and photon-point pair counts, on the device."""
-
-    pix: object
-    pairs: object
-
+    # building ---------------------------------------------------------------------------------
     @classmethod
-    def zeros(cls, sc: Scene) -> "Accumulators":
-        import pyopencl.array as cla
-        q = sc.dev.queue
-        return cls(cla.zeros(q, sc.npix * sc.vol.nb, np.float64), cla.zeros(q, sc.npix, np.uint64))
+    def build(cls, req: RenderRequest | dict, dev: Device) -> "Pipeline":
+        """Volume on the device, eye pass, photon and grid buffers, kernels, the estimator;
+        memory checked first (``req``: a request, or a config rendered with its own values)."""
+        req = req if isinstance(req, RenderRequest) else RenderRequest(req)
+        cfg, rc, cam = req.scene, req.settings, req.camera
+        t0 = time.perf_counter()
+        vol = volume.build(cfg, req.source)
+        vbuf = volume.upload_volume(dev, vol)
+        timing = {"volume": time.perf_counter() - t0}
+        nrays, target = cam.width * cam.height * cam.spp, int(rc.photons)
+        check_alloc(dev, device_needs(cfg, vol, (nrays + 1) * 8 + nrays * 8, cam.width * cam.height, target))
+        t0 = time.perf_counter()
+        eye = cls.eye_pass(req, dev, vol, vbuf)
+        timing["eye"] = time.perf_counter() - t0
+        check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height, target))
+        pp = cls.photon_source(req, dev, vol, vbuf, eye)
+        sc = cls(req=req, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, target=target,
+                 capacity=pp.capacity, gbufs=hashgrid.GridBuffers(dev), **cls._tables(req, dev, vol, eye, pp))
+        sc.estimator = BeamGather(sc) if rc.estimator == "beam" else SphereGather(sc)
+        sc.timing.update(timing)
+        return sc
 
-    def clear(self) -> None:
-        self.pix.fill(0)
-        self.pairs.fill(0)
+    @staticmethod
+    def eye_pass(req: RenderRequest, dev: Device, vol, vbuf) -> eyepass.EyeData:
+        """The eye pass: eye rays, sample points and path pieces (once per scene)."""
+        rc = req.settings
+        eye = eyepass.run(dev, vol, vbuf, req.scene, eyepass.scheme(rc.method, rc.spacing_um), rs=rc,
+                          cam=req.camera)
+        dev.queue.finish()
+        return eye
 
-    def add(self, other: "Accumulators") -> None:
-        self.pix += other.pix
-        self.pairs += other.pairs
+    @staticmethod
+    def photon_source(req: RenderRequest, dev: Device, vol, vbuf, eye) -> photonpass.PhotonPass:
+        """The photon pass's device state: the light, the storage rule, the run's seed."""
+        cfg, rc = req.scene, req.settings
+        pp = photonpass.PhotonPass(dev, vol, cfg, capacity=photonpass.capacity_for(int(rc.photons)), vbuf=vbuf,
+                                   bands=Bands.from_config(cfg), seed=rc.seed)
+        pp.set_storage(rc.storage, eye.cone_deg, rc.store_scale, rc.store_min)
+        pp.set_emission(rc.emission)
+        return pp
 
-    def host(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.pix.get(), self.pairs.get()
+    @staticmethod
+    def _tables(req: RenderRequest, dev: Device, vol, eye, pp) -> dict:
+        """The gather program, the calibration's kernels and the tables every estimator reads."""
+        import pyopencl as cl
+        gclass = band_classes(vol.nb, pp.hero)
+        prg = dev.build("gather.cl", kernel_defines(vol, hero=pp.hero, estimator=req.settings.estimator,
+                                                    gclass=gclass))
+        ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
+        zdeep = eye.zmin if eye.npoints else vol.z_top
+        return dict(prg=prg, init_radius=Kernel(prg, "init_radius"), count_within=Kernel(prg, "count_within"),
+                    hgtab=cl.Buffer(dev.ctx, ro, hostbuf=vol.hg_table()),
+                    layer_z=cl.Buffer(dev.ctx, ro, hostbuf=np.ascontiguousarray(lz)), gclass=gclass,
+                    box=(vol.x0, vol.y0, vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy, zdeep, vol.z_top))
 
+    # the stages of a pass -----------------------------------------------------------------------
+    def photon_pass(self, p: int, tallies: photonpass.Tallies) -> tuple[dict, int]:
+        """Photon pass p: its counts and the photons stored (at most the capacity)."""
+        t0 = time.perf_counter()
+        info = self.pp.run_pass(p, self.target, tallies=tallies)
+        self.dev.queue.finish()
+        self.timing["photon"] += time.perf_counter() - t0
+        return info, min(info["stored"], self.capacity)
 
-@dataclass
-class PointState:
-    """Per sample point: R (the radius of the next pass; R0 with the global radius) and N."""
+    def grid(self, n: int, radii_median: float, rmax: float, flat: bool = False, key_pos=None,
+             hz: float | None = None, nclass: int = 1) -> hashgrid.Grid:
+        """Grid over the photons that sample points can reach (the sample points' box padded by
+        the largest radius), cells of half the median radius; with ``flat`` (the beam's passes)
+        cells ``hz`` deep (not deeper than wide)."""
+        x0, y0, x1, y1, zdeep, ztop = self.box
+        pad = rmax * 1.001 + 1.0
+        # the discs have no depth: pieces not near horizontal reach only their own depth (and the
+        # waves of a conforming layer); photons beyond the box still go to its edge cells
+        zpad = pad if not flat or self.eye.grazing else 1.0 + float(np.max(np.ptp(self.vol.iface[:, 1:3], 1)))
+        lo, hi = (x0 - pad, y0 - pad, zdeep - zpad), (x1 + pad, y1 + pad, ztop + zpad)
+        h = hashgrid.choose_cell_size([radii_median], lo, hi)
+        hz = min(hz, h) if flat and hz is not None else None
+        return hashgrid.build(self.dev, self.pp.pos_w, self.pp.dir_b, n, lo, hi, h, buffers=self.gbufs,
+                              extra=self.pp.extra, extra_stride=self.pp.hero - 1, hz=hz, key_pos=key_pos,
+                              nclass=nclass if flat else 1)
 
-    R: object
-    N: object
-    M: object                        # photons found in the last pass (statistics, tests)
+    def pass_grid(self, n: int, cal: "Calibration", st: "PointState", p: int) -> tuple[PassGrid, float]:
+        """The grid stage: the pass's radii (R0 s(p) with the global radius, else the points'
+        own) size the estimator's grid.  Returns the grid and s(p)."""
+        t0 = time.perf_counter()
+        if self.global_radius:
+            scale = radius_scale(p, float(self.rs.alpha), self.dim)
+            med, rmax = float(np.median(cal.R0)) * scale, float(cal.R0.max()) * scale
+        else:
+            scale = 1.0
+            radii = st.R.get()[:self.npts]
+            med, rmax = float(np.median(radii)), float(radii.max())
+        pg = self.estimator.grid(n, med, rmax)
+        self.dev.queue.finish()
+        self.timing["grid"] += time.perf_counter() - t0
+        return pg, scale
 
+    def density_estimate(self, pg: PassGrid, st: "PointState", acc: "Accumulators", scale: float,
+                         pass_scale: float) -> None:
+        """The density estimate stage: the estimator's gather, accumulated into ``acc``."""
+        t0 = time.perf_counter()
+        extra = pg.grid.sextra.data if pg.grid.sextra is not None else self.pp.extra
+        self.estimator.estimate(pg, extra, st, acc, float(self.rs.alpha), scale, pass_scale)
+        self.dev.queue.finish()
+        self.timing["gather"] += time.perf_counter() - t0
 
-def device_needs(cfg: dict, vol: volume.Volume, eye_bytes: int, npix: int) -> dict:
-    target = int(render_settings(cfg).photons)
-    capacity = int(target * 1.2) + 4096
-    from .config import bands_per_path
-    rec = 32 + 4 * (bands_per_path(cfg) - 1)                   # photon record bytes
-    return {"stored photons": capacity * rec, "sorted photons": capacity * (rec + 4),
-            "grid cells": 4 * (hashgrid.DEFAULT_MAX_CELLS + 1) * 2,
-            "sample points": eye_bytes,
-            "pixel accumulators": 2 * (npix * vol.nb * 8 + npix * 8), **vol.device_bytes()}
-
-
-def setup(cfg: dict, dev: Device, source: str = "<config>") -> Scene:
-    """Volume on the device, eye pass, photon and grid buffers, kernels; memory checked first."""
-    import pyopencl as cl
-    from .camera import from_config
-    rc = render_settings(cfg)
-    timing = {}
-    t0 = time.perf_counter()
-    vol = volume.build(cfg, source)
-    vbuf = volume.upload_volume(dev, vol)
-    timing["volume"] = time.perf_counter() - t0
-    cam = from_config(cfg["camera"])
-    nrays = cam.width * cam.height * cam.spp
-    check_alloc(dev, {**device_needs(cfg, vol, (nrays + 1) * 8 + nrays * 8, cam.width * cam.height)})
-    t0 = time.perf_counter()
-    eye = eyepass.run(dev, vol, vbuf, cfg, eyepass.scheme(rc.method, rc.spacing_um))
-    dev.queue.finish()
-    timing["eye"] = time.perf_counter() - t0
-    check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height))
-    target = int(rc.photons)
-    capacity = int(target * 1.2) + 4096
-    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=capacity, vbuf=vbuf, bands=Bands.from_config(cfg))
-    pp.set_storage(rc.storage, eye.cone_deg, rc.store_scale, rc.store_min)
-    pp.set_emission(rc.emission)
-    gclass = band_classes(vol.nb, pp.hero)
-    prg = dev.build("gather.cl", kernel_defines(vol, hero=pp.hero, estimator=rc.estimator, gclass=gclass))
-    kernels = {k: Kernel(prg, k) for k in ("gather", "gather_beam", "gather_beam_points", "init_radius",
-                                              "count_within", "photon_slabs", "photon_keys")}
-    mf = cl.mem_flags
-    hgtab = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hg_table(vol))
-    lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
-    layer_z = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(lz))
-    vlay = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=depth_keys(vol.iface))
-    zdeep = eye.zmin if eye.npoints else vol.z_top
-    box = (vol.x0, vol.y0, vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy, zdeep, vol.z_top)
-    sc = Scene(cfg=cfg, rs=rc, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, kernels=kernels, hgtab=hgtab,
-               layer_z=layer_z, vlay=vlay, gbufs=hashgrid.GridBuffers(dev), target=target, capacity=capacity,
-               box=box, hz=beam_cell_depth(eye) if rc.estimator == "beam" else None, gclass=gclass)
-    sc.timing.update(timing)
-    return sc
-
-
-def depth_keys(iface: np.ndarray) -> np.ndarray:
-    """Per layer L (kernel photon_keys): the mean heights of its top and bottom interface and
-    1 where its photons are filed at their layer-conforming depth (an interface of L varies
-    and its bottom is finite); row NL: the lowest and highest z of those photons (+-1 um) and
-    the largest distance of a key from its photon's z."""
-    nl = len(iface) - 1
-    out = np.zeros((nl + 1, 4), np.float32)
-    lo, hi, shift = np.inf, -np.inf, 0.0
-    for L in range(nl):
-        top, bot = iface[L], iface[L + 1]
-        if not ((top[3] >= 0 or bot[3] >= 0) and bot[1] > -1e29):
-            continue
-        zt, zb = 0.5 * (top[1] + top[2]), 0.5 * (bot[1] + bot[2])
-        out[L] = (zt, zb, 1.0, 0.0)
-        th = zt - zb
-        kmin, kmax = zt - 1.5 * th, zt + 0.5 * th         # phi clamped to [-1/2, 3/2]
-        lo, hi = min(lo, bot[1]), max(hi, top[2])
-        shift = max(shift, top[2] - kmin, kmax - bot[1])
-    if np.isfinite(lo):
-        out[nl] = (lo - 1.0, hi + 1.0, shift + 1.0, 0.0)
-    else:
-        out[nl] = (1e30, -1e30, 0.0, 0.0)
-    return out
-
-
-def photon_keys(sc: Scene, n: int):
-    """Per stored photon (unsorted): its grid position with the depth key (kernel photon_keys)."""
-    import pyopencl.cltypes as cltypes
-    k = sc.gbufs.get("kpos", max(n, 1), cltypes.float4)
-    if n:
-        sc.kernels["photon_keys"](
-            sc.dev.queue, n, P=sc.pp.pbuf, iface=sc.vbuf.iface, heights=sc.vbuf.heights, vlay=sc.vlay,
-            pos_w=sc.pp.pos_w, dir_b=sc.pp.dir_b, n=n, kpos=k)
-    return k
-
-
-def beam_cell_depth(eye: eyepass.EyeData) -> float | None:
-    """The beam's grid cell depth: the median depth extent of the eye-ray pieces (at least
-    1 um).  The disc has no depth, so a piece's query box is its own depth extent (plus the
-    waves of a layer-conforming one) and cells as deep as the lateral R/2 (hundreds of um)
-    would make every piece of a ray test the same photons: cells about one piece deep cut the
-    candidates per pair (bench/gather.py) without changing which pairs are found."""
-    if eye.geo is None or eye.npieces == 0:
-        return None
-    g = eye.geo.get()[:2 * eye.npieces]
-    ext = np.abs(g[0::2]["w"] * g[1::2]["z"])
-    return max(float(np.median(ext)), 1.0)
-
-
-def build_grid(sc: Scene, n: int, radii_median: float, rmax: float, flat: bool = False,
-               key_pos=None) -> hashgrid.Grid:
-    """Grid over the photons that sample points can reach (the sample points' box padded by
-    the largest radius), cells of half the median radius; with ``flat`` (the beam's passes)
-    cells ``sc.hz`` deep (not deeper than wide)."""
-    x0, y0, x1, y1, zdeep, ztop = sc.box
-    pad = rmax * 1.001 + 1.0
-    # the discs have no depth: pieces not near horizontal reach only their own depth (and the
-    # waves of a conforming layer); photons beyond the box still go to its edge cells
-    zpad = pad if not flat or sc.eye.grazing else 1.0 + float(np.max(np.ptp(sc.vol.iface[:, 1:3], 1)))
-    lo, hi = (x0 - pad, y0 - pad, zdeep - zpad), (x1 + pad, y1 + pad, ztop + zpad)
-    h = hashgrid.choose_cell_size([radii_median], lo, hi)
-    hz = min(sc.hz, h) if flat and sc.hz is not None else None
-    return hashgrid.build(sc.dev, sc.pp.pos_w, sc.pp.dir_b, n, lo, hi, h, buffers=sc.gbufs,
-                          extra=sc.pp.extra, extra_stride=sc.pp.hero - 1, hz=hz, key_pos=key_pos,
-                          nclass=sc.gclass if flat else 1)
-
-
-def photon_slabs(sc: Scene, grid: hashgrid.Grid):
-    """Per sorted photon: its layer's top and bottom at its column (kernel photon_slabs)."""
-    import pyopencl.cltypes as cltypes
-    sl = sc.gbufs.get("sslab", max(grid.n, 1), cltypes.float2)
-    if grid.n:
-        sc.kernels["photon_slabs"](
-            sc.dev.queue, grid.n, P=sc.pp.pbuf, iface=sc.vbuf.iface, heights=sc.vbuf.heights,
-            spos_w=grid.spos_w, sdir_b=grid.sdir_b, n=grid.n, sslab=sl)
-    return sl
-
-
-def calibrate(sc: Scene) -> Calibration:
-    """The paper's initial radius: the radius at which the first search finds K photons.
-
-    A photon pass of its own (index CAL_PASS) is stored; the radius is estimated per point
-    from the grid's cell counts (kernel ``init_radius``), then scaled by one global factor so
-    that exact counts on a subsample average K.  Photons deeper than any point's sphere can
-    reach are not stored afterwards: they could never be gathered.  The calibration pass
-    stores a quarter of a pass's photons and looks for K/4 of them (the same radius, in
-    expectation): with importance storage a pass is hundreds of thousands of paths."""
-    import pyopencl.array as cla
-    q = sc.dev.queue
-    npts = sc.npts
-    if npts == 0:
-        return Calibration(R0=np.zeros(0, np.float32), store_zmin=None, first_search_mean=None)
-    frac = 0.25 if sc.target >= 4 * 20_000 else 1.0
-    n_cal = int(math.ceil(sc.target * frac))
-    K = float(sc.rs.initial_photons) * n_cal / sc.target
-    info = sc.pp.run_pass(CAL_PASS, n_cal, tallies=photonpass.Tallies(sc.vol.nb, sc.vol.nl))
-    n = min(info["stored"], sc.capacity)
-    x0, y0, x1, y1, zdeep, ztop = sc.box
-    depth = max(ztop - zdeep, 1.0)
-    vbox = (x1 - x0) * (y1 - y0) * (depth + 1.0)
-    r_guess = (3 * K * vbox / (4 * math.pi * max(n, 1))) ** (1 / 3)
-    r_guess = min(r_guess, 0.5 * max(x1 - x0, y1 - y0))
-    rmax = 4.0 * r_guess
-    R = cla.zeros(q, npts, np.float32)
-    grid = build_grid(sc, n, r_guess, rmax)
-    sc.kernels["init_radius"](
-        q, npts, gp=grid.params, cell_start=grid.cell_start, pt_pos=sc.eye.pt_pos, pt_R=R,
-        npts=npts, K=K, R0=r_guess, Rmax=rmax, iters=4)
-    stride = max(1, npts // 20000)
-    ns = (npts + stride - 1) // stride
-    cnt = cla.zeros(q, ns, np.uint32)
-    mean_m = 0.0
-    for _ in range(3):
-        radii = R.get()
-        grid = build_grid(sc, n, float(np.median(radii)), float(radii.max()))
-        sc.kernels["count_within"](
-            q, ns, gp=grid.params, cell_start=grid.cell_start, spos_w=grid.spos_w, sdir_b=grid.sdir_b,
-            pt_pos=sc.eye.pt_pos, pt_dir=sc.eye.pt_dir, pt_R=R, layer_z=sc.layer_z, npts=npts,
-            stride=stride, out=cnt)
-        mean_m = float(cnt.get().mean())
-        if mean_m <= 0 or _ == 2:
-            break
-        R *= np.float32(min(max((K / mean_m) ** (1 / 3), 0.5), 2.0))
-    R0 = R.get()
-    # the beam's disc has no depth extent: nothing below the deepest piece is ever gathered,
-    # but for the waves of the interfaces it measures depth along (layer-conforming depth)
-    iface = sc.vol.iface
-    waves = float(np.max(iface[:, 2] - iface[:, 1])) if len(iface) else 0.0
-    reach = float(R0.max()) * 1.001 if (not sc.beam or sc.eye.grazing) else waves
-    return Calibration(R0=R0, store_zmin=zdeep - reach - 1.0,
-                       first_search_mean=mean_m / frac if mean_m > 0 else None)
-
-
-def point_state(sc: Scene, cal: Calibration) -> PointState:
-    import pyopencl.array as cla
-    q = sc.dev.queue
-    n = max(sc.npts, 1)
-    R = cla.zeros(q, n, np.float32)
-    if sc.npts:
-        R[:sc.npts].set(np.ascontiguousarray(cal.R0, np.float32))
-    return PointState(R=R, N=cla.zeros(q, n, np.float32), M=cla.zeros(q, n, np.uint32))
-
-
-def prepare(sc: Scene, cal: Calibration) -> None:
-    """Apply the calibration to the photon pass (storage depth)."""
-    if cal.store_zmin is not None:
-        sc.pp.p["store_zmin"] = cal.store_zmin
-
-
-def run_pass(sc: Scene, cal: Calibration, st: PointState, p: int, acc: Accumulators,
-             tallies: photonpass.Tallies) -> dict:
-    """Photon pass p, grid, gather into ``acc``; returns the pass's counts."""
-    q = sc.dev.queue
-    rc = sc.rs
-    t0 = time.perf_counter()
-    info = sc.pp.run_pass(p, sc.target, tallies=tallies)
-    n = min(info["stored"], sc.capacity)
-    q.finish()
-    sc.timing["photon"] += time.perf_counter() - t0
-    if sc.npts == 0:
+    def run_pass(self, cal: "Calibration", st: "PointState", p: int, acc: "Accumulators",
+                 tallies: photonpass.Tallies) -> dict:
+        """Photon pass p, grid, density estimate into ``acc``; returns the pass's counts."""
+        info, n = self.photon_pass(p, tallies)
+        if self.npts == 0:
+            return info
+        pg, scale = self.pass_grid(n, cal, st, p)
+        pass_scale = 1.0 / max(info["emitted"], 1) if self.global_radius else 1.0
+        self.density_estimate(pg, st, acc, scale, pass_scale)
+        info["radius_scale"] = scale
         return info
-    t0 = time.perf_counter()
-    alpha = float(rc.alpha)
-    if sc.global_radius:
-        scale = radius_scale(p, alpha, sc.dim)
-        med, rmax = float(np.median(cal.R0)) * scale, float(cal.R0.max()) * scale
-    else:
-        scale = 1.0
-        radii = st.R.get()[:sc.npts]
-        med, rmax = float(np.median(radii)), float(radii.max())
-    keys = photon_keys(sc, n) if sc.beam else None
-    grid = build_grid(sc, n, med, rmax, flat=sc.beam, key_pos=keys)
-    sslab = photon_slabs(sc, grid) if sc.beam else None
-    q.finish()
-    sc.timing["grid"] += time.perf_counter() - t0
-    t0 = time.perf_counter()
-    pass_scale = 1.0 / max(info["emitted"], 1) if sc.global_radius else 1.0
-    e = sc.eye
-    extra = grid.sextra.data if grid.sextra is not None else sc.pp.extra
-    if sc.beam:
-        gather_beam(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
-    else:
-        sc.kernels["gather"](
-            q, sc.npix, gp=grid.params, cell_start=grid.cell_start, spos_w=grid.spos_w,
-            sdir_b=grid.sdir_b, sextra=extra, hgtab=sc.hgtab, optics=sc.vbuf.optics,
-            ray_start=e.ray_start, pt_pos=e.pt_pos, pt_dir=e.pt_dir, pt_piece=e.pt_piece,
-            pieces=e.pieces, pt_slab=e.pt_slab, layer_z=sc.layer_z, pt_R=st.R, pt_N=st.N,
-            pt_M=st.M, pix_acc=acc.pix, pix_pairs=acc.pairs, npix=sc.npix, spp=e.camera.spp,
-            alpha=alpha, global_radius=int(sc.global_radius), radius_scale=scale,
-            pass_scale=pass_scale)
-    q.finish()
-    sc.timing["gather"] += time.perf_counter() - t0
-    info["radius_scale"] = scale
-    return info
 
+    def run_passes(self, cal: "Calibration", st: "PointState", passes, acc: "Accumulators",
+                   tallies: photonpass.Tallies) -> list[dict]:
+        """Passes ``passes`` added into ``acc`` (not cleared): the step of the in-process run (one
+        pass) and of a Dask chunk (its passes) alike.  Returns each pass's counts."""
+        return [self.run_pass(cal, st, p, acc, tallies) for p in passes]
 
-def gather_beam(sc: Scene, grid: hashgrid.Grid, sslab, extra, st: PointState, acc: Accumulators,
-                alpha: float, scale: float, pass_scale: float) -> None:
-    """The beam gather in the scene's layout (clppm/beam.py: gather or scatter)."""
-    from . import beam          # imported here: beam.py imports this module (hg_table)
-    beam.run(sc, grid, sslab, extra, st, acc, alpha, scale, pass_scale)
+    def run_chunk(self, cal: "Calibration", st: "PointState", chunk: int, passes, acc: "Accumulators",
+                  start: np.ndarray | None = None) -> "ChunkResult":
+        """Passes of one chunk from zeroed accumulators, or from ``start`` (the sums of the chunk's
+        earlier passes that an in-process run's checkpoint holds); the sums come back to the host."""
+        acc.clear()
+        if start is not None:
+            acc.pix.set(np.ascontiguousarray(start, np.float64))
+        tallies = photonpass.Tallies(self.vol.nb, self.vol.nl)
+        before = dict(self.timing)
+        infos = self.run_passes(cal, st, passes, acc, tallies)
+        pix, pairs = acc.host()
+        return ChunkResult(chunk=chunk, passes=list(passes), pix=pix, pairs=pairs, tallies=tallies.counts,
+                           emitted=[i["emitted"] for i in infos],
+                           stored=sum(min(i["stored"], self.capacity) for i in infos),
+                           seconds={k: self.timing[k] - before.get(k, 0.0) for k in STAGES})
+
+    # calibration and point state ----------------------------------------------------------------
+    def point_state(self, cal: "Calibration") -> "PointState":
+        import pyopencl.array as cla
+        q = self.dev.queue
+        n = max(self.npts, 1)
+        R = cla.zeros(q, n, np.float32)
+        if self.npts:
+            R[:self.npts].set(np.ascontiguousarray(cal.R0, np.float32))
+        return PointState(R=R, N=cla.zeros(q, n, np.float32), M=cla.zeros(q, n, np.uint32))
+
+    def apply(self, cal: "Calibration") -> None:
+        """Apply the calibration to the photon pass (storage depth)."""
+        if cal.store_zmin is not None:
+            self.pp.p["store_zmin"] = cal.store_zmin
+
+    def calibrate(self) -> "Calibration":
+        """The paper's initial radius: the radius at which the first search finds K photons.
+
+        A photon pass of its own (index CAL_PASS) is stored; the radius is estimated per point
+        from the grid's cell counts (kernel ``init_radius``), then scaled by one global factor so
+        that exact counts on a subsample average K.  Photons deeper than any point's sphere can
+        reach are not stored afterwards: they could never be gathered.  The calibration pass
+        stores a quarter of a pass's photons and looks for K/4 of them (the same radius, in
+        expectation): with importance storage a pass is hundreds of thousands of paths."""
+        if self.npts == 0:
+            return Calibration(R0=np.zeros(0, np.float32), store_zmin=None, first_search_mean=None)
+        frac = CAL_FRACTION if self.target >= CAL_FRACTION_FROM else 1.0
+        n_cal = int(math.ceil(self.target * frac))
+        K = float(self.rs.initial_photons) * n_cal / self.target
+        info = self.pp.run_pass(CAL_PASS, n_cal, tallies=photonpass.Tallies(self.vol.nb, self.vol.nl))
+        n = min(info["stored"], self.capacity)
+        R, r_guess, rmax = self._first_radius(n, K)
+        mean_m = self._scale_radius(R, n, K)
+        R0 = R.get()
+        # the beam's disc has no depth extent: nothing below the deepest piece is ever gathered,
+        # but for the waves of the interfaces it measures depth along (layer-conforming depth)
+        iface = self.vol.iface
+        waves = float(np.max(iface[:, 2] - iface[:, 1])) if len(iface) else 0.0
+        reach = float(R0.max()) * 1.001 if (not self.beam or self.eye.grazing) else waves
+        return Calibration(R0=R0, store_zmin=self.box[4] - reach - 1.0,
+                           first_search_mean=mean_m / frac if mean_m > 0 else None)
+
+    def _first_radius(self, n: int, K: float):
+        """Per point, the radius holding K of the ``n`` calibration photons, from the grid's
+        cell counts (kernel init_radius), starting from the uniform-density guess."""
+        import pyopencl.array as cla
+        x0, y0, x1, y1, zdeep, ztop = self.box
+        vbox = (x1 - x0) * (y1 - y0) * (max(ztop - zdeep, 1.0) + 1.0)
+        r_guess = (3 * K * vbox / (4 * math.pi * max(n, 1))) ** (1 / 3)
+        r_guess = min(r_guess, 0.5 * max(x1 - x0, y1 - y0))
+        rmax = 4.0 * r_guess
+        R = cla.zeros(self.dev.queue, self.npts, np.float32)
+        grid = self.grid(n, r_guess, rmax)
+        self.init_radius(self.dev.queue, self.npts, gp=grid.params, cell_start=grid.cell_start,
+                         pt_pos=self.eye.pt_pos, pt_R=R, npts=self.npts, K=K, R0=r_guess, Rmax=rmax,
+                         iters=CAL_RADIUS_ITERS)
+        return R, r_guess, rmax
+
+    def _scale_radius(self, R, n: int, K: float) -> float:
+        """Scale R by one global factor (clamped per round) until exact counts on a subsample of
+        the points average K; returns the last mean count."""
+        import pyopencl.array as cla
+        q, npts = self.dev.queue, self.npts
+        stride = max(1, npts // CAL_SUBSAMPLE)
+        ns = (npts + stride - 1) // stride
+        cnt = cla.zeros(q, ns, np.uint32)
+        mean_m = 0.0
+        for r in range(CAL_ROUNDS):
+            radii = R.get()
+            grid = self.grid(n, float(np.median(radii)), float(radii.max()))
+            self.count_within(q, ns, gp=grid.params, cell_start=grid.cell_start, spos_w=grid.spos_w,
+                              sdir_b=grid.sdir_b, pt_pos=self.eye.pt_pos, pt_dir=self.eye.pt_dir, pt_R=R,
+                              layer_z=self.layer_z, npts=npts, stride=stride, out=cnt)
+            mean_m = float(cnt.get().mean())
+            if mean_m <= 0 or r == CAL_ROUNDS - 1:
+                break
+            R *= np.float32(min(max((K / mean_m) ** (1 / 3), CAL_CLAMP[0]), CAL_CLAMP[1]))
+        return mean_m
 
 
 def band_classes(nb: int, hero: int) -> int:
@@ -399,13 +399,6 @@ def band_classes(nb: int, hero: int) -> int:
     work item holds nb / GCLASS bands (9 of 81) and the bands of a photon lie in one class."""
     step = nb // max(hero, 1)
     return max(d for d in range(1, 10) if step % d == 0)
-
-
-def run_passes(sc: Scene, cal: Calibration, st: PointState, passes, acc: Accumulators,
-               tallies: photonpass.Tallies) -> list[dict]:
-    """Passes ``passes`` added into ``acc`` (not cleared): the step of the in-process run (one
-    pass) and of a Dask chunk (its passes) alike.  Returns each pass's counts."""
-    return [run_pass(sc, cal, st, p, acc, tallies) for p in passes]
 
 
 @dataclass
@@ -420,23 +413,6 @@ class ChunkResult:
     emitted: list                    # per pass
     stored: int
     seconds: dict
-
-
-def run_chunk(sc: Scene, cal: Calibration, st: PointState, chunk: int, passes, acc: Accumulators,
-              start: np.ndarray | None = None) -> ChunkResult:
-    """Passes of one chunk from zeroed accumulators, or from ``start`` (the sums of the chunk's
-    earlier passes that an in-process run's checkpoint holds); the sums come back to the host."""
-    acc.clear()
-    if start is not None:
-        acc.pix.set(np.ascontiguousarray(start, np.float64))
-    tallies = photonpass.Tallies(sc.vol.nb, sc.vol.nl)
-    before = dict(sc.timing)
-    infos = run_passes(sc, cal, st, passes, acc, tallies)
-    pix, pairs = acc.host()
-    return ChunkResult(chunk=chunk, passes=list(passes), pix=pix, pairs=pairs, tallies=tallies.counts,
-                       emitted=[i["emitted"] for i in infos],
-                       stored=sum(min(i["stored"], sc.capacity) for i in infos),
-                       seconds={k: sc.timing[k] - before.get(k, 0.0) for k in STAGES})
 
 
 def chunk_passes(chunk: int, k: int, n_passes: int) -> range:

@@ -1,14 +1,13 @@
 """Progressive photon mapping in this process: the run that :func:`clppm.driver.drive` steps.
 
-The passes themselves are :mod:`clppm.ppm`'s pieces.  State between passes stays on the
-device (sample-point R and N, the pixel x band accumulators of the closed chunks and of the
-open one); the host sees counters, the radii (to size the grid) and, at snapshots, the image.
+The passes themselves are the stages of a :class:`clppm.ppm.Pipeline`.  State between passes
+stays on the device (sample-point R and N, the pixel x band accumulators of the closed chunks
+and of the open one); the host sees counters, the radii (to size the grid) and, at snapshots, the image.
 A checkpoint is the pass index plus that state: photon pass p draws its random numbers from
 (seed, p) alone, so a resumed render repeats the remaining passes bit for bit.
 """
 from __future__ import annotations
 
-import json
 import os
 import time
 from dataclasses import dataclass, field
@@ -16,83 +15,47 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import checkpoint as ckpt
-from . import config as C
-from .config import render_settings
 from . import driver, film, paths, photonpass, ppm
 from .scene import warn_scene
-from .device import Device, open_device
+from .device import open_device
 from .film import RenderResult
 from .light import Light
+from .request import RenderRequest
 
 FIX_NOTE = "fixed point 2^32 per unit weight x phase; pixel sums in float64"
 
 
-def _flag(cfg: dict, flag: str, section: str, key: str, value) -> dict:
-    """``override`` for a command-line flag (or the API keyword of that name): a refusal names
-    the flag as the user gave it, not the key it sets."""
-    try:
-        return C.override(cfg, section, key, value)
-    except C.ConfigError as e:
-        raise C.ConfigError("command line", flag, value, f"{e.why} ({section}.{key})") from None
+def render(req: RenderRequest | dict, **kw) -> RenderResult:
+    """Render a request in this process; return the image and the run report.
 
-
-def apply_overrides(cfg: dict, method=None, passes=None, photons=None, resolution=None,
-                    seed=None, spacing=None, spp=None) -> dict:
-    """``cfg`` with the command line's (or the API's) values; ``photons`` below the config's
-    ``render.initial_photons`` lowers that to ``photons`` too (the first search cannot want more
-    photons than a pass stores)."""
-    if method is not None:
-        cfg = _flag(cfg, "--method", "render", "method", method)
-    if spacing is not None:
-        cfg = _flag(cfg, "--spacing", "render", "spacing_um", float(spacing))
-    if passes is not None:
-        cfg = _flag(cfg, "--passes", "render", "passes", int(passes))
-    if photons is not None:
-        if 1 <= int(photons) < render_settings(cfg).initial_photons:
-            cfg = _flag(cfg, "--photons", "render", "initial_photons", int(photons))
-        cfg = _flag(cfg, "--photons", "render", "photons", int(photons))
-    if resolution is not None:
-        cfg = _flag(cfg, "--resolution", "camera", "resolution", [int(resolution[0]), int(resolution[1])])
-    if seed is not None:
-        cfg = _flag(cfg, "--seed", "render", "seed", int(seed))
-    if spp is not None:
-        cfg = _flag(cfg, "--spp", "camera", "spp", int(spp))
-    return cfg
-
-
-def render(cfg: dict, *, method=None, passes=None, photons=None, resolution=None, seed=None,
-           spacing=None, spp=None, device: str | None = None, out: str | None = None,
-           progress: bool = False, resume: str | None = None, checkpoint_path: str | None = None,
-           snapshot_every: int = 0, on_snapshot=None, dev: Device | None = None,
-           source: str = "<config>", stop_after: int | None = None, on_pass=None) -> RenderResult:
-    """Render ``cfg`` in this process; return the image and the run report.
-
-    Setup, then calibration (or a checkpoint's state), then :func:`clppm.driver.drive` steps
-    a :class:`PPMRun` pass by pass.  ``on_snapshot(passes, wall s, result)`` every
-    ``snapshot_every`` passes (True: stop); ``on_pass(p, point state)`` after every pass.
-    See ``clppm render --help``."""
+    ``req``: a :class:`clppm.request.RenderRequest`, or a config and
+    :meth:`RenderRequest.of`'s keywords.  Setup, then calibration (or a checkpoint's state),
+    then :func:`clppm.driver.drive` steps a :class:`PPMRun` pass by pass.  The budget's
+    ``on_snapshot(passes, wall s, result)`` every ``snapshot_every`` passes (True: stop);
+    ``on_pass(p, point state)`` after every pass.  See ``clppm render --help``."""
     t_start = time.perf_counter()
-    cfg = apply_overrides(cfg, method, passes, photons, resolution, seed, spacing, spp)
-    rc = render_settings(cfg)
-    ckpath = checkpoint_path or (ckpt.default_path(out) if out else None)
-    paths.check_outputs(out=out, checkpoint=ckpath)
-    if resume:
-        ckpt.load(resume)                       # fail fast on a missing or corrupt file
-        driver.check_resume_passes(resume, int(rc.passes), "--passes" if passes is not None else "render.passes")
-        ckpt.check_matches(resume, config=config_identity(cfg))
-    warn_scene(cfg, source)
-    dev = dev or open_device(device)
-    if resume:
-        ckpt.check_matches(resume, device=dev.name)
-    driver.say(progress, f"building the volume and the eye pass ({cfg['camera']['resolution'][0]}x"
-                         f"{cfg['camera']['resolution'][1]}, method {rc.method}) on {dev.name}...")
-    sc = ppm.setup(cfg, dev, source)
-    driver.say(progress, f"{sc.eye.npoints} sample points; " + (f"resuming {os.path.basename(resume)}..." if resume
-                         else "calibrating the first photon search..."))
-    run = PPMRun.start(sc, run_identity(cfg, dev, sc.eye), resume, t_start, on_pass)
-    cad = driver.Cadence.of(rc, out, ckpath, snapshot_every=snapshot_every, on_snapshot=on_snapshot,
-                            stop_after=stop_after, progress=progress)
-    return driver.drive(run, cad, t_start, resumed=bool(resume))
+    req = req if isinstance(req, RenderRequest) else RenderRequest.of(req, **kw)
+    rs, cfg, out = req.settings, req.resolved(), req.outputs
+    paths.check_outputs(out=out.out, checkpoint=req.checkpoint)
+    if req.resume:
+        ckpt.load(req.resume)                   # fail fast on a missing or corrupt file
+        driver.check_resume_passes(req.resume, int(rs.passes), req.flag_or_key("passes"))
+        ckpt.check_matches(req.resume, config=req.config_identity())
+    warn_scene(cfg, req.source)
+    dev = req.dev or open_device(req.device)
+    if req.resume:
+        ckpt.check_matches(req.resume, device=dev.name)
+    cam = req.camera
+    driver.say(out.progress, f"building the volume and the eye pass ({cam.width}x{cam.height}, "
+                             f"method {rs.method}) on {dev.name}...")
+    sc = ppm.Pipeline.build(req, dev)
+    driver.say(out.progress, f"{sc.eye.npoints} sample points; " + (
+        f"resuming {os.path.basename(req.resume)}..." if req.resume else "calibrating the first photon search..."))
+    run = PPMRun.start(sc, run_identity(req, sc), req.resume, t_start, req.budget.on_pass)
+    cad = driver.Cadence.of(rs, out.out, req.checkpoint, snapshot_every=req.budget.snapshot_every,
+                            on_snapshot=req.budget.on_snapshot, stop_after=req.budget.stop_after,
+                            progress=out.progress)
+    return driver.drive(run, cad, t_start, resumed=bool(req.resume))
 
 
 @dataclass
@@ -100,7 +63,7 @@ class PPMRun:
     """A PPM render in progress: the scene, its calibration and point state, the reduced total,
     the open chunk, and the counts.  A checkpoint is this, minus the device."""
 
-    sc: ppm.Scene
+    sc: ppm.Pipeline
     cal: ppm.Calibration
     points: ppm.PointState
     total: ppm.Accumulators           # sum of the closed chunks, added in chunk order
@@ -127,23 +90,22 @@ class PPMRun:
         return self.sc.dev.name
 
     @classmethod
-    def start(cls, sc: ppm.Scene, meta: dict, resume: str | None, t_start: float, on_pass=None) -> "PPMRun":
+    def start(cls, sc: ppm.Pipeline, meta: dict, resume: str | None, t_start: float, on_pass=None) -> "PPMRun":
         """Calibrated afresh, or from a checkpoint's state."""
         st = ckpt.load(resume, meta) if resume else None
         if st is None:
             t0 = time.perf_counter()
-            cal = ppm.calibrate(sc)
+            cal = sc.calibrate()
             sc.dev.queue.finish()
             sc.timing["calibration"] = time.perf_counter() - t0
         else:
-            cal = ppm.Calibration(R0=st["R0"].astype(np.float32), store_zmin=st["store_zmin"],
-                                  first_search_mean=st["stats"].get("first_search_mean"))
-        run = cls(sc=sc, cal=cal, points=ppm.point_state(sc, cal), total=ppm.Accumulators.zeros(sc),
+            cal = ppm.Calibration.from_checkpoint(st)
+        run = cls(sc=sc, cal=cal, points=sc.point_state(cal), total=ppm.Accumulators.zeros(sc),
                   chunk=ppm.Accumulators.zeros(sc), tallies=photonpass.Tallies(sc.vol.nb, sc.vol.nl),
                   meta=meta, t_start=t_start, on_pass=on_pass)
         if st is not None:
             run._restore(st)
-        ppm.prepare(sc, cal)
+        sc.apply(cal)
         return run
 
     def _restore(self, st: dict) -> None:
@@ -160,10 +122,10 @@ class PPMRun:
         sc.timing.update({k: v for k, v in st["timing"].items() if k in ppm.STAGES + ("calibration",)})
 
     def step(self) -> None:
-        """Pass p into the open chunk (:func:`clppm.ppm.run_passes`, as a Dask chunk runs it);
+        """Pass p into the open chunk (:meth:`clppm.ppm.Pipeline.run_passes`, as a Dask chunk runs it);
         the chunk closes every ``render.chunk_passes`` passes."""
         p = self.p
-        info, = ppm.run_passes(self.sc, self.cal, self.points, [p], self.chunk, self.tallies)
+        info, = self.sc.run_passes(self.cal, self.points, [p], self.chunk, self.tallies)
         self.emitted.append(info["emitted"])
         self.stored += min(info["stored"], self.sc.capacity)
         if self.on_pass is not None:
@@ -205,23 +167,17 @@ class PPMRun:
         pass
 
 
-def config_identity(cfg: dict) -> dict:
-    """The config as a checkpoint records it: every key that changes the picture."""
-    keep = json.loads(json.dumps(cfg, default=str))
-    keep["render"] = {k: v for k, v in keep["render"].items() if k not in C.NOT_PICTURE}
-    return keep
+def run_identity(req: RenderRequest, sc: ppm.Pipeline) -> dict:
+    """What a checkpoint of this PPM run must match to be resumed."""
+    eye = sc.eye
+    return req.checkpoint_identity(sc.dev.name, npoints=int(eye.npoints), npieces=int(eye.npieces),
+                                   nrays=int(eye.nrays))
 
 
-def run_identity(cfg: dict, dev: Device, eye) -> dict:
-    """What a checkpoint must match to be resumed."""
-    return {"config": config_identity(cfg), "device": dev.name, "npoints": int(eye.npoints),
-            "npieces": int(eye.npieces), "nrays": int(eye.nrays)}
-
-
-def finish(sc: ppm.Scene, pix: np.ndarray, pairs: int, emitted_total: int, passes_done: int,
+def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, passes_done: int,
            timing: dict, stats: dict, t_start: float, interrupted: bool) -> RenderResult:
     """Pixel x band sums -> spectral radiance (the film does the rest) and the run report."""
-    cfg, vol, eye, pp, rc = sc.cfg, sc.vol, sc.eye, sc.pp, sc.rs
+    cfg, vol, eye, pp, rc = sc.cfg, sc.vol, sc.eye, sc.pp, sc.rs    # cfg: the scene's config
     cam = eye.camera
     bands = pp.bands
     acc = pix.reshape(cam.height * cam.width, vol.nb)
@@ -233,7 +189,7 @@ def finish(sc: ppm.Scene, pix: np.ndarray, pairs: int, emitted_total: int, passe
     res = film.develop(L, cfg, cam, vol.wl, bands.spectrum)
     per_layer = eye.per_layer(vol.nl)
     res.report = {
-        **film.common_report(cfg, "ppm", sc.dev, passes_done, interrupted),
+        **film.common_report(sc.req.resolved(), "ppm", sc.dev, passes_done, interrupted),
         "method": rc.method, "scheme": eye.scheme.label(),
         "photons_emitted": emitted_total, "photons_stored": stats["stored"],
         "stored_per_pass": rc.photons, "store_zmin_um": None if pp.p["store_zmin"][0] < -1e37

@@ -121,17 +121,17 @@ def pt_possible(cfg: dict) -> bool:
 
 def scene_config(cfg: dict, spec: RefSpec) -> dict:
     """The scene config with the reference's render settings applied (seed: first half)."""
-    from .progressive import apply_overrides
+    from .request import resolved_config
     if spec.integrator == "pt":
         # at the full resolution (a work item per pixel: the device needs many), averaged over
         # the squares afterwards: the same as rendering each square as one jittered pixel
         per_pixel = int(math.ceil(spec.paths / spec.block ** 2))
-        c = apply_overrides(cfg, resolution=spec.resolution, seed=spec.seeds[0])
+        c = resolved_config(cfg, resolution=spec.resolution, seed=spec.seeds[0])
         spp = int(min(256, per_pixel))
         c = C.override(c, "render", "pt_samples_per_pass", spp)
         c = C.override(c, "render", "passes", int(math.ceil(per_pixel / spp)))
         return c
-    c = apply_overrides(cfg, method=spec.method, spacing=spec.spacing_um, resolution=spec.resolution,
+    c = resolved_config(cfg, method=spec.method, spacing=spec.spacing_um, resolution=spec.resolution,
                         seed=spec.seeds[0], photons=int(spec.photons))
     for k, v in spec.overrides.items():
         c = C.override(c, "render", k, v)
@@ -251,10 +251,10 @@ def describe(spec: RefSpec) -> str:
 def _render_halves(cfg: dict, c: dict, spec: RefSpec, dev, progress: bool, log):
     """The two halves of the scene config ``c`` (seeds ``spec.seeds``), a report of each, and
     the skin squares of ``cfg``'s camera at the reference's resolution."""
-    from .progressive import apply_overrides
+    from .request import resolved_config
     halves, reports = [], []
     with volume.memoised():
-        full = apply_overrides(cfg, resolution=spec.resolution)
+        full = resolved_config(cfg, resolution=spec.resolution)
         mask = block_mask(skin_mask(full, dev), spec.block)
         for s in spec.seeds:
             th = time.perf_counter()

@@ -341,12 +341,11 @@ def _set_bands(raw: dict, bands) -> None:
 def render_config(cfg: dict, passes, photons, resolution, seed, specular: bool, source: str) -> dict:
     """The config the methods render: passes, photons, resolution and seed overridden, the
     specular highlight as asked, a light that has a white-reference irradiance."""
-    from . import progressive
+    from .request import resolved_config
     if photons is not None and 0 < photons < cfg["render"]["initial_photons"]:
-        # (progressive.apply_overrides checks photons >= initial_photons before clamping)
+        # (resolved_config checks photons >= initial_photons before clamping)
         cfg = C.override(cfg, "render", "initial_photons", int(photons))
-    cfg_r = progressive.apply_overrides(cfg, passes=passes, photons=photons, resolution=resolution,
-                                        seed=seed)
+    cfg_r = resolved_config(cfg, passes=passes, photons=photons, resolution=resolution, seed=seed)
     cfg_r = C.override(cfg_r, "render", "specular", bool(specular))
     if cfg_r["light"]["kind"] == "pencil":
         raise ConfigError(source, "light.kind", "pencil",

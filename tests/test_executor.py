@@ -152,8 +152,8 @@ def test_two_workers_in_the_scatter_layout_give_the_in_process_gather_bytes(work
     (work / "nine.toml").write_text(text)
     nine = C.load(str(work / "nine.toml"))
     gat, sca = (C.override(nine, "render", "layout", v) for v in ("gather", "scatter"))
-    sc = ppm.setup(sca, dev)
-    assert beam.layout(sc) == "scatter", beam.supports_scatter(sc)
+    sc = ppm.Pipeline.build(sca, dev)
+    assert sc.estimator.layout.name == "scatter", beam.supports_scatter(dev, sc.vol.nb, sc.gclass, sc.pp.hero)
     progressive.render(gat, dev=dev, out=str(work / "nine_ref" / "g.exr"))
     executor.render_distributed(sca, client=client, out=str(work / "nine_two" / "s.exr"))
     assert (work / "nine_two" / "s.exr").read_bytes() == (work / "nine_ref" / "g.exr").read_bytes()
@@ -275,7 +275,7 @@ def no_work(monkeypatch):
 
     def forbidden(*a, **k):
         raise AssertionError("work started before the output paths were checked")
-    for mod, name in ((volume, "build"), (device, "open_device"), (ppm, "setup"), (executor, "connect")):
+    for mod, name in ((volume, "build"), (device, "open_device"), (ppm.Pipeline, "build"), (executor, "connect")):
         monkeypatch.setattr(mod, name, forbidden)
 
 

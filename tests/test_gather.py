@@ -14,7 +14,10 @@ import pytest
 
 cl = pytest.importorskip("pyopencl")
 
-from clppm import config as C, photonpass, ppm, progressive  # noqa: E402
+import copy  # noqa: E402
+import dataclasses  # noqa: E402
+
+from clppm import beam, config as C, photonpass, ppm  # noqa: E402
 from clppm.kernelcall import Kernel  # noqa: E402
 from clppm.device import kernel_defines  # noqa: E402
 
@@ -34,47 +37,56 @@ def _pocl(sc) -> bool:
     return "Portable Computing Language" in sc.dev.device.platform.name
 
 
-def _exact(sc: ppm.Scene) -> ppm.Scene:
+def _with(sc: ppm.Pipeline, prg=None, names=("gather_beam",), **beam_state) -> ppm.Pipeline:
+    """A copy of the pipeline whose beam estimator takes ``names`` from ``prg`` and the given
+    state (vlay, hz, gclass)."""
+    est = copy.copy(sc.estimator)
+    if prg is not None:
+        est.kernels = dataclasses.replace(est.kernels, **{k: Kernel(prg, k) for k in names})
+    for k, v in beam_state.items():
+        setattr(est, k, v)
+    if "gclass" in beam_state:                        # the band-class tables of those classes
+        ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        hgc, mutc = beam.class_tables(sc.vol, est.gclass, sc.vol.hg_table())
+        est.hgc, est.mutc = cl.Buffer(sc.dev.ctx, ro, hostbuf=hgc), cl.Buffer(sc.dev.ctx, ro, hostbuf=mutc)
+    est.layout = type(est.layout)(est)
+    p = dataclasses.replace(sc, estimator=est)
+    est.pipe = p
+    return p
+
+
+def _exact(sc: ppm.Pipeline) -> ppm.Pipeline:
     """Off PoCL: the scene with rsqrt in place of native_rsqrt (EXACT_RSQRT).  Intel's
     native_rsqrt differs between the 16-lane band vector and the plain layout's scalar band loop
     (which its compiler vectorises across work items): up to 0.9 % per pixel, an
     implementation-defined precision, not a layout difference."""
     if _pocl(sc):
         return sc
-    import copy
     prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=sc.gclass,
                                                    exact_rsqrt=True))
-    p = copy.copy(sc)
-    p.kernels = {**sc.kernels, "gather_beam": Kernel(prg, "gather_beam")}
-    return p
+    return _with(sc, prg)
 
 
-def _plain(sc: ppm.Scene) -> ppm.Scene:
+def _plain(sc: ppm.Pipeline) -> ppm.Pipeline:
     """The same scene with the plain layout: cubic cells, z keys, one class of all bands."""
-    import copy
     prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=1,
                                                    exact_rsqrt=not _pocl(sc)))
-    p = copy.copy(sc)
-    p.kernels = {**sc.kernels, **{k: Kernel(prg, k) for k in ("gather_beam", "gather_beam_points",
-                                                                  "photon_keys")}}
-    keys = ppm.depth_keys(sc.vol.iface)
+    keys = beam.depth_keys(sc.vol.iface)
     keys[:, 2] = 0.0                                  # no layer is filed at its conformed depth
     keys[-1] = (1e30, -1e30, 0.0, 0.0)
     mf = cl.mem_flags
-    p.vlay = cl.Buffer(sc.dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=keys)
-    p.hz, p.gclass = None, 1
-    return p
+    vlay = cl.Buffer(sc.dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=keys)
+    return _with(sc, prg, ("gather_beam", "gather_beam_points", "photon_keys"), vlay=vlay, hz=None, gclass=1)
 
 
 def _pass(sc, cal, p=0, count=False):
-    st = ppm.point_state(sc, cal)
+    st = sc.point_state(cal)
     acc = ppm.Accumulators.zeros(sc)
     if count:
-        prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", gclass=sc.gclass,
-                                                        count_candidates=True))
-        sc = __import__("copy").copy(sc)
-        sc.kernels = {**sc.kernels, "gather_beam": Kernel(prg, "gather_beam")}
-    ppm.run_pass(sc, cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
+        prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam",
+                                                       gclass=sc.estimator.gclass, count_candidates=True))
+        sc = _with(sc, prg)
+    sc.run_pass(cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
     pix, pairs = acc.host()
     return pix, pairs, st.M.get()[:sc.npts]
 
@@ -84,15 +96,15 @@ def scene(request, dev):
     import os
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     cfg = _cfg(os.path.join(root, "configs", request.param))
-    sc = ppm.setup(cfg, dev)
-    cal = ppm.calibrate(sc)
-    ppm.prepare(sc, cal)
+    sc = ppm.Pipeline.build(cfg, dev)
+    cal = sc.calibrate()
+    sc.apply(cal)
     return request.param, sc, cal
 
 
 def test_layouts_agree_per_pixel_and_band(scene):
     name, sc, cal = scene
-    assert sc.beam and sc.gclass == 9 and sc.hz is not None
+    assert sc.beam and sc.estimator.gclass == 9 and sc.estimator.hz is not None
     pix, pairs, M = _pass(_exact(sc), cal, p=1)
     ref_pix, ref_pairs, ref_M = _pass(_plain(sc), cal, p=1)
     assert pairs.sum() > 100 * sc.npix                     # not vacuous

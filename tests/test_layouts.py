@@ -34,16 +34,21 @@ def _cfg(name: str, layout: str, **render):
     return cfg
 
 
+def _no_scatter(sc) -> str | None:
+    return beam.supports_scatter(sc.dev, sc.vol.nb, sc.gclass, sc.pp.hero)
+
+
 def _passes(dev, cfg, n=2):
-    sc = ppm.setup(cfg, dev)
-    if cfg["render"]["layout"] == "scatter" and beam.supports_scatter(sc) is not None:
-        pytest.skip(beam.supports_scatter(sc))
-    cal = ppm.calibrate(sc)
-    ppm.prepare(sc, cal)
-    st = ppm.point_state(sc, cal)
+    sc = ppm.Pipeline.build(cfg, dev)
+    why = _no_scatter(sc)
+    if cfg["render"]["layout"] == "scatter" and why is not None:
+        pytest.skip(why)
+    cal = sc.calibrate()
+    sc.apply(cal)
+    st = sc.point_state(cal)
     acc = ppm.Accumulators.zeros(sc)
     for p in range(n):
-        ppm.run_pass(sc, cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
+        sc.run_pass(cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
     pix, pairs = acc.host()
     return sc, (pix, pairs, st.M.get()[:sc.npts], st.R.get()[:sc.npts], st.N.get()[:sc.npts])
 
@@ -55,7 +60,7 @@ CASES = [("forearm.toml", {}), ("forearm_flat.toml", {}), ("forearm.toml", {"rad
 def test_layouts_same_image(dev, name, render):
     sg, g = _passes(dev, _cfg(name, "gather", **render))
     ss, s = _passes(dev, _cfg(name, "scatter", **render))
-    assert beam.layout(sg) == "gather" and beam.layout(ss) == "scatter"
+    assert sg.estimator.layout.name == "gather" and ss.estimator.layout.name == "scatter"
     pix, pairs = g[0], g[1]
     assert pairs.sum() > 100 * sg.npix                     # not vacuous
     for what, a, b in zip(("pixels", "pairs", "photons found", "R", "N"), g, s):
@@ -64,7 +69,7 @@ def test_layouts_same_image(dev, name, render):
     img = pix.reshape(sg.eye.camera.height, sg.eye.camera.width, -1).sum(-1)
     assert (img[0] > 0).sum() > 14 and (img[-1] > 0).sum() > 14
     # the scatter's piece grid is not vacuous either: pieces filed in several cells each
-    assert beam.state(ss).entries > 2 * ss.eye.npieces
+    assert ss.estimator.layout.entries > 2 * ss.eye.npieces
 
 
 @pytest.mark.parametrize("layout", ["gather", "scatter"])
@@ -75,15 +80,14 @@ def test_layout_same_bytes_twice(dev, layout):
 
 
 def test_layout_resolution(dev, monkeypatch):
-    sc = ppm.setup(_cfg("forearm.toml", "auto"), dev)
-    assert beam.layout(sc) == beam.AUTO[beam.device_kind(dev)]
-    sc.cfg = C.override(sc.cfg, "render", "layout", "scatter")
-    monkeypatch.setattr(beam, "supports_scatter", lambda sc: "no int64 atomics")
-    assert beam.layout(sc) == "gather"                   # the fallback
+    sc = ppm.Pipeline.build(_cfg("forearm.toml", "auto"), dev)
+    assert sc.estimator.layout.name == beam.AUTO[beam.device_kind(dev)]
+    monkeypatch.setattr(beam, "supports_scatter", lambda *a: "no int64 atomics")
+    assert beam.choose_layout("scatter", dev, sc.vol.nb, sc.gclass, sc.pp.hero) == "gather"   # the fallback
     # a scene whose paths carry other than 9 bands cannot scatter
     monkeypatch.undo()
-    sc3 = ppm.setup(_cfg("forearm.toml", "scatter", bands_per_path=3), dev)
-    assert beam.supports_scatter(sc3) is not None and beam.layout(sc3) == "gather"
+    sc3 = ppm.Pipeline.build(_cfg("forearm.toml", "scatter", bands_per_path=3), dev)
+    assert _no_scatter(sc3) is not None and sc3.estimator.layout.name == "gather"
 
 
 def test_resume_in_the_other_layout(dev, tmp_path):

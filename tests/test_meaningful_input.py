@@ -63,11 +63,11 @@ def test_trace_slab_duplicate_key_refused(no_work):
 
 # ----------------------------------------------------------------------------- messages
 def test_photons_below_initial_photons_answers_about_photons():
-    from clppm.progressive import apply_overrides
-    cfg = apply_overrides(C.load("forearm"), photons=1)
+    from clppm.request import resolved_config
+    cfg = resolved_config(C.load("forearm"), photons=1)
     assert cfg["render"]["photons"] == 1 and cfg["render"]["initial_photons"] == 1
     with pytest.raises(C.ConfigError) as e:
-        apply_overrides(C.load("forearm"), photons=0)
+        resolved_config(C.load("forearm"), photons=0)
     assert "--photons" in str(e.value) and "initial_photons" not in str(e.value)
 
 

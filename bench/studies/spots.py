@@ -47,19 +47,20 @@ def seeds_of(s: str) -> list[int]:
 
 def one_seed(dev, cfg, passes: int) -> dict:
     from clppm import beam, ppm, photonpass
-    sc = ppm.setup(cfg, dev)
-    if beam.layout(sc) != "scatter":
-        raise SystemExit(f"the scatter layout is not available here: {beam.supports_scatter(sc)}")
-    cal = ppm.calibrate(sc)
-    ppm.prepare(sc, cal)
-    st = ppm.point_state(sc, cal)
+    sc = ppm.Pipeline.build(cfg, dev)
+    if sc.estimator.layout.name != "scatter":
+        why = beam.supports_scatter(dev, sc.vol.nb, sc.gclass, sc.pp.hero)
+        raise SystemExit(f"the scatter layout is not available here: {why}")
+    cal = sc.calibrate()
+    sc.apply(cal)
+    st = sc.point_state(cal)
     acc = ppm.Accumulators.zeros(sc)
-    ss = beam.scatter_state(sc)
-    ss.measure_spots(sc)
+    ss = sc.estimator.layout.scatter_state()
+    ss.measure_spots()
     top = np.zeros(sc.npix, np.float64)
     for p in range(passes):
         ss.spots.fill(0)
-        info = ppm.run_pass(sc, cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
+        info = sc.run_pass(cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
         scale = 1.0 / max(info["emitted"], 1) if sc.global_radius else 1.0
         m = ss.spots.get().view(np.float32).astype(np.float64) * scale
         top = np.maximum(top, m)
@@ -87,9 +88,9 @@ def photon_tail(dev, cfg, passes: int) -> dict:
     import math
     import pyopencl as cl
     from clppm import ppm, photonpass
-    sc = ppm.setup(cfg, dev)
-    cal = ppm.calibrate(sc)
-    ppm.prepare(sc, cal)
+    sc = ppm.Pipeline.build(cfg, dev)
+    cal = sc.calibrate()
+    sc.apply(cal)
     pp, vol = sc.pp, sc.vol
     NB, C = vol.nb, pp.hero
     parts = []
@@ -139,11 +140,12 @@ def main(argv=None) -> int:
     ap.add_argument("--photons-tail", action="store_true", help="the stored photons' largest contributions (the cause)")
     ap.add_argument("--out", default=os.path.join(ROOT, "out", "bench_spots.json"))
     a = ap.parse_args(argv)
-    from clppm import config as C, progressive
+    from clppm import config as C
+    from clppm.request import resolved_config
     from clppm.device import open_device
     dev = open_device(a.device)
     if a.photons_tail:
-        cfg = progressive.apply_overrides(C.load(a.config), resolution=tuple(a.res), photons=a.photons)
+        cfg = resolved_config(C.load(a.config), resolution=tuple(a.res), photons=a.photons)
         r = photon_tail(dev, cfg, a.passes or 2)
         print(f"{r['photons']} stored photons, {r['passes']} passes; X / median X at quantiles: "
               + ", ".join(f"{q}: {v:.0f}" for q, v in r["quantiles_over_median"].items())
@@ -157,7 +159,7 @@ def main(argv=None) -> int:
         with open(a.out, "w") as f:
             json.dump(r, f, indent=1)
         return 0
-    base = progressive.apply_overrides(C.load(a.config), resolution=tuple(a.res), photons=a.photons)
+    base = resolved_config(C.load(a.config), resolution=tuple(a.res), photons=a.photons)
     base = C.override(base, "render", "layout", "scatter")
     passes = a.passes or int(base["render"]["passes"])
     rows = []

@@ -36,6 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))   # bench/studies
 
 from clppm import config as C, photonpass, ppm, progressive, volume  # noqa: E402
 from clppm.bands import Bands                                        # noqa: E402
+from clppm.request import RenderRequest                               # noqa: E402
 from clppm.reference import skin_mask                                # noqa: E402
 from noise import two_seed_noise                          # noqa: E402
 
@@ -61,18 +62,19 @@ def render_one(cfg: dict, seed: int, eye_seed: int, passes: int, iso_phase: bool
     """The in-process PPM run stepped by hand, with the eye pass's seed and the gather's phase controllable."""
     import pyopencl as cl
     c = C.override(cfg, "render", "seed", eye_seed)
-    sc = ppm.setup(c, dev)
+    req = RenderRequest(c)
+    sc = ppm.Pipeline.build(req, dev)
     sc.pp = photonpass.PhotonPass(dev, sc.vol, c, capacity=sc.capacity, vbuf=sc.vbuf,
                                  bands=Bands.from_config(c), seed=seed)
     rc = c["render"]
     sc.pp.set_storage(rc["storage"], sc.eye.cone_deg, rc["store_scale"], rc["store_min"])
     sc.pp.set_emission(rc["emission"])
     if iso_phase:
-        t = ppm.hg_table(sc.vol)
+        t = sc.vol.hg_table()
         t[:, 0], t[:, 1], t[:, 2] = 1.0, 0.0, 1.0 / (4 * math.pi)
         sc.hgtab = cl.Buffer(dev.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=t)
     t0 = time.perf_counter()
-    run = progressive.PPMRun.start(sc, progressive.run_identity(c, dev, sc.eye), None, t0)
+    run = progressive.PPMRun.start(sc, progressive.run_identity(req, sc), None, t0)
     for _ in range(passes):
         run.step()
     res = run.image(interrupted=False)

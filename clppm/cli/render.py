@@ -43,13 +43,28 @@ def _render_config(a) -> dict:
     return cfg
 
 
-def _check_render_paths(a, cfg) -> None:
-    """-o, its sidecars, the output set, the inputs, --resume against the checkpoint, and the
-    scene: everything that can be refused before any work."""
+def render_request(a, cfg: dict):
+    """The render the command line asks for, as one :class:`clppm.request.RenderRequest`
+    (the run's values checked here: a refusal names the flag)."""
+    from ..request import RenderRequest
+    kw = dict(passes=a.passes, resolution=a.resolution, seed=a.seed)
+    if a.integrator == "ppm":
+        scheduler, flag = _scheduler(a)
+        kw.update(method=a.method, photons=a.photons, spacing=a.spacing,
+                  scheduler=scheduler, devices=a.devices, scheduler_flag=flag)
+    else:
+        _refuse_ppm_flags(a)
+    return RenderRequest.of(cfg, a.integrator, device=a.device, out=a.output, progress=not a.quiet,
+                            resume=a.resume, source=os.path.basename(a.config), **kw)
+
+
+def _check_render_paths(a, cfg):
+    """-o, its sidecars, the output set, the inputs, the run's values, --resume against the
+    checkpoint, and the scene: everything that can be refused before any work.  Returns the
+    request (:func:`render_request`)."""
     from .. import config, paths, scene
     from ..checkpoint import check_matches
     from ..driver import check_resume_passes
-    from ..progressive import apply_overrides, config_identity
     if a.resume and a.force:
         raise ConfigError("command line", "--force", True, "conflicts with --resume (--resume continues "
                           "the checkpoint, --force starts over): give one of them")
@@ -59,10 +74,11 @@ def _check_render_paths(a, cfg) -> None:
     paths.check_output_set(a.output, a.resume, a.force)
     passes = a.passes if a.passes is not None else cfg["render"]["passes"]
     check_resume_passes(a.resume, passes, "--passes" if a.passes is not None else "render.passes")
-    full = apply_overrides(cfg, a.method, a.passes, a.photons, a.resolution, a.seed, a.spacing)
+    req = render_request(a, cfg)
     if a.resume:
-        check_matches(a.resume, config=config_identity(full))
-    scene.refuse(full, os.path.basename(a.config))
+        check_matches(a.resume, config=req.config_identity())
+    scene.refuse(req.resolved(), os.path.basename(a.config))
+    return req
 
 
 def resume_command(a, checkpoint: str) -> str:
@@ -107,7 +123,7 @@ def cmd_render(a) -> int:
     from ..device import DeviceError
     from ..driver import interrupt_signal
     cfg = _render_config(a)
-    _check_render_paths(a, cfg)
+    req = _check_render_paths(a, cfg)
     first = cfg["render"]["initial_photons"]
     if a.photons is not None and 1 <= a.photons < first and not a.quiet:
         print(f"clppm: note: render.initial_photons lowered from {first} to --photons {a.photons} "
@@ -119,7 +135,7 @@ def cmd_render(a) -> int:
         if said:
             print(f"clppm: {said}", file=sys.stderr)
         try:
-            res = _render_pt(a, cfg) if a.integrator == "pt" else _render_ppm(a, cfg)
+            res = _render_pt(a, req) if a.integrator == "pt" else _render_ppm(a, req)
         except paths.WriteError as e:
             hint = (f": resume with {resume_command(a, e.checkpoint)}" if e.checkpoint else "")
             raise InputError(f"{e}; {e.kept()}{hint}") from None
@@ -146,38 +162,36 @@ def cmd_render(a) -> int:
     return EXIT["ok"]
 
 
-def _render_ppm(a, cfg):
-    from .. import progressive as render
-    scheduler, flag = _scheduler(a)
-    kw = dict(method=a.method, passes=a.passes, photons=a.photons, resolution=a.resolution, seed=a.seed,
-              spacing=a.spacing, out=a.output, progress=not a.quiet, resume=a.resume,
-              source=os.path.basename(a.config))
-    if not (scheduler or a.devices):
-        return render.render(cfg, device=a.device, **kw)
+def _render_ppm(a, req):
+    from .. import progressive
+    if req.cluster is None:
+        return progressive.render(req)
+    cl = req.cluster
     try:
         from .. import executor
     except ImportError as e:
-        raise ConfigError("command line", flag if scheduler else "--devices", scheduler or a.devices,
+        raise ConfigError("command line", cl.flag if cl.scheduler else "--devices", cl.scheduler or cl.devices,
                           f"needs dask.distributed ({e}): pip install 'clppm[dask]'") from None
     try:
-        return executor.render_distributed(cfg, scheduler=scheduler, devices=a.devices,
-                                           scheduler_flag=flag, **kw)
+        return executor.render_distributed(req)
     except executor.ExecutorError as e:
         raise InputError(str(e)) from None
 
 
-def _render_pt(a, cfg):
-    from ..driver import say
-    from ..pathtracer import render_pt
+def _refuse_ppm_flags(a) -> None:
+    """The path tracer has no sample points, photons or PPM estimator: their flags are refused."""
     for flag, v in (("--method", a.method), ("--spacing", a.spacing), ("--photons", a.photons),
                     ("--paper", a.paper or None), ("--estimator", a.estimator), ("--storage", a.storage),
                     ("--bands-per-path", a.bands_per_path), ("--radius", a.radius)):
         if v is not None:
             raise ConfigError("command line", flag, v, "applies to --integrator ppm only")
+
+
+def _render_pt(a, req):
+    from ..driver import say
+    from ..pathtracer import render_pt
     say(not a.quiet, "path tracer: building the volume...")
-    return render_pt(cfg, passes=a.passes, resolution=a.resolution, seed=a.seed, device=a.device,
-                     out=a.output, progress=not a.quiet, resume=a.resume,
-                     source=os.path.basename(a.config))
+    return render_pt(req)
 
 
 RENDER_EPILOG = "sample-point methods (--method, render.method):\n" + "".join(

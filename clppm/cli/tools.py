@@ -96,11 +96,11 @@ def cmd_trace(a) -> int:
 
 def cmd_samples(a) -> int:
     from .. import device, eyepass, paths, volume
-    from .. import progressive as render
+    from ..request import resolved_config
     from ..skin import PAPER_TABLE1
     method_or_spacing(a)
-    cfg = render.apply_overrides(load_config(a.config), method=a.method, spacing=a.spacing,
-                                 resolution=a.resolution)
+    cfg = resolved_config(load_config(a.config), method=a.method, spacing=a.spacing,
+                          resolution=a.resolution)
     paths.check_writable(a.json, "--json")
     vol = volume.build(cfg, os.path.basename(a.config))
     dev = device.open_device(a.device)
