@@ -38,13 +38,9 @@ enum { K_ENTERED = 0, K_MISSED, K_STEPS, K_COLLISIONS, K_STORED, K_IFACE, K_IFAC
 #ifdef PHOTON_COUNTERS
 #define COUNT(k) (cnt[k]++)
 #define COUNTER_ARGS , __global long* counters, __global uint* lane_steps
-#define COUNTS_PARAM , uint* cnt        /* a step's helpers count into the work item's cnt */
-#define COUNTS_PASS , cnt
 #else
 #define COUNT(k)
 #define COUNTER_ARGS
-#define COUNTS_PARAM
-#define COUNTS_PASS
 #endif
 
 inline int sample_band(__global const float* cdf, float u) {
@@ -376,172 +372,6 @@ HOT long emit_photon(uint id, VOLUME_ARGS, __global const float* band_cdf, __glo
     return W;
 }
 
-/* Absorption at a collision: the part op.x = mu_a / mu_t of the weight, rounded to the integer
- * weight, to the tally of the photon's layer. */
-HOT void absorb(long* W, Fates* f, int L, float mua_mut) {
-    long dw = convert_long_rte((float)*W * mua_mut);
-#ifdef CLPPM_FAULT_WRONG                /* the self-test's tests only: a miscompiled absorption */
-    dw = convert_long_rte((float)dw * 1.5f);
-#endif
-    dw = dw < 0 ? 0 : (dw > *W ? *W : dw);
-    f->absorbed[L] += dw; *W -= dw;
-}
-
-/* Storage of a scattering event (weight W, hero band b): under the storage rule STORE_RULE_ALL
- * every event, under STORE_RULE_IMPORTANCE with probability q and weight 1 / q (see
- * store_probability; the uniform from the storage stream srng).  The bands' weights go to the
- * photon map's next slot while it has room. */
-HOT void store_event(__constant const Params* P, const Track* t, const Spectral* sw, Rng* srng, long W,
-                     int b, __global const float2* store_imp, __global const float2* band_spi,
-                     __global const float4* optics, __global const float* logmu,
-                     __global float4* store_pos_w, __global float4* store_dir_b,
-                     __global float* store_extra, __global volatile uint* store_count COUNTS_PARAM) {
-    const float a_h = (float)W * (1.0f / W0F);
-    float F[HERO_C];
-    float q = 1.0f;
-    int keep = 1;
-    if (P->store_rule == 1) {
-        const float u = rng_u01(srng);
-        const float ce = cone_cos(P, t->dir);
-#ifndef STORE_EXACT                     /* tests: q for every event (the same decisions) */
-        keep = u <= clamp(P->store_scale * store_bound(store_imp, t->L, ce, sw_amax(sw, a_h), t->pos.z),
-                          P->store_qmin, 1.0f);
-#endif
-        if (keep) {
-            sw_weights(sw, a_h, band_spi, optics, logmu, F);
-            q = store_probability(P, ce, t->L, b, F, band_spi, optics, store_imp, t->pos.z);
-            keep = u <= q;
-        }
-    } else {
-        sw_weights(sw, a_h, band_spi, optics, logmu, F);
-    }
-    if (keep) {
-        const float iq = 1.0f / q;
-        for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
-        COUNT(K_STORED);
-        uint i = atomic_inc(store_count);
-        if (i < P->capacity) {
-            store_pos_w[i] = (float4)(t->pos, F[0]);
-            store_dir_b[i] = (float4)(t->dir, (float)(b + 256 * t->L));   /* band, layer */
-            for (int j = 1; j < HERO_C; ++j) store_extra[(size_t)i * (HERO_C - 1) + j - 1] = F[j];
-        }
-    }
-}
-
-/* Scattering: a new direction from the layer's phase function (op.y = g, op.z = 1 / 2g), the
- * other bands' weights by their phase functions' ratio; then Russian roulette below rr_w. */
-HOT void scatter_roulette(Track* t, Spectral* sw, Rng* rng, long* W, Fates* f, float4 op, long rr_w,
-                          __constant const Params* P, __global const float4* optics) {
-    float ct = hg_sample_cos_t(op.y, op.z, rng_u01(rng));
-    t->dir = scatter_dir(t->dir, ct, rng_u01(rng));
-    sw_scatter(sw, optics, t->L, op.y, ct);
-    if (*W < rr_w) {
-        if (rng_u01(rng) * P->rr_m <= 1.0f) {
-            long g2 = *W * (long)(P->rr_m) - *W;
-            f->gain += g2; *W += g2;
-            sw_scale(sw, P->rr_m);
-        } else {
-            f->loss += *W; *W = 0;
-        }
-    }
-}
-
-/* Photon flight ends at a collision after path s: absorb by weight, store, scatter, roulette;
- * then the optical depth *tau to the next collision. */
-HOT void collide(Track* t, Spectral* sw, Rng* rng, Rng* srng, long* W, Fates* f, int b, float* tau,
-                 float s, float4 op, long rr_w, VOLUME_ARGS, __global const float2* store_imp,
-                 __global const float2* band_spi, __global const float* logmu,
-                 __global float4* store_pos_w, __global float4* store_dir_b,
-                 __global float* store_extra, __global volatile uint* store_count COUNTS_PARAM) {
-    COUNT(K_COLLISIONS);
-    t->pos += s * t->dir;
-    sw_flight(sw, optics, logmu, t->L, op.w, s);
-    sw_collide(sw, logmu, t->L);
-    absorb(W, f, t->L, op.x);
-    if (*W > 0 && op.x < 1.0f) {
-        if (P->capacity > 0u && t->pos.z > P->store_zmin)
-            store_event(P, t, sw, srng, *W, b, store_imp, band_spi, optics, logmu, store_pos_w,
-                        store_dir_b, store_extra, store_count COUNTS_PASS);
-        scatter_roulette(t, sw, rng, W, f, op, rr_w, P, optics);
-    } else if (*W > 0) {
-        /* pure absorber reached here only when mus = 0 and mua > 0: all absorbed */
-        f->absorbed[t->L] += *W; *W = 0;
-    }
-    *tau = neg_log_u01(rng_u01(rng));
-}
-
-/* The photon through a face from its layer into L2: out of the skin (into the relief again where
- * its way out meets it, else to the diffuse reflectance, and to the cone's part of it), out
- * through the bottom, or into L2.  Returns 1 when it entered the skin again. */
-HOT int enter_layer(Track* t, int L2, long* W, Fates* f, VOLUME_ARGS, __global const float* smooth,
-                    Rng* rng) {
-    if (L2 < 0 && reenter(t, VOLUME_PASS, smooth, rng)) return 1;
-    if (L2 < 0) { f->rd += *W; if (t->dir.z > P->rcone_cos) f->rcone += *W; *W = 0; return 0; }
-    if (L2 >= NL) { f->tt += *W; *W = 0; return 0; }
-    t->L = L2;
-    return 0;
-}
-
-/* Interface crossing at a layer's top or bottom (ev EV_TOP or EV_BOTTOM): onto the interface,
- * then reflected or through by Fresnel at the smooth surface's normal. */
-HOT void cross_interface(Track* t, int ev, long* W, Fates* f, int* events, VOLUME_ARGS,
-                         __global const float* smooth, Rng* rng COUNTS_PARAM) {
-    const int up = (ev == EV_TOP);
-    COUNT(K_IFACE);
-    const int L2 = up ? t->L - 1 : t->L + 1;
-    /* snap onto the interface (in core mode only flat interfaces raise TOP/BOTTOM) */
-    t->pos.z = iface_z(iface, heights, P, up ? t->L : t->L + 1, col_index(P, t->ix, t->iy));
-    const float n1 = layer_n[t->L];
-    const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-    const float4 gn2 = (float4)(0.0f, 0.0f, up ? 1.0f : -1.0f, 0.0f);
-#ifndef FLAT
-    if (n1 != n2 && IF_VAR(up ? t->L : t->L + 1) >= 0) COUNT(K_IFACE_SMOOTH);
-#endif
-    float4 d = (float4)(t->dir, 0.0f);
-    const int through = cross_face(&d, gn2, up ? t->L : t->L + 1, t->L, L2, t->pos.x, t->pos.y, n1, n2,
-                                   P, iface, smooth, rng_u01(rng));
-    t->dir = d.xyz;
-    if (through && enter_layer(t, L2, W, f, VOLUME_PASS, smooth, rng)) { (*events)++; COUNT(K_REENTER); }
-}
-
-/* A lateral step (ev: a column wall or a domain side): across the wall (out of an open side:
- * lost), and where the layer there differs, the interface crossing through the wall's face;
- * reflected, the photon stays in its old column. */
-HOT void cross_lateral(Track* t, int ev, long* W, Fates* f, VOLUME_ARGS, __global const float* smooth,
-                       Rng* rng COUNTS_PARAM) {
-    const int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
-    const int domain_only = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
-#ifdef PHOTON_COUNTERS
-    if (domain_only) COUNT(K_DOMAIN); else COUNT(K_WALL);
-#endif
-#ifndef FLAT
-    const int oix = t->ix, oiy = t->iy;
-    const float3 opos = t->pos;
-#endif
-    if (cross_wall(t, P, axis, domain_only)) { f->lost += *W; *W = 0; return; }
-#ifndef FLAT
-    if (domain_only) { locate_column(t, P); }
-    const int col = col_index(P, t->ix, t->iy);
-    const int L2 = layer_at(iface, heights, P, col, t->pos.z, t->L);
-    if (L2 == t->L) return;
-    const float n1 = layer_n[t->L];
-    const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-    if (n1 != n2 && IF_VAR(L2 < t->L ? t->L : t->L + 1) >= 0) COUNT(K_IFACE_SMOOTH);
-    COUNT(K_IFACE);
-    const float4 gnw = axis == 0 ? (float4)(t->dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f, 0.0f)
-                                 : (float4)(0.0f, t->dir.y > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f);
-    float4 d = (float4)(t->dir, 0.0f);
-    const int through = cross_face(&d, gnw, L2 < t->L ? t->L : t->L + 1, t->L, L2, t->pos.x, t->pos.y, n1, n2,
-                                   P, iface, smooth, rng_u01(rng));
-    t->dir = d.xyz;
-    if (through) {
-        if (enter_layer(t, L2, W, f, VOLUME_PASS, smooth, rng)) COUNT(K_REENTER);
-    } else {
-        t->ix = oix; t->iy = oiy; t->pos = opos;      /* reflected back into the old column */
-    }
-#endif
-}
-
 /* The photons of a launch are drawn from a shared counter by a fixed number of work items
  * (persistent threads): a work item whose photon has ended takes the next one at the top of the
  * same loop, so neighbouring work items that a SIMD compiler runs in lanes (Intel's CPU runtime,
@@ -610,11 +440,70 @@ __kernel void photon_pass(VOLUME_ARGS,
 #endif
         const float s = mut > 0.0f ? tau / mut : BIG;
         if (s < db) {
-            collide(&t, &sw, &rng, &srng, &W, &f, b, &tau, s, op, rr_w, VOLUME_PASS, store_imp, band_spi,
-                    logmu, store_pos_w, store_dir_b, store_extra, store_count COUNTS_PASS);
+            /* ---- collision: absorb by weight, store, scatter, roulette */
+            COUNT(K_COLLISIONS);
+            t.pos += s * t.dir;
+            sw_flight(&sw, optics, logmu, t.L, mut, s);
+            sw_collide(&sw, logmu, t.L);
+            long dw = convert_long_rte((float)W * op.x);
+#ifdef CLPPM_FAULT_WRONG                /* the self-test's tests only: a miscompiled absorption */
+            dw = convert_long_rte((float)dw * 1.5f);
+#endif
+            dw = dw < 0 ? 0 : (dw > W ? W : dw);
+            f.absorbed[t.L] += dw; W -= dw;
+            if (W > 0 && op.x < 1.0f) {
+                if (P->capacity > 0u && t.pos.z > P->store_zmin) {
+                    const float a_h = (float)W * (1.0f / W0F);
+                    float F[HERO_C];
+                    float q = 1.0f;
+                    int keep = 1;
+                    if (P->store_rule == 1) {
+                        const float u = rng_u01(&srng);
+                        const float ce = cone_cos(P, t.dir);
+#ifndef STORE_EXACT                     /* tests: q for every event (the same decisions) */
+                        keep = u <= clamp(P->store_scale * store_bound(store_imp, t.L, ce, sw_amax(&sw, a_h), t.pos.z),
+                                          P->store_qmin, 1.0f);
+#endif
+                        if (keep) {
+                            sw_weights(&sw, a_h, band_spi, optics, logmu, F);
+                            q = store_probability(P, ce, t.L, b, F, band_spi, optics, store_imp, t.pos.z);
+                            keep = u <= q;
+                        }
+                    } else {
+                        sw_weights(&sw, a_h, band_spi, optics, logmu, F);
+                    }
+                    if (keep) {
+                        const float iq = 1.0f / q;
+                        for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
+                        COUNT(K_STORED);
+                        uint i = atomic_inc(store_count);
+                        if (i < P->capacity) {
+                            store_pos_w[i] = (float4)(t.pos, F[0]);
+                            store_dir_b[i] = (float4)(t.dir, (float)(b + 256 * t.L));   /* band, layer */
+                            for (int j = 1; j < HERO_C; ++j) store_extra[(size_t)i * (HERO_C - 1) + j - 1] = F[j];
+                        }
+                    }
+                }
+                float ct = hg_sample_cos_t(op.y, op.z, rng_u01(&rng));
+                t.dir = scatter_dir(t.dir, ct, rng_u01(&rng));
+                sw_scatter(&sw, optics, t.L, op.y, ct);
+                if (W < rr_w) {
+                    if (rng_u01(&rng) * P->rr_m <= 1.0f) {
+                        long g2 = W * (long)(P->rr_m) - W;
+                        f.gain += g2; W += g2;
+                        sw_scale(&sw, P->rr_m);
+                    } else {
+                        f.loss += W; W = 0;
+                    }
+                }
+            } else if (W > 0) {
+                /* pure absorber reached here only when mus = 0 and mua > 0: all absorbed */
+                f.absorbed[t.L] += W; W = 0;
+            }
+            tau = neg_log_u01(rng_u01(&rng));
             continue;
         }
-        /* ---- photon flight to the boundary */
+        /* ---- boundary */
         still = db < TRAP_UM ? still + 1 : 0;
         if (still > TRAPPED_STEPS) { f.lost += W; W = 0; continue; }
         t.pos += db * t.dir;
@@ -622,7 +511,27 @@ __kernel void photon_pass(VOLUME_ARGS,
         if (mut > 0.0f) { tau -= db * mut; tau = tau > 0.0f ? tau : 0.0f; }
         if (ev == EV_NONE) { f.lost += W; W = 0; continue; }   /* semi-infinite, direction flat */
         if (ev == EV_TOP || ev == EV_BOTTOM) {
-            cross_interface(&t, ev, &W, &f, &events, VOLUME_PASS, smooth, &rng COUNTS_PASS);
+            const int up = (ev == EV_TOP);
+            COUNT(K_IFACE);
+            const int L2 = up ? t.L - 1 : t.L + 1;
+            /* snap onto the interface (in core mode only flat interfaces raise TOP/BOTTOM) */
+            t.pos.z = iface_z(iface, heights, P, up ? t.L : t.L + 1, col_index(P, t.ix, t.iy));
+            const float n1 = layer_n[t.L];
+            const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+            const float4 gn2 = (float4)(0.0f, 0.0f, up ? 1.0f : -1.0f, 0.0f);
+#ifndef FLAT
+            if (n1 != n2 && IF_VAR(up ? t.L : t.L + 1) >= 0) COUNT(K_IFACE_SMOOTH);
+#endif
+            float4 d = (float4)(t.dir, 0.0f);
+            const int through = cross_face(&d, gn2, up ? t.L : t.L + 1, t.L, L2, t.pos.x, t.pos.y, n1, n2,
+                                           P, iface, smooth, rng_u01(&rng));
+            t.dir = d.xyz;
+            if (through) {
+                if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) { events++; COUNT(K_REENTER); continue; }
+                if (L2 < 0) { f.rd += W; if (t.dir.z > P->rcone_cos) f.rcone += W; W = 0; continue; }
+                if (L2 >= NL) { f.tt += W; W = 0; continue; }
+                t.L = L2;
+            }
             continue;
         }
         if (ev == EV_ZONE) { COUNT(K_ZONE); locate_column(&t, P); continue; }
@@ -630,7 +539,43 @@ __kernel void photon_pass(VOLUME_ARGS,
         if (ev == EV_TILE_Z) { COUNT(K_ZONE); t.pos.z = plane; locate_column_ahead(&t, P); continue; }
         if (ev == EV_TILE_X || ev == EV_TILE_Y) { COUNT(K_TILE); cross_tile(&t, P, ev == EV_TILE_Y); continue; }
 #endif
-        cross_lateral(&t, ev, &W, &f, VOLUME_PASS, smooth, &rng COUNTS_PASS);
+        /* lateral: column wall or domain side */
+        const int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
+        const int domain_only = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
+#ifdef PHOTON_COUNTERS
+        if (domain_only) COUNT(K_DOMAIN); else COUNT(K_WALL);
+#endif
+#ifndef FLAT
+        const int oix = t.ix, oiy = t.iy;
+        const float3 opos = t.pos;
+#endif
+        if (cross_wall(&t, P, axis, domain_only)) { f.lost += W; W = 0; continue; }
+#ifdef FLAT
+        continue;
+#else
+        if (domain_only) { locate_column(&t, P); }
+        const int col = col_index(P, t.ix, t.iy);
+        const int L2 = layer_at(iface, heights, P, col, t.pos.z, t.L);
+        if (L2 == t.L) continue;
+        const float n1 = layer_n[t.L];
+        const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+        if (n1 != n2 && IF_VAR(L2 < t.L ? t.L : t.L + 1) >= 0) COUNT(K_IFACE_SMOOTH);
+        COUNT(K_IFACE);
+        const float4 gnw = axis == 0 ? (float4)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f, 0.0f)
+                                     : (float4)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f);
+        float4 d = (float4)(t.dir, 0.0f);
+        const int through = cross_face(&d, gnw, L2 < t.L ? t.L : t.L + 1, t.L, L2, t.pos.x, t.pos.y, n1, n2,
+                                       P, iface, smooth, rng_u01(&rng));
+        t.dir = d.xyz;
+        if (through) {
+            if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) { COUNT(K_REENTER); continue; }
+            if (L2 < 0) { f.rd += W; if (t.dir.z > P->rcone_cos) f.rcone += W; W = 0; continue; }
+            if (L2 >= NL) { f.tt += W; W = 0; continue; }
+            t.L = L2;
+        } else {
+            t.ix = oix; t.iy = oiy; t.pos = opos;      /* reflected back into the old column */
+        }
+#endif
     }
 #ifdef PHOTON_COUNTERS
     for (int k = 0; k < K_NCOUNT; ++k)
