@@ -94,6 +94,7 @@ def _private_mem(sc) -> dict:
     out = {}
     for name, k in _kernels(sc).items():
         if name.startswith("gather") or name.startswith("scatter"):
+            k = getattr(k, "kernel", k)         # clppm.kernelcall.Kernel wraps the pyopencl one
             out[name] = int(k.get_work_group_info(cl.kernel_work_group_info.PRIVATE_MEM_SIZE,
                                                   sc.dev.device))
     return out

@@ -22,9 +22,9 @@ pairs with :class:`pyopencl.algorithm.RadixSort` instead (stable, so the
 order inside a cell is the input order) and derives ``cell_start`` from the
 sorted keys.
 
-Device side, kernels ``#include "grid.h"`` and loop with
-``GRID_FOR_EACH_ROW(gp, cell_start, x, R, begin, end) { ... } GRID_END_ROWS``
-over contiguous photon ranges (one per (iy, iz) row of cells); the struct
+Device side, kernels ``#include "grid.h"``, take a query's cell range from
+``grid_query_range`` and loop over its (iy, iz) rows of cells, each one
+contiguous photon range (``grid_row_range``); the struct
 ``GridParams`` there is mirrored by :data:`S.GRID_PARAMS_DTYPE`.
 
 Buffers are kept in a :class:`GridBuffers` cache and reused from pass to pass

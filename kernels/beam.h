@@ -1,17 +1,8 @@
 /* beam.h -- what the beam estimator's two layouts share (kernels/gather.cl gather_beam,
- * kernels/scatter.cl): a piece's query box in grid cells and the (piece, photon) pair test with
- * the disc's window.  Macros, not functions, so that both layouts compile the very same
- * expressions (the same float bits per pair: the layouts must give the same image).
- *
- * Names they expect in scope:
- *   BEAM_PIECE_SLAB: P, iface, heights, s0, d, len, Lk; declares vert, conform, tb_r.
- *   BEAM_PIECE: iface, vlay (kernel args), gp (GridParams), s0, d (float3), len, Lk (the
- *     piece's layer), R, pslab_k (float4: piece_slabs' (tb_r, conform)); declares vert, inv_dz,
- *     wax, conform, tb_r, e, Rp, c0, c1.
- *   BEAM_PAIR: s0, d, len, Lk, vert, inv_dz, conform, tb_r, R, R2, Rwin, P, p (the photon's
- *     float4 position and weight), bl (its band + 256 layer), tb_p (float2: its layer at its
- *     column, read only when conform); declares ts, wl, wwin; `continue`s when the photon is
- *     not in the piece's disc (inside a loop over candidates).
+ * kernels/scatter.cl): an eye-ray piece with its disc's axis and depth frame, its query box in
+ * grid cells and the (piece, photon) pair test with the disc's window.  Both layouts call the
+ * very same functions, so they compute the same float bits per pair (the layouts must give the
+ * same image).  All are inlined (HOT): they run per pair in the gather's innermost loop.
  */
 #ifndef CLPPM_BEAM_H
 #define CLPPM_BEAM_H
@@ -74,100 +65,171 @@ inline void query_depth_keys(__constant const float4* vlay, int L, float2 tb_r, 
 #endif
 }
 
+/* An eye-ray piece (the eye pass's geometry, geo[2k], geo[2k + 1]): its start, direction,
+ * length and layer; its disc's axis: vert (|d.z| >= 1/2: the horizontal disc, depth along z;
+ * else the disc perpendicular to the piece), 1 / d.z and wax = 1 / |d . axis|; and its
+ * layer-conforming depth: conform (depth in its layer's own coordinates) and tb_r, the layer's
+ * top and bottom at the ray's column. */
+typedef struct {
+    float3 s0, d;
+    float len;
+    int Lk;
+    int vert;
+    float inv_dz, wax;
+    int conform;
+    float2 tb_r;
+} BeamPiece;
+
+/* A candidate photon of a piece's disc: its depth along the ray (ts), the Jacobian of the
+ * layer-conforming depth map (wl) and the disc's area over its window's near an open side
+ * (wwin, pi R^2 / the window's area). */
+typedef struct {
+    float ts, wl, wwin;
+} BeamHit;
+
+HOT BeamPiece beam_piece_at(__global const float4* geo, uint k) {
+    const float4 g0 = geo[2 * k], g1 = geo[2 * k + 1];
+    BeamPiece pc;
+    pc.s0 = g0.xyz; pc.d = g1.xyz;
+    pc.len = g0.w;
+    pc.Lk = (int)g1.w;
+    return pc;
+}
+
+/* the disc's axis of the piece */
+HOT void beam_axis(BeamPiece* pc) {
+    pc->vert = fabs(pc->d.z) >= 0.5f;
+    pc->inv_dz = pc->vert ? 1.0f / pc->d.z : 0.0f;
+    pc->wax = pc->vert ? fabs(pc->inv_dz) : 1.0f;       /* 1 / |d . axis| */
+}
+
+/* the piece's layer-conforming depth as piece_slabs stores it: (top, bottom, conform, 0) */
+HOT void beam_frame(BeamPiece* pc, float4 pslab_k) {
+    pc->conform = pslab_k.z != 0.0f;
+    pc->tb_r = pslab_k.xy;
+}
+
+/* The piece's layer-conforming depth (kernel piece_slabs, once per scene: it needs no R):
+ * whether it measures depth in its layer's own coordinates (a vertical piece where either of
+ * its layer's interfaces varies), and the layer's top and bottom at the ray's column; as
+ * (tb_r, conform, 0). */
+HOT float4 beam_piece_slab(__constant const Params* P, __constant const float4* iface,
+                           __global const float* heights, const BeamPiece* pc) {
+    const int vert = fabs(pc->d.z) >= 0.5f;
+    int conform = 0;
+    float2 tb_r = (float2)(0.0f);
 #ifndef FLAT
-#define BEAM_CONFORM_SLAB_                                                                    \
-    if (vert && (IF_VAR(Lk) >= 0 || (Lk + 1 <= NL && IF_VAR(Lk + 1) >= 0))) {                \
-        conform = 1;                                                                          \
-        tb_r = layer_slab(P, iface, heights, s0 + 0.5f * len * d, Lk);                        \
+    const int Lk = pc->Lk;
+    if (vert && (IF_VAR(Lk) >= 0 || (Lk + 1 <= NL && IF_VAR(Lk + 1) >= 0))) {
+        conform = 1;
+        tb_r = layer_slab(P, iface, heights, pc->s0 + 0.5f * pc->len * pc->d, Lk);
     }
-#define BEAM_ZPAD_ (conform ? fmax(IF_ZMAX(Lk) - IF_ZMIN(Lk), IF_ZMAX(Lk + 1) - IF_ZMIN(Lk + 1)) + 1.0f : 0.0f)
-#else
-#define BEAM_CONFORM_SLAB_
-#define BEAM_ZPAD_ 0.0f
 #endif
+    return (float4)(tb_r.x, tb_r.y, (float)conform, 0.0f);
+}
 
-/* the piece's layer-conforming depth (gather.cl): whether it measures depth in its layer's
- * own coordinates and the layer's top and bottom at the ray's column (kernel piece_slabs, once
- * per scene: it needs no R); declares conform, tb_r */
-#define BEAM_PIECE_SLAB                                                                       \
-    const int vert = fabs(d.z) >= 0.5f;                                                       \
-    int conform = 0;                                                                          \
-    float2 tb_r = (float2)(0.0f);                                                             \
-    BEAM_CONFORM_SLAB_
-
-/* the piece's disc axis and its query box in cells c0..c1, given conform and tb_r (stored
- * per piece by piece_slabs: pslab = (tb_r, conform)) */
-#define BEAM_PIECE                                                                            \
-    const int vert = fabs(d.z) >= 0.5f;                                                       \
-    const float inv_dz = vert ? 1.0f / d.z : 0.0f;                                            \
-    const float wax = vert ? fabs(inv_dz) : 1.0f;       /* 1 / |d . axis| */                  \
-    const int conform = pslab_k.z != 0.0f;                                                    \
-    const float2 tb_r = pslab_k.xy;                                                           \
-    const float zpad = BEAM_ZPAD_;                                                            \
-    const float3 e = s0 + len * d;                                                            \
-    const float Rp = R * (1.0f + GRID_R_PAD);                                                 \
-    const float zp = vert ? 1e-3f + 1e-6f * fabs(s0.z) + zpad : Rp;                           \
-    float zlo = fmin(s0.z, e.z) - zp, zhi = fmax(s0.z, e.z) + zp;                             \
-    query_depth_keys(vlay, conform ? Lk : -1, tb_r, s0.z, e.z, &zlo, &zhi);                  \
-    const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, zlo);              \
-    const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, zhi);              \
-    const int4 c0 = grid_coords(gp, lo), c1 = grid_coords(gp, hi);
-
-/* the disc axis alone (the scatter, with conform and tb_r stored per piece) */
-#define BEAM_PIECE_AXIS                                                                       \
-    const int vert = fabs(d.z) >= 0.5f;                                                       \
-    const float inv_dz = vert ? 1.0f / d.z : 0.0f;                                            \
-    const float wax = vert ? fabs(inv_dz) : 1.0f;
-
+/* the depth padding of a conforming piece's query: its layer's interfaces' amplitude */
+HOT float beam_zpad(__constant const float4* iface, const BeamPiece* pc) {
 #ifndef FLAT
-#define BEAM_PAIR_DEPTH_                                                                      \
-    if (conform) {                                                                            \
-        if ((bl >> 8) != Lk) continue;                                                        \
-        if (tb_p.y > -1e29f && tb_r.y > -1e29f) {                                             \
-            wl = (tb_r.x - tb_r.y) / fmax(tb_p.x - tb_p.y, 1e-3f);                            \
-            pz = tb_r.x - (tb_p.x - p.z) * wl;                                                \
-        } else {                                                                              \
-            pz = tb_r.x - (tb_p.x - p.z);                                                     \
-        }                                                                                     \
-    }
+    const int Lk = pc->Lk;
+    return pc->conform ? fmax(IF_ZMAX(Lk) - IF_ZMIN(Lk), IF_ZMAX(Lk + 1) - IF_ZMIN(Lk + 1)) + 1.0f : 0.0f;
 #else
-#define BEAM_PAIR_DEPTH_
+    return 0.0f;
 #endif
+}
 
+/* A piece's query box in grid cells c0..c1, and what beam_row_x narrows each row by: the
+ * piece's x and y range and the padded radius Rp. */
+typedef struct {
+    int4 c0, c1;
+    float xa, xb, ya, yb;
+    float Rp;
+} BeamBox;
+
+HOT BeamBox beam_box(const GridParams gp, __constant const float4* vlay, __constant const float4* iface,
+                     const BeamPiece* pc, float R) {
+    const float3 s0 = pc->s0, d = pc->d;
+    const float len = pc->len;
+    const float zpad = beam_zpad(iface, pc);
+    const float3 e = s0 + len * d;
+    const float Rp = R * (1.0f + GRID_R_PAD);
+    const float zp = pc->vert ? 1e-3f + 1e-6f * fabs(s0.z) + zpad : Rp;
+    float zlo = fmin(s0.z, e.z) - zp, zhi = fmax(s0.z, e.z) + zp;
+    query_depth_keys(vlay, pc->conform ? pc->Lk : -1, pc->tb_r, s0.z, e.z, &zlo, &zhi);
+    const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, zlo);
+    const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, zhi);
+    BeamBox bx;
+    bx.c0 = grid_coords(gp, lo); bx.c1 = grid_coords(gp, hi);
+    bx.xa = fmin(s0.x, e.x); bx.xb = fmax(s0.x, e.x);
+    bx.ya = fmin(s0.y, e.y); bx.yb = fmax(s0.y, e.y);
+    bx.Rp = Rp;
+    return bx;
+}
+
+/* A photon's depth in the piece's frame: its z, or in a conforming piece its fractional depth
+ * in its layer at its own column (tb_p) placed at the same fraction of the layer at the ray's
+ * column, with the map's Jacobian *wl.  Returns 0 for a photon of another layer. */
+HOT int beam_pair_depth(const BeamPiece* pc, float4 p, int bl, float2 tb_p, float* pz, float* wl) {
+#ifndef FLAT
+    if (pc->conform) {
+        const float2 tb_r = pc->tb_r;
+        if ((bl >> 8) != pc->Lk) return 0;
+        if (tb_p.y > -1e29f && tb_r.y > -1e29f) {
+            const float w = (tb_r.x - tb_r.y) / fmax(tb_p.x - tb_p.y, 1e-3f);
+            *wl = w;
+            *pz = tb_r.x - (tb_p.x - p.z) * w;
+        } else {
+            *pz = tb_r.x - (tb_p.x - p.z);
+        }
+    }
+#endif
+    return 1;
+}
+
+/* whether the model has open or periodic sides, where a disc takes a window (disc.h) */
+HOT int beam_lateral(__constant const Params* P) {
 #ifndef PROF_NOWIN
-#define BEAM_LATERAL_ (P->lateral != 0)
+    return P->lateral != 0;
 #else
-#define BEAM_LATERAL_ 0                 /* timing only: no window */
+    return 0;                           /* timing only: no window */
 #endif
+}
 
-/* the pair test: the photon's depth along the ray (ts), its distance from the axis, and near
- * an open side the window (disc.h) of the ray's point at the photon's depth */
-#define BEAM_PAIR                                                                             \
-    float pz = p.z, wl = 1.0f;                                                                \
-    BEAM_PAIR_DEPTH_                                                                          \
-    float ts, rho2, qx, qy;                                                                   \
-    if (vert) {                                                                               \
-        ts = (pz - s0.z) * inv_dz;                                                            \
-        qx = s0.x + ts * d.x - p.x; qy = s0.y + ts * d.y - p.y;                               \
-        rho2 = qx * qx + qy * qy;                                                             \
-    } else {                                                                                  \
-        const float3 v = p.xyz - s0;                                                          \
-        ts = dot(v, d);                                                                       \
-        const float3 q = v - ts * d;                                                          \
-        rho2 = dot(q, q);                                                                     \
-        qx = q.x; qy = q.y;                                                                   \
-    }                                                                                         \
-    if (!(ts >= 0.0f && ts < len && rho2 < R2)) continue;                                     \
-    float wwin = 1.0f;                  /* pi R^2 / the window's area */                      \
-    if (BEAM_LATERAL_) {                                                                      \
-        const float2 sd = side_distances(P, s0.xy + ts * d.xy);                               \
-        if (fmin(sd.x, sd.y) < Rwin) {                                                        \
-            /* window_at, its area only for a photon inside the window */                     \
-            const float hx = side_half_width(sd.x, R), hy = side_half_width(sd.y, R);         \
-            if (fabs(qx) >= hx || fabs(qy) >= hy) continue;                                   \
-            wwin = PI_F * R2 / window_area(hx, hy, R);                                        \
-        }                                                                                     \
+/* The pair test of a piece and a photon (p: position and weight, bl: band + 256 layer, tb_p:
+ * its layer at its column, read only when conform): the photon's depth along the ray (ts), its
+ * distance from the axis, and near an open side the window (disc.h) of the ray's point at the
+ * photon's depth.  Returns 0 when the photon is not in the piece's disc; else fills *h. */
+HOT int beam_pair(__constant const Params* P, const BeamPiece* pc, float R, float R2, float Rwin,
+                  float4 p, int bl, float2 tb_p, BeamHit* h) {
+    const float3 s0 = pc->s0, d = pc->d;
+    float pz = p.z, wl = 1.0f;
+    if (!beam_pair_depth(pc, p, bl, tb_p, &pz, &wl)) return 0;
+    float ts, rho2, qx, qy;
+    if (pc->vert) {
+        ts = (pz - s0.z) * pc->inv_dz;
+        qx = s0.x + ts * d.x - p.x; qy = s0.y + ts * d.y - p.y;
+        rho2 = qx * qx + qy * qy;
+    } else {
+        const float3 v = p.xyz - s0;
+        ts = dot(v, d);
+        const float3 q = v - ts * d;
+        rho2 = dot(q, q);
+        qx = q.x; qy = q.y;
     }
+    if (!(ts >= 0.0f && ts < pc->len && rho2 < R2)) return 0;
+    float wwin = 1.0f;                  /* pi R^2 / the window's area */
+    if (beam_lateral(P)) {
+        const float2 sd = side_distances(P, s0.xy + ts * d.xy);
+        if (fmin(sd.x, sd.y) < Rwin) {
+            /* window_at, its area only for a photon inside the window */
+            const float hx = side_half_width(sd.x, R), hy = side_half_width(sd.y, R);
+            if (fabs(qx) >= hx || fabs(qy) >= hy) return 0;
+            wwin = PI_F * R2 / window_area(hx, hy, R);
+        }
+    }
+    h->ts = ts; h->wl = wl; h->wwin = wwin;
+    return 1;
+}
 
 /* Row iy of a piece's query box: the cells in x that can hold a photon within R of the axis.
  * The row's y range lies dy from the piece's y range [ya, yb], so such a photon lies within
@@ -187,7 +249,9 @@ inline int2 beam_row_x(const GridParams gp, int iy, int cx0, int cx1, float xa, 
                   min(cx1, grid_axis(xb + hw, gp.lo_x, gp.inv_h, gp.nx)));
 }
 
-#define BEAM_ROW_X(iy) beam_row_x(gp, (iy), c0.x, c1.x, fmin(s0.x, e.x), fmax(s0.x, e.x),     \
-                                  fmin(s0.y, e.y), fmax(s0.y, e.y), Rp)
+/* beam_row_x of the piece's query box */
+HOT int2 beam_box_row(const GridParams gp, const BeamBox* bx, int iy) {
+    return beam_row_x(gp, iy, bx->c0.x, bx->c1.x, bx->xa, bx->xb, bx->ya, bx->yb, bx->Rp);
+}
 
 #endif

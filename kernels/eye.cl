@@ -57,7 +57,6 @@ typedef struct {
 } EyeParams;
 
 #define MAXPEND (2 * NL + 4)
-#define SLAB(p, L) (write ? layer_slab(P, iface, heights, (p), (L)) : (float2)(0.0f))
 
 typedef struct {
     float pend_total;           /* path length since the last point */
@@ -173,6 +172,226 @@ inline float4 entry_normal(__constant const Params* P, __constant const float4* 
 #endif
 }
 
+/* A sample point's layer at its column (top, bottom; the layer estimator's volume), written
+ * only by the passes that store */
+HOT float2 point_slab(__constant const Params* P, __constant const float4* iface,
+                      __global const float* heights, float3 p, int L, int write) {
+    return write ? layer_slab(P, iface, heights, p, L) : (float2)(0.0f);
+}
+
+/* Eye ray r: its pixel (spp rays each), jittered within the pixel when asked, from the camera. */
+HOT void eye_ray(Track* t, Rng* rng, __constant const EyeParams* E, uint r) {
+    const uint pix = r / (uint)E->spp;
+    const int px = (int)(pix % (uint)E->cam.width), py = (int)(pix / (uint)E->cam.width);
+    rng_init(rng, r, 0u, 1u, E->seed_lo, E->seed_hi);
+    float jx = 0.5f, jy = 0.5f;
+    if (E->jitter) { jx = rng_u01(rng); jy = rng_u01(rng); }
+    t->pos = camera_pos(&E->cam).xyz;
+    t->dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy).xyz;
+    t->L = -1; t->ix = 0; t->iy = 0;
+}
+
+HOT void emit_init(Emit* e, uint pt_base, uint pc_base) {
+    e->npts = 0; e->npcs = 0; e->npend = 0; e->have_point = 0; e->split_ok = 0; e->last_vox = (int4)(0); e->pend_total = 0.0f;
+    e->pt_base = pt_base;
+    e->pc_base = pc_base;
+}
+
+/* The specular highlight of the surface point the eye ray hit (t->pos, geometric normal gn, sn
+ * the normal shaded with): GGX toward the light, by the inverse square of a point light's
+ * distance; a wide beam lights only the points whose line to the light crosses its footprint,
+ * a pencil beam's highlight has no area. */
+HOT float surface_specular(const Track* t, float3 sn, __constant const EyeParams* E,
+                           __constant const Params* P, __constant const float* layer_n) {
+    float3 v = -t->dir;
+    float3 l;
+    float inv_d2 = 1.0f;
+    if (E->light_kind == SRC_POINT) {
+        float3 lp = (float3)(E->lx, E->ly, E->lz) - t->pos;
+        float d2 = dot(lp, lp);
+        l = lp * rsqrt(d2);
+        inv_d2 = 1.0f / d2;
+    } else {
+        l = (float3)(E->lx, E->ly, E->lz);
+    }
+    float spec = specular_geo(sn, v, l, E->alpha, P->n_above, layer_n[0]) * inv_d2;
+    if (E->light_kind == SRC_WIDE) {
+        /* where this surface point's line to the light crosses z = 0 */
+        float s0 = -t->pos.z / l.z;
+        float fx = t->pos.x + s0 * l.x, fy = t->pos.y + s0 * l.y;
+        if (fx < E->bx0 || fx > E->bx1 || fy < E->by0 || fy > E->by1) spec = 0.0f;
+    } else if (E->light_kind == SRC_PENCIL) {
+        spec = 0.0f;                /* a pencil beam's highlight has no area */
+    }
+    return spec;
+}
+
+/* Interface crossing into the skin where the eye ray hit it (geometric normal gn): refraction
+ * at the smooth surface's normal (the face's where the ray does not cross the smooth one) into
+ * layer 0.  Returns the Fresnel transmittance; *spec takes the specular term. */
+HOT float enter_skin(Track* t, float3 gn, float* spec, __constant const EyeParams* E,
+                     __constant const Params* P, __constant const float4* iface,
+                     __constant const float* layer_n, __global const float* smooth) {
+    float3 sn = entry_normal(P, iface, smooth, t->pos.x, t->pos.y).xyz;
+    float ci = -dot(t->dir, sn);
+    if (ci <= 1e-6f) { sn = gn; ci = -dot(t->dir, gn); }
+    *spec = surface_specular(t, sn, E, P, layer_n);
+    float ct;
+    float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
+    float3 d = refract3(t->dir, sn, P->n_above / layer_n[0], ci, ct);
+    if (dot(d, gn) >= 0.0f) d = reflect3(d, gn);
+    t->dir = normalize(d);
+    return 1.0f - R;
+}
+
+/* The path length into layer L's region at which the most transparent band's optical depth
+ * from the entry (od) reaches the threshold's (od_cut); BIG where some band never does. */
+HOT float threshold_cut(const float* od, int L, __constant const EyeParams* E, __global const float4* optics) {
+    float smax = 0.0f;
+    int never = 0;
+    for (int b = 0; b < NB; ++b) {
+        float m = optics[L * NB + b].w;
+        float rem = E->od_cut - od[b];
+        if (m <= 0.0f) { if (rem > 0.0f) never = 1; continue; }
+        smax = fmax(smax, rem / m);
+    }
+    return never ? BIG : smax;
+}
+
+/* Sample points along the eye ray's path seg through a region of layer L (from t->pos, at path
+ * length ell from the entry): at the equal spacing's lengths (scheme 0, *next_eq the next one)
+ * or as a Poisson process of the layer's rate (scheme 1); the path between them pending as
+ * pieces.  twp: the points' radiance weight.  Returns the points made. */
+HOT int sample_points(Emit* e, const Track* t, int L, float seg, float ell, float twp, float* next_eq,
+                      Rng* rng, __constant const EyeParams* E, __constant const float* rate,
+                      __constant const Params* P, __constant const float4* iface,
+                      __global const float* heights, __global float4* pt_pos, __global float4* pt_dir,
+                      __global uint* pt_piece, __global float2* pieces, __global float4* geo,
+                      __global float2* pt_slab, int write) {
+    const float3 to_eye = -t->dir;
+    int n = 0;
+    float x = 0.0f;                 /* position of the last placement in this region */
+    if (E->scheme == 0) {
+        while (*next_eq <= ell + seg) {
+            float xc = *next_eq - ell;
+            pend_add(e, L, xc - x, t->pos + x * t->dir, t->dir); x = xc;
+            n += place(e, t->pos + xc * t->dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab,
+                       point_slab(P, iface, heights, t->pos + xc * t->dir, L, write), write);
+            *next_eq += E->spacing;
+        }
+    } else {
+        float rt = rate[L];
+        if (rt > 0.0f) {
+            float xc = x;
+            while (1) {
+                xc += neg_log_u01(rng_u01(rng)) / rt;
+                if (xc > seg) break;
+                pend_add(e, L, xc - x, t->pos + x * t->dir, t->dir); x = xc;
+                n += place(e, t->pos + xc * t->dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab,
+                           point_slab(P, iface, heights, t->pos + xc * t->dir, L, write), write);
+            }
+        }
+    }
+    pend_add(e, L, seg - x, t->pos + x * t->dir, t->dir);
+    return n;
+}
+
+/* The layer on the other side of a boundary event ev of layer L (L itself for a zone change, a
+ * column wall within the layer, or after a wall left the domain: then *out).  Moves t onto the
+ * interface or across the wall. */
+HOT int layer_beyond(Track* t, int ev, int L, int* out, __constant const Params* P,
+                     __constant const float4* iface, __global const float* heights) {
+    int L2 = L;
+    if (ev == EV_TOP || ev == EV_BOTTOM) {
+        L2 = ev == EV_TOP ? L - 1 : L + 1;
+        t->pos.z = iface_z(iface, heights, P, ev == EV_TOP ? L : L + 1, col_index(P, t->ix, t->iy));
+    } else if (ev == EV_ZONE) {
+        locate_column(t, P);
+    } else {
+        int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
+        int donly = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
+        if (cross_wall(t, P, axis, donly)) { *out = 1; return L; }
+#ifndef FLAT
+        if (donly) locate_column(t, P);
+        L2 = layer_at(iface, heights, P, col_index(P, t->ix, t->iy), t->pos.z, L);
+#endif
+    }
+    return L2;
+}
+
+/* A face between layers L and L2 where the eye ray crosses it: the face's own normal gn
+ * (pointing from L into L2), the normal refracted at (sn), the indices, the cosines and the
+ * Fresnel reflectance. */
+typedef struct {
+    float3 gn, sn;
+    float n1, n2, ci, ct, R;
+} Face;
+
+/* the normal refracted at: the smooth surface's where interface k varies and the indices differ
+ * (as the photon pass and the path tracer), else the face's own; the face's where the ray does
+ * not cross the smooth one (fresnel_cross, common.h) */
+HOT Face eye_face(const Track* t, int ev, int L, int L2, __constant const Params* P,
+                  __constant const float4* iface, __constant const float* layer_n,
+                  __global const float* smooth) {
+    Face fc;
+    fc.gn = (ev == EV_TOP) ? (float3)(0.0f, 0.0f, 1.0f) : (ev == EV_BOTTOM) ? (float3)(0.0f, 0.0f, -1.0f)
+          : ((ev == EV_WALL_X || ev == EV_DOMAIN_X) ? (float3)(t->dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
+                                                    : (float3)(0.0f, t->dir.y > 0.0f ? 1.0f : -1.0f, 0.0f));
+    fc.n1 = layer_n[L];
+    fc.n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+    float3 sn = fc.gn;
+#ifndef FLAT
+    if (fc.n1 != fc.n2)
+        sn = face_normal(P, iface, smooth, L2 < L ? L : L + 1, L, L2, t->pos.x, t->pos.y, (float4)(fc.gn, 0.0f)).xyz;
+#endif
+    float ci = dot(t->dir, sn);
+    if (ci <= 1e-6f) { sn = fc.gn; ci = dot(t->dir, fc.gn); }
+    fc.sn = sn;
+    fc.ci = ci;
+    fc.R = fresnel_R(fc.n1, fc.n2, ci, &fc.ct);
+    return fc;
+}
+
+/* Out through the relief (a furrow wall): leave with Fresnel, cross the air gap and enter again
+ * where the ray meets the skin.  *tw takes both transmittances, *nfac layer 0's n^2 law.
+ * Returns 0 when the ray does not meet the skin again. */
+HOT int cross_furrow(Track* t, const Face* fc, float* tw, float* nfac, __constant const Params* P,
+                     __constant const float4* iface, __constant const float* layer_n,
+                     __global const float* heights, __global const float* smooth) {
+    float ct = fc->ct;
+    *tw *= 1.0f - fc->R;
+    t->dir = refract3(t->dir, -fc->sn, fc->n1 / fc->n2, fc->ci, ct);
+    if (dot(t->dir, fc->gn) <= 0.0f) t->dir = reflect3(t->dir, fc->gn);
+    t->pos += 1e-3f * t->dir;
+    float3 gn2;
+    if (!hit_surface(t, P, iface, heights, &gn2)) return 0;
+    float3 sn2 = entry_normal(P, iface, smooth, t->pos.x, t->pos.y).xyz;
+    float ci2 = -dot(t->dir, sn2);
+    if (ci2 <= 1e-6f) { sn2 = gn2; ci2 = -dot(t->dir, gn2); }
+    float R2 = fresnel_R(P->n_above, layer_n[0], ci2, &ct);
+    *tw *= 1.0f - R2;
+    float3 d2 = refract3(t->dir, sn2, P->n_above / layer_n[0], ci2, ct);
+    if (dot(d2, gn2) >= 0.0f) d2 = reflect3(d2, gn2);
+    t->dir = normalize(d2);
+    *nfac = P->n_above / layer_n[0];
+    *nfac *= *nfac;
+    t->L = 0;
+    return 1;
+}
+
+/* Interface crossing into L2 with its Fresnel transmittance (a transmission crosses the face),
+ * refracted where the indices differ; *nfac takes L2's n^2 law. */
+HOT void refract_into(Track* t, const Face* fc, int L2, float* tw, float* nfac, __constant const Params* P) {
+    if (fc->n1 != fc->n2) {
+        *tw *= 1.0f - fc->R;
+        t->dir = refract3(t->dir, -fc->sn, fc->n1 / fc->n2, fc->ci, fc->ct);
+        if (dot(t->dir, fc->gn) <= 0.0f) t->dir = reflect3(t->dir, fc->gn);
+        *nfac = P->n_above / fc->n2;
+        *nfac *= *nfac;
+    }
+    t->L = L2;
+}
+
 __kernel void eye_pass(VOLUME_ARGS,
                        __constant const EyeParams* E,
                        __constant const float* rate,            /* per layer, um^-1 */
@@ -187,22 +406,11 @@ __kernel void eye_pass(VOLUME_ARGS,
     const uint r = (uint)get_global_id(0);
     const uint npix = (uint)(E->cam.width * E->cam.height);
     if (r >= npix * (uint)E->spp) return;
-    const uint pix = r / (uint)E->spp;
-    const int px = (int)(pix % (uint)E->cam.width), py = (int)(pix / (uint)E->cam.width);
     Rng rng;
-    rng_init(&rng, r, 0u, 1u, E->seed_lo, E->seed_hi);
-    float jx = 0.5f, jy = 0.5f;
-    if (E->jitter) { jx = rng_u01(&rng); jy = rng_u01(&rng); }
-
     Track t;
-    t.pos = camera_pos(&E->cam).xyz;
-    t.dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy).xyz;
-    t.L = -1; t.ix = 0; t.iy = 0;
-
+    eye_ray(&t, &rng, E, r);
     Emit e;
-    e.npts = 0; e.npcs = 0; e.npend = 0; e.have_point = 0; e.split_ok = 0; e.last_vox = (int4)(0); e.pend_total = 0.0f;
-    e.pt_base = write ? pt_start[r] : 0u;
-    e.pc_base = write ? pc_start[r] : 0u;
+    emit_init(&e, write ? pt_start[r] : 0u, write ? pc_start[r] : 0u);
 
     float3 gn;
     float spec = 0.0f;
@@ -212,38 +420,7 @@ __kernel void eye_pass(VOLUME_ARGS,
         return;
     }
     /* ---- surface: specular term and refraction, weighted by the Fresnel transmittance */
-    float tw;
-    {
-        float3 sn = entry_normal(P, iface, smooth, t.pos.x, t.pos.y).xyz;
-        float ci = -dot(t.dir, sn);
-        if (ci <= 1e-6f) { sn = gn; ci = -dot(t.dir, gn); }
-        float3 v = -t.dir;
-        float3 l;
-        float inv_d2 = 1.0f;
-        if (E->light_kind == SRC_POINT) {
-            float3 lp = (float3)(E->lx, E->ly, E->lz) - t.pos;
-            float d2 = dot(lp, lp);
-            l = lp * rsqrt(d2);
-            inv_d2 = 1.0f / d2;
-        } else {
-            l = (float3)(E->lx, E->ly, E->lz);
-        }
-        spec = specular_geo(sn, v, l, E->alpha, P->n_above, layer_n[0]) * inv_d2;
-        if (E->light_kind == SRC_WIDE) {
-            /* where this surface point's line to the light crosses z = 0 */
-            float s0 = -t.pos.z / l.z;
-            float fx = t.pos.x + s0 * l.x, fy = t.pos.y + s0 * l.y;
-            if (fx < E->bx0 || fx > E->bx1 || fy < E->by0 || fy > E->by1) spec = 0.0f;
-        } else if (E->light_kind == SRC_PENCIL) {
-            spec = 0.0f;                /* a pencil beam's highlight has no area */
-        }
-        float ct;
-        float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
-        tw = 1.0f - R;
-        float3 d = refract3(t.dir, sn, P->n_above / layer_n[0], ci, ct);
-        if (dot(d, gn) >= 0.0f) d = reflect3(d, gn);
-        t.dir = normalize(d);
-    }
+    float tw = enter_skin(&t, gn, &spec, E, P, iface, layer_n, smooth);
 
     float od[NB];
     for (int b = 0; b < NB; ++b) od[b] = 0.0f;
@@ -252,140 +429,54 @@ __kernel void eye_pass(VOLUME_ARGS,
     float nfac = P->n_above / layer_n[0];
     nfac *= nfac;                       /* radiance n^2 law, (n_outside / n_layer)^2 */
     int visit_pts = 0;
-    int done = 0;
     int guard = 0;
-    while (!done && ++guard < 1000000) {
+    while (++guard < 1000000) {
         int ev;
         const int L = t.L;
         float db = next_boundary(&t, P, iface, heights, &ev);
         if (ev == EV_NONE) db = E->max_len;
         /* where the most transparent band falls below the threshold inside this region */
-        float s_cut = BIG;
-        {
-            float smax = 0.0f;
-            int never = 0;
-            for (int b = 0; b < NB; ++b) {
-                float m = optics[L * NB + b].w;
-                float rem = E->od_cut - od[b];
-                if (m <= 0.0f) { if (rem > 0.0f) never = 1; continue; }
-                smax = fmax(smax, rem / m);
-            }
-            s_cut = never ? BIG : smax;
-        }
+        float s_cut = threshold_cut(od, L, E, optics);
         if (ell + db > E->max_len) { db = fmax(0.0f, E->max_len - ell); s_cut = fmin(s_cut, db); }
         const float seg = fmin(db, fmax(s_cut, 0.0f));
-        const float3 to_eye = -t.dir;
-        const float twp = tw * nfac;
-        float x = 0.0f;                 /* position of the last placement in this region */
-        if (E->scheme == 0) {
-            while (next_eq <= ell + seg) {
-                float xc = next_eq - ell;
-                pend_add(&e, L, xc - x, t.pos + x * t.dir, t.dir); x = xc;
-                visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab, SLAB(t.pos + xc * t.dir, L), write);
-                next_eq += E->spacing;
-            }
-        } else {
-            float rt = rate[L];
-            if (rt > 0.0f) {
-                float xc = x;
-                while (1) {
-                    xc += neg_log_u01(rng_u01(&rng)) / rt;
-                    if (xc > seg) break;
-                    pend_add(&e, L, xc - x, t.pos + x * t.dir, t.dir); x = xc;
-                    visit_pts += place(&e, t.pos + xc * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab, SLAB(t.pos + xc * t.dir, L), write);
-                }
-            }
-        }
-        pend_add(&e, L, seg - x, t.pos + x * t.dir, t.dir);
+        visit_pts += sample_points(&e, &t, L, seg, ell, tw * nfac, &next_eq, &rng, E, rate, P, iface, heights,
+                                   pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab, write);
         for (int b = 0; b < NB; ++b) od[b] += optics[L * NB + b].w * seg;
-        if (seg < db || ev == EV_NONE) { done = 1; break; }        /* cut by the threshold */
+        if (seg < db || ev == EV_NONE) break;           /* cut by the threshold */
         t.pos += db * t.dir;
         ell += db;
 
         /* ---- boundary events: the eye ray takes the transmitted branch only */
-        int L2 = L;
         const int oix = t.ix, oiy = t.iy;
         const float3 opos = t.pos;
-        if (ev == EV_TOP || ev == EV_BOTTOM) {
-            L2 = ev == EV_TOP ? L - 1 : L + 1;
-            t.pos.z = iface_z(iface, heights, P, ev == EV_TOP ? L : L + 1, col_index(P, t.ix, t.iy));
-        } else if (ev == EV_ZONE) {
-            locate_column(&t, P);
-            continue;
-        } else {
-            int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
-            int donly = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
-            if (cross_wall(&t, P, axis, donly)) { done = 1; break; }
-#ifndef FLAT
-            if (donly) locate_column(&t, P);
-            L2 = layer_at(iface, heights, P, col_index(P, t.ix, t.iy), t.pos.z, L);
-#endif
-        }
+        int out = 0;
+        const int L2 = layer_beyond(&t, ev, L, &out, P, iface, heights);
+        if (out) break;
         if (L2 == L) continue;
-        /* the face crossed, as a normal pointing from layer L into L2 */
-        const float3 gnn = (ev == EV_TOP) ? (float3)(0.0f, 0.0f, 1.0f) : (ev == EV_BOTTOM) ? (float3)(0.0f, 0.0f, -1.0f)
-                   : ((ev == EV_WALL_X || ev == EV_DOMAIN_X) ? (float3)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f)
-                                                             : (float3)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f));
-        /* the normal refracted at: the smooth surface's where interface k varies and the
-         * indices differ (as the photon pass and the path tracer), else the face's own; the
-         * face's where the ray does not cross the smooth one (fresnel_cross, common.h) */
-        const float n1 = layer_n[L], n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-        float3 sn = gnn;
-#ifndef FLAT
-        if (n1 != n2)
-            sn = face_normal(P, iface, smooth, L2 < L ? L : L + 1, L, L2, t.pos.x, t.pos.y, (float4)(gnn, 0.0f)).xyz;
-#endif
-        float ci = dot(t.dir, sn), ct;
-        if (ci <= 1e-6f) { sn = gnn; ci = dot(t.dir, gnn); }
-        const float R = fresnel_R(n1, n2, ci, &ct);
-        if (R >= 1.0f) {
+        const Face fc = eye_face(&t, ev, L, L2, P, iface, layer_n, smooth);
+        if (fc.R >= 1.0f) {
             /* total internal reflection: all the radiance comes along the mirrored path, so the
              * eye ray reflects and stays in L (at a 5 um stair step of the relief a steep ray
              * meets a side wall at grazing incidence); it stays on this side of the face */
             t.ix = oix; t.iy = oiy; t.pos = opos;
-            t.dir = reflect3(t.dir, sn);
-            if (dot(t.dir, gnn) > 0.0f) t.dir = reflect3(t.dir, gnn);
+            t.dir = reflect3(t.dir, fc.sn);
+            if (dot(t.dir, fc.gn) > 0.0f) t.dir = reflect3(t.dir, fc.gn);
             continue;
         }
         /* leaving layer L: extinction-based schemes give an empty visit its exit point */
         if (E->scheme == 1 && visit_pts == 0) {
-            visit_pts += place(&e, t.pos - 1e-3f * t.dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab, SLAB(t.pos - 1e-3f * t.dir, L), write);
+            visit_pts += place(&e, t.pos - 1e-3f * t.dir, -t.dir, L, tw * nfac, E, pt_pos, pt_dir, pt_piece, pieces,
+                               geo, pt_slab, point_slab(P, iface, heights, t.pos - 1e-3f * t.dir, L, write), write);
         }
         /* cells do not cross layers: a visit with points keeps its whole path */
         if (visit_pts > 0 && e.have_point) { flush_pieces(&e, pieces, geo, write); e.split_ok = 0; }
         visit_pts = 0;
-        if (L2 >= NL) { done = 1; break; }
+        if (L2 >= NL) break;
         if (L2 < 0) {
-            /* out through the relief (a furrow wall): leave with Fresnel, cross the air gap and
-             * enter again where the ray meets the skin */
-            tw *= 1.0f - R;
-            t.dir = refract3(t.dir, -sn, n1 / n2, ci, ct);
-            if (dot(t.dir, gnn) <= 0.0f) t.dir = reflect3(t.dir, gnn);
-            t.pos += 1e-3f * t.dir;
-            float3 gn2;
-            if (!hit_surface(&t, P, iface, heights, &gn2)) { done = 1; break; }
-            float3 sn2 = entry_normal(P, iface, smooth, t.pos.x, t.pos.y).xyz;
-            float ci2 = -dot(t.dir, sn2);
-            if (ci2 <= 1e-6f) { sn2 = gn2; ci2 = -dot(t.dir, gn2); }
-            float R2 = fresnel_R(P->n_above, layer_n[0], ci2, &ct);
-            tw *= 1.0f - R2;
-            float3 d2 = refract3(t.dir, sn2, P->n_above / layer_n[0], ci2, ct);
-            if (dot(d2, gn2) >= 0.0f) d2 = reflect3(d2, gn2);
-            t.dir = normalize(d2);
-            nfac = P->n_above / layer_n[0];
-            nfac *= nfac;
-            t.L = 0;
+            if (!cross_furrow(&t, &fc, &tw, &nfac, P, iface, layer_n, heights, smooth)) break;
             continue;
         }
-        /* refraction into L2 with its Fresnel transmittance (a transmission crosses the face) */
-        if (n1 != n2) {
-            tw *= 1.0f - R;
-            t.dir = refract3(t.dir, -sn, n1 / n2, ci, ct);
-            if (dot(t.dir, gnn) <= 0.0f) t.dir = reflect3(t.dir, gnn);
-            nfac = P->n_above / n2;
-            nfac *= nfac;
-        }
-        t.L = L2;
+        refract_into(&t, &fc, L2, &tw, &nfac, P);
     }
     /* the tail after the last point belongs to the last point */
     if (e.have_point) flush_pieces(&e, pieces, geo, write);

@@ -100,17 +100,86 @@ inline int query_z1(const GridParams gp, int z1, int L, __constant const float2*
 #endif
 }
 
-/* Rows of grid cells to visit for a query at x (radius R, layer L): in the body, jb..je is one
- * contiguous range of cell-sorted photons. */
-#define FOR_EACH_QUERY_ROW(gp, cell_start, x, R, L, layer_z, jb, je)                          \
-    int4 q_c0_, q_c1_;                                                                       \
-    grid_query_range((gp), (x), (R), &q_c0_, &q_c1_);                                        \
-    const int q_z1_ = query_z1((gp), q_c1_.z, (L), (layer_z));                               \
-    for (int q_iz_ = query_z0((gp), q_c0_.z, (L), (layer_z)); q_iz_ <= q_z1_; ++q_iz_)       \
-    for (int q_iy_ = q_c0_.y; q_iy_ <= q_c1_.y; ++q_iy_)                                     \
-    for (uint q_row_ = grid_cell_index((gp), q_c0_.x, q_iy_, q_iz_), jb = (cell_start)[q_row_], \
-              je = (cell_start)[q_row_ + (uint)(q_c1_.x - q_c0_.x) + 1u], q_once_ = 1u;        \
-         q_once_; q_once_ = 0u)
+/* The cells a sphere query at x (radius R, layer L) visits: the rows (iy, iz), iy in c0.y..c1.y
+ * and iz in z0..z1, of cells c0.x..c1.x; each row is one contiguous range of cell-sorted
+ * photons (grid_row_range).  query_box is HOT: x is a 3-vector, which Intel's compiler
+ * miscompiles across a call it does not inline (surface.h). */
+typedef struct {
+    int4 c0, c1;
+    int z0, z1;
+} QueryBox;
+
+HOT QueryBox query_box(const GridParams gp, float3 x, float R, int L, __constant const float2* layer_z) {
+    QueryBox q;
+    grid_query_range(gp, x, R, &q.c0, &q.c1);
+    q.z1 = query_z1(gp, q.c1.z, L, layer_z);
+    q.z0 = query_z0(gp, q.c0.z, L, layer_z);
+    return q;
+}
+
+/* Gather over a sphere: the photons within R of sample point x (of layer L, toward the eye
+ * w_eye), per band the sum of w_p HG(g_L(b), w_p . w_eye) in fixed point.  Returns the number
+ * found. */
+HOT uint gather_sphere(const GridParams gp, __global const uint* cell_start, __global const float4* spos_w,
+                       __global const float4* sdir_b, __global const float* sextra,
+                       __global const float4* hg, __constant const float2* layer_z, float3 x, float R,
+                       int L, float3 w_eye, long* acc) {
+    const float R2 = R * R;
+    uint M = 0;
+    const QueryBox qb = query_box(gp, x, R, L, layer_z);
+    for (int iz = qb.z0; iz <= qb.z1; ++iz)
+        for (int iy = qb.c0.y; iy <= qb.c1.y; ++iy) {
+            const uint2 jr = grid_row_range(gp, cell_start, qb.c0.x, qb.c1.x, iy, iz);
+            for (uint j = jr.x; j < jr.y; ++j) {
+                const float4 p = spos_w[j];
+                if (grid_within(p.xyz, x, R2)) {
+                    const float4 d = sdir_b[j];
+                    const int bl = (int)d.w;
+#if ESTIMATOR == 2
+                    if ((bl >> 8) != L) continue;
+#endif
+                    const float cw = dot(d.xyz, w_eye);
+                    for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
+                        const int b = sw_band(bl & 255, c);
+                        const float w = c == 0 ? p.w : sextra[(size_t)j * (HERO_C - 1) + c - 1];
+                        const float4 h = hg[b];
+                        const float q = h.x - h.y * cw;
+                        const float rq = rsqrt(q);
+                        acc[b] = add_sat(acc[b], (long)fmin(h.z * rq * rq * rq * w * FIX, 9.0e18f));
+                    }
+                    ++M;
+                }
+            }
+        }
+    return M;
+}
+
+/* The point's estimate F/V into the pixel's per-band sums (accp), weighted per band by the
+ * integral of T over the point's cell (its pieces k0..k1, exact per piece); od, the optical
+ * depth from the ray's entry, runs on through the pieces. */
+HOT void add_point_bands(float* accp, float* od, const long* acc, __global const float4* optics,
+                         __global const float2* pieces, uint k0, uint k1, float f) {
+    for (int b = 0; b < NB; ++b) {
+        float o = od[b];
+        if (acc[b] != 0) {          /* integral of T over the cell, exact per piece */
+            float Wb = 0.0f;
+            for (uint k = k0; k < k1; ++k) {
+                const float2 pc = pieces[k];
+                const float m = optics[(int)pc.y * NB + b].w;
+                const float ml = m * pc.x;
+                Wb += exp(-o) * (ml > 1e-6f ? -expm1(-ml) / m : pc.x);
+                o += ml;
+            }
+            accp[b] += Wb * f * (float)acc[b];
+        } else {
+            for (uint k = k0; k < k1; ++k) {
+                const float2 pc = pieces[k];
+                o += optics[(int)pc.y * NB + b].w * pc.x;
+            }
+        }
+        od[b] = o;
+    }
+}
 
 __kernel void gather(const GridParams gp,
                      __global const uint* cell_start,
@@ -154,56 +223,13 @@ __kernel void gather(const GridParams gp,
             long acc[NB];
             for (int b = 0; b < NB; ++b) acc[b] = 0;
             uint M = 0;
-            if (R > 0.0f) {
-                const float R2 = R * R;
-                __global const float4* hg = hgtab + L * NB;
-                FOR_EACH_QUERY_ROW(gp, cell_start, x, R, L, layer_z, jb, je) {
-                    for (uint j = jb; j < je; ++j) {
-                        const float4 p = spos_w[j];
-                        if (grid_within(p.xyz, x, R2)) {
-                            const float4 d = sdir_b[j];
-                            const int bl = (int)d.w;
-#if ESTIMATOR == 2
-                            if ((bl >> 8) != L) continue;
-#endif
-                            const float cw = dot(d.xyz, pd.xyz);
-                            for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
-                                const int b = sw_band(bl & 255, c);
-                                const float w = c == 0 ? p.w : sextra[(size_t)j * (HERO_C - 1) + c - 1];
-                                const float4 h = hg[b];
-                                const float q = h.x - h.y * cw;
-                                const float rq = rsqrt(q);
-                                acc[b] = add_sat(acc[b], (long)fmin(h.z * rq * rq * rq * w * FIX, 9.0e18f));
-                            }
-                            ++M;
-                        }
-                    }
-                }
-            }
+            if (R > 0.0f)
+                M = gather_sphere(gp, cell_start, spos_w, sdir_b, sextra, hgtab + L * NB, layer_z, x, R,
+                                  L, pd.xyz, acc);
             /* path weight integral of T over the point's interval, per band */
-            const uint k0 = pt_piece[i], k1 = pt_piece[i + 1];
             const float V = estimator_volume(x.z, R, pt_slab[i]);
             const float f = (R > 0.0f) ? pp.w / V * INV_FIX : 0.0f;
-            for (int b = 0; b < NB; ++b) {
-                float o = od[b];
-                if (acc[b] != 0) {          /* integral of T over the cell, exact per piece */
-                    float Wb = 0.0f;
-                    for (uint k = k0; k < k1; ++k) {
-                        const float2 pc = pieces[k];
-                        const float m = optics[(int)pc.y * NB + b].w;
-                        const float ml = m * pc.x;
-                        Wb += exp(-o) * (ml > 1e-6f ? -expm1(-ml) / m : pc.x);
-                        o += ml;
-                    }
-                    accp[b] += Wb * f * (float)acc[b];
-                } else {
-                    for (uint k = k0; k < k1; ++k) {
-                        const float2 pc = pieces[k];
-                        o += optics[(int)pc.y * NB + b].w * pc.x;
-                    }
-                }
-                od[b] = o;
-            }
+            add_point_bands(accp, od, acc, optics, pieces, pt_piece[i], pt_piece[i + 1], f);
             /* progressive radius update */
             if (!global_radius && M > 0u) {
                 const float N = pt_N[i];
@@ -217,7 +243,6 @@ __kernel void gather(const GridParams gp,
     }
     __global double* out = pix_acc + (size_t)pix * NB;
     for (int b = 0; b < NB; ++b) out[b] += (double)accp[b] * pass_scale;
-    pix_pairs[pix] += pairs;
 }
 
 /* Initial radius: the radius at which the first search finds K photons, estimated from the
@@ -274,15 +299,18 @@ __kernel void count_within(const GridParams gp,
     const float R2 = R * R;
     const int L = (int)pt_dir[i].w;
     uint M = 0;
-    FOR_EACH_QUERY_ROW(gp, cell_start, x, R, L, layer_z, jb, je) {
-        for (uint j = jb; j < je; ++j)
-            if (grid_within(spos_w[j].xyz, x, R2)) {
+    const QueryBox qb = query_box(gp, x, R, L, layer_z);
+    for (int iz = qb.z0; iz <= qb.z1; ++iz)
+        for (int iy = qb.c0.y; iy <= qb.c1.y; ++iy) {
+            const uint2 jr = grid_row_range(gp, cell_start, qb.c0.x, qb.c1.x, iy, iz);
+            for (uint j = jr.x; j < jr.y; ++j)
+                if (grid_within(spos_w[j].xyz, x, R2)) {
 #if ESTIMATOR == 2
-                if (((int)sdir_b[j].w >> 8) != L) continue;
+                    if (((int)sdir_b[j].w >> 8) != L) continue;
 #endif
-                ++M;
-            }
-    }
+                    ++M;
+                }
+        }
     out[k] = M;
 }
 
@@ -378,7 +406,7 @@ __kernel void photon_weights16(__global const float4* spos_w, __global const flo
 #endif
 }
 
-/* Per eye-ray piece, once per scene: its layer-conforming depth (BEAM_PIECE_SLAB):
+/* Per eye-ray piece, once per scene: its layer-conforming depth (beam_piece_slab):
  * (top, bottom of its layer at the ray's column, conform, 0).  Read by both layouts' queries
  * instead of evaluating the height field per piece and band class. */
 __kernel void piece_slabs(__constant const Params* P, __constant const float4* iface,
@@ -387,12 +415,231 @@ __kernel void piece_slabs(__constant const Params* P, __constant const float4* i
 {
     const uint k = get_global_id(0);
     if (k >= npieces) return;
-    const float4 g0 = geo[2 * k], g1 = geo[2 * k + 1];
-    const float3 s0 = g0.xyz, d = g1.xyz;
-    const float len = g0.w;
-    const int Lk = (int)g1.w;
-    BEAM_PIECE_SLAB
-    pslab[k] = (float4)(tb_r.x, tb_r.y, (float)conform, 0.0f);
+    const BeamPiece pc = beam_piece_at(geo, k);
+    pslab[k] = beam_piece_slab(P, iface, heights, &pc);
+}
+
+/* A ray's optical depth from its entry to a piece's start, and a sample point's 64-bit
+ * fixed-point sums, per band of the class (band g + GCLASS k): one vector of 16 lanes (9 used)
+ * with BAND16, else arrays. */
+#ifdef BAND16
+typedef struct { float16 v; } ClassOd;
+typedef struct { long16 v; } ClassAcc;
+#else
+typedef struct { float v[NBC]; } ClassOd;
+typedef struct { long v[NBC]; } ClassAcc;
+#endif
+
+HOT void class_od_clear(ClassOd* od) {
+#ifdef BAND16
+    od->v = (float16)(0.0f);
+#else
+    for (int k = 0; k < NBC; ++k) od->v[k] = 0.0f;
+#endif
+}
+
+HOT void class_acc_clear(ClassAcc* acc) {
+#ifdef BAND16
+    acc->v = (long16)(0);
+#else
+    for (int k = 0; k < NBC; ++k) acc->v[k] = 0;
+#endif
+}
+
+/* The optical depth on over a piece of layer Lk and length len. */
+HOT void class_od_advance(ClassOd* od, __global const float4* optics, __global const float16* mutc,
+                          int Lk, int g, float len) {
+#ifdef BAND16
+    od->v += mutc[Lk * GCLASS + g] * len;
+#else
+    for (int k = 0; k < NBC; ++k) od->v[k] += optics[Lk * NB + g + GCLASS * k].w * len;
+#endif
+}
+
+/* The band terms of one (piece, photon) pair, added to the point's sums: per band the photon's
+ * weight times the disc's factors (wax, wl, wwin), the phase function of its layer toward the
+ * eye (cw = w_p . d, w_eye = -d) and the transmittance from the ray's entry to depth ts of the
+ * piece, in fixed point. */
+#ifdef BAND16
+HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __global const float16* hgc,
+                         __global const float16* sw16, __global const float* sextra, uint j,
+                         float4 p, int bl, int g, float cw, float wax, const BeamHit* h) {
+    const float wl = h->wl, wwin = h->wwin, ts = h->ts;
+    /* the photon's weights in class order: lane k holds member c = k - kh (mod 9) (c = 0: the
+     * hero's p.w); lanes 9-15: 0 */
+#ifdef PROF_SHUFFLE
+    const uint16 lane = (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const uint kh = (uint)((bl & 255) / GCLASS);
+    const float8 wx = vload8(j, sextra);
+    const float16 wc = (float16)(p.w, wx, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f);
+    const uint16 rot = select(select(lane - kh, lane + 9u - kh, lane < kh),
+                              (uint16)(15u), lane > 8u);
+    const float16 w = shuffle(wc, rot) * wax * wl * wwin;
+#else
+    const float16 w = sw16[j] * wax * wl * wwin;
+#endif
+    __global const float16* hh = hgc + ((bl >> 8) * GCLASS + g) * 3;
+    const float16 q = hh[0] + hh[1] * cw;
+#ifdef EXACT_RSQRT                      /* tests on implementations whose native_rsqrt differs
+                                         * between vector widths (Intel's: up to 0.9 % per pixel) */
+    const float16 rq = rsqrt16(q);
+#else
+    const float16 rq = native_rsqrt16(q);
+#endif
+    const float16 T = exp_neg16(od->v + mut16 * ts);
+#ifdef PROF_NOSAT
+    acc->v += convert_long16(fmin(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f));
+#else
+    /* add_sat for the nonnegative terms (fmin maps NaN to 9e18): the sum of two values in
+     * [0, 2^63) does not wrap as ulong */
+    acc->v = as_long16(min(as_ulong16(acc->v) + as_ulong16(convert_long16(
+                 fmin(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f))),
+                 (ulong16)(0x7fffffffffffffffUL)));
+#endif
+}
+#else
+/* the term of band b (class member k, the photon's band c: c = 0 the hero) */
+HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
+                        __global const float4* hg, __global const float* sextra, uint j, int c,
+                        int k, int b, float wk, float cw, float wax, float wl, float wwin, float ts) {
+    const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin;
+    const float4 hq = hg[b];
+    const float q = hq.x + hq.y * cw;
+#ifdef EXACT_RSQRT
+    const float rq = rsqrt(q);
+#else
+    const float rq = native_rsqrt(q);
+#endif
+    const float T = exp_neg(od->v[k] + mut_k[b].w * ts);
+    acc->v[k] = add_sat(acc->v[k], (long)fmin(hq.z * rq * rq * rq * w * T * FIX, 9.0e18f));
+}
+
+HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
+                         __global const float4* hgtab, __global const float* sextra, uint j,
+                         float4 p, int bl, int g, float cw, float wax, const BeamHit* h) {
+    const float wl = h->wl, wwin = h->wwin, ts = h->ts;
+    const float wk = p.w * wax * wl * wwin;
+    __global const float4* hg = hgtab + (bl >> 8) * NB;
+#if HERO_C == NBC                       /* the photon carries every band of the class */
+    const int kh = (bl & 255) / GCLASS;         /* its hero's place */
+    for (int k = 0; k < NBC; ++k) {
+        const int c = k >= kh ? k - kh : k - kh + NBC;
+        beam_band_term(acc, od, mut_k, hg, sextra, j, c, k, g + GCLASS * k, wk, cw, wax, wl, wwin, ts);
+    }
+#else
+    for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
+        const int b = sw_band(bl & 255, c);
+        beam_band_term(acc, od, mut_k, hg, sextra, j, c, b / GCLASS, b, wk, cw, wax, wl, wwin, ts);
+    }
+#endif
+}
+#endif
+
+/* Gather over a beam segment: the photons of band class g in the disc of one eye-ray piece
+ * (query box, rows narrowed to the disc's chord, the candidates of each row, the pair test),
+ * their band terms added to the point's sums.  Returns the pairs found. */
+HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constant const float4* iface,
+                      __constant const float4* vlay, __global const uint* cell_start, uint cls0,
+                      __global const float4* spos_w, __global const float4* sdir_b,
+                      __global const float2* sslab, __global const float* sextra,
+                      __global const float4* hgtab, __global const float4* optics,
+                      __global const float16* hgc, __global const float16* mutc,
+                      __global const float16* sw16, const BeamPiece* pc, float R, float R2,
+                      float Rwin, int g, const ClassOd* od, ClassAcc* acc) {
+    uint M = 0;
+    const BeamBox bx = beam_box(gp, vlay, iface, pc, R);
+    __global const float4* mut_k = optics + pc->Lk * NB;
+#ifdef BAND16
+    const float16 mut16 = mutc[pc->Lk * GCLASS + g];
+#endif
+    for (int iy = bx.c0.y; iy <= bx.c1.y; ++iy) {
+#ifndef ROWS_FULL
+        const int2 xr = beam_box_row(gp, &bx, iy);      /* the disc's chord over the row */
+#else
+        const int2 xr = (int2)(bx.c0.x, bx.c1.x);
+#endif
+        if (xr.y < xr.x) continue;
+        for (int iz = bx.c0.z; iz <= bx.c1.z; ++iz) {
+            const uint row = grid_cell_index(gp, xr.x, iy, iz) + cls0;
+            const uint jb = cell_start[row], je = cell_start[row + (uint)(xr.y - xr.x) + 1u];
+#ifdef COUNT_CANDIDATES         /* bench/gather.py: the photons tested, in place of the pairs */
+            M += je - jb;
+            continue;
+#endif
+            for (uint j = jb; j < je; ++j) {
+                const float4 p = spos_w[j];
+                const float4 dd = sdir_b[j];
+                const int bl = (int)dd.w;
+#ifndef FLAT
+                const float2 tb_p = pc->conform ? sslab[j] : (float2)(0.0f);
+#else
+                const float2 tb_p = (float2)(0.0f);
+#endif
+                BeamHit h;
+                if (!beam_pair(P, pc, R, R2, Rwin, p, bl, tb_p, &h)) continue;
+#ifdef PROF_NOBANDS
+                ++M; continue;
+#endif
+                const float cw = dot(dd.xyz, pc->d);                /* w_eye = -d */
+#ifdef BAND16
+                beam_pair_bands(acc, od, mut16, hgc, sw16, sextra, j, p, bl, g, cw, pc->wax, &h);
+#else
+                beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, g, cw, pc->wax, &h);
+#endif
+                ++M;
+            }
+        }
+    }
+    return M;
+}
+
+/* A point's pieces, each gathered over (gather_piece) with the ray's optical depth at its start;
+ * the depth runs on through them.  Returns the pairs found. */
+HOT uint gather_point(const GridParams gp, __constant const Params* P, __constant const float4* iface,
+                      __global const float* heights, __constant const float4* vlay,
+                      __global const uint* cell_start, uint cls0, __global const float4* spos_w,
+                      __global const float4* sdir_b, __global const float2* sslab,
+                      __global const float* sextra, __global const float4* hgtab,
+                      __global const float4* optics, __global const float16* hgc,
+                      __global const float16* mutc, __global const float16* sw16,
+                      __global const float4* pslab, __global const float4* geo, uint k0, uint k1,
+                      float R, float R2, int g, ClassOd* od, ClassAcc* acc) {
+    /* the window near an open side (disc.h) is that of the ray's point at the photon's depth:
+     * the ray drifts sideways with depth (outwards at the sides, ~0.1 per unit depth), so a
+     * window placed at the sample point would reach past the side */
+    const float Rwin = window_reach(R);
+    uint M = 0;
+    for (uint k = k0; k < k1; ++k) {
+        BeamPiece pc = beam_piece_at(geo, k);
+        if (R > 0.0f && pc.len > 0.0f) {
+#ifndef PROF_SLAB_INLINE
+            const float4 pslab_k = pslab[k];
+#else                                   /* timing only: the height field per piece and class */
+            const float4 pslab_k = beam_piece_slab(P, iface, heights, &pc);
+#endif
+            beam_axis(&pc);
+            beam_frame(&pc, pslab_k);
+            M += gather_piece(gp, P, iface, vlay, cell_start, cls0, spos_w, sdir_b, sslab, sextra,
+                              hgtab, optics, hgc, mutc, sw16, &pc, R, R2, Rwin, g, od, acc);
+        }
+        class_od_advance(od, optics, mutc, pc.Lk, g, pc.len);
+    }
+    return M;
+}
+
+/* The point's sums as radiance over the disc's area, into the pixel's per-band sums (accp). */
+HOT void add_point(float* accp, const ClassAcc* acc, float4 pp, float R, float R2) {
+#ifdef BAND16
+    long a[16];
+    vstore16(acc->v, 0, a);
+#else
+    const long* a = acc->v;
+#endif
+    if (R > 0.0f) {
+        const float f = pp.w / (PI_F * R2) * INV_FIX;
+        for (int k = 0; k < NBC; ++k)
+            if (a[k] != 0) accp[k] += f * (float)a[k];
+    }
 }
 
 __kernel void gather_beam(const GridParams gp,
@@ -432,150 +679,18 @@ __kernel void gather_beam(const GridParams gp,
     for (int s = 0; s < spp; ++s) {
         const uint r = (uint)pix * (uint)spp + (uint)s;
         const uint i0 = ray_start[r], i1 = ray_start[r + 1];
-#ifdef BAND16
-        float16 od16 = (float16)(0.0f);
-#else
-        float od[NBC];                  /* optical depth from the entry to the piece's start */
-        for (int k = 0; k < NBC; ++k) od[k] = 0.0f;
-#endif
+        ClassOd od;                     /* optical depth from the entry to the piece's start */
+        class_od_clear(&od);
         for (uint i = i0; i < i1; ++i) {
             const float4 pp = pt_pos[i];
             const float R = global_radius ? pt_R[i] * radius_scale : pt_R[i];
             const float R2 = R * R;
-            /* the window near an open side (disc.h) is that of the ray's point at the photon's
-             * depth: the ray drifts sideways with depth (outwards at the sides, ~0.1 per unit
-             * depth), so a window placed at the sample point would reach past the side */
-            const float Rwin = window_reach(R);
-#ifdef BAND16
-            long16 acc16 = (long16)(0);
-            const uint16 lane = (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-#else
-            long acc[NBC];
-            for (int k = 0; k < NBC; ++k) acc[k] = 0;
-#endif
-            uint M = 0;
-            const uint k0 = pt_piece[i], k1 = pt_piece[i + 1];
-            for (uint k = k0; k < k1; ++k) {
-                const float4 g0 = geo[2 * k], g1 = geo[2 * k + 1];
-                const float3 s0 = g0.xyz, d = g1.xyz;
-                const float len = g0.w;
-                const int Lk = (int)g1.w;
-                if (R > 0.0f && len > 0.0f) {
-#ifndef PROF_SLAB_INLINE
-                    const float4 pslab_k = pslab[k];
-#else                                   /* timing only: the height field per piece and class */
-                    float4 pslab_k;
-                    { BEAM_PIECE_SLAB pslab_k = (float4)(tb_r.x, tb_r.y, (float)conform, 0.0f); }
-#endif
-                    BEAM_PIECE
-                    __global const float4* mut_k = optics + Lk * NB;
-#ifdef BAND16
-                    const float16 mut16 = mutc[Lk * GCLASS + g];
-#endif
-                    for (int iy = c0.y; iy <= c1.y; ++iy) {
-#ifndef ROWS_FULL
-                    const int2 xr = BEAM_ROW_X(iy);     /* the disc's chord over the row */
-#else
-                    const int2 xr = (int2)(c0.x, c1.x);
-#endif
-                    if (xr.y < xr.x) continue;
-                    for (int iz = c0.z; iz <= c1.z; ++iz) {
-                        const uint row = grid_cell_index(gp, xr.x, iy, iz) + cls0;
-                        const uint jb = cell_start[row], je = cell_start[row + (uint)(xr.y - xr.x) + 1u];
-#ifdef COUNT_CANDIDATES         /* bench/gather.py: the photons tested, in place of the pairs */
-                        M += je - jb;
-                        continue;
-#endif
-                        for (uint j = jb; j < je; ++j) {
-                            const float4 p = spos_w[j];
-                            const float4 dd = sdir_b[j];
-                            const int bl = (int)dd.w;
-#ifndef FLAT
-                            const float2 tb_p = conform ? sslab[j] : (float2)(0.0f);
-#endif
-                            BEAM_PAIR
-#ifdef PROF_NOBANDS
-                            ++M; continue;
-#endif
-                            const float cw = dot(dd.xyz, d);                   /* w_eye = -d */
-#ifdef BAND16
-                            {
-                                /* the photon's weights in class order: lane k holds member
-                                 * c = k - kh (mod 9) (c = 0: the hero's p.w); lanes 9-15: 0 */
-#ifdef PROF_SHUFFLE
-                                const uint kh = (uint)((bl & 255) / GCLASS);
-                                const float8 wx = vload8(j, sextra);
-                                const float16 wc = (float16)(p.w, wx, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f);
-                                const uint16 rot = select(select(lane - kh, lane + 9u - kh, lane < kh),
-                                                          (uint16)(15u), lane > 8u);
-                                const float16 w = shuffle(wc, rot) * wax * wl * wwin;
-#else
-                                const float16 w = sw16[j] * wax * wl * wwin;
-#endif
-                                __global const float16* hh = hgc + ((bl >> 8) * GCLASS + g) * 3;
-                                const float16 q = hh[0] + hh[1] * cw;
-#ifdef EXACT_RSQRT                      /* tests on implementations whose native_rsqrt differs
-                                         * between vector widths (Intel's: up to 0.9 % per pixel) */
-                                const float16 rq = rsqrt16(q);
-#else
-                                const float16 rq = native_rsqrt16(q);
-#endif
-                                const float16 T = exp_neg16(od16 + mut16 * ts);
-#ifdef PROF_NOSAT
-                                acc16 += convert_long16(fmin(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f));
-#else
-                                /* add_sat for the nonnegative terms (fmin maps NaN to 9e18):
-                                 * the sum of two values in [0, 2^63) does not wrap as ulong */
-                                acc16 = as_long16(min(as_ulong16(acc16) + as_ulong16(convert_long16(
-                                            fmin(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f))),
-                                            (ulong16)(0x7fffffffffffffffUL)));
-#endif
-                            }
-#else
-                            const float wk = p.w * wax * wl * wwin;
-                            __global const float4* hg = hgtab + (bl >> 8) * NB;
-#if HERO_C == NBC                       /* the photon carries every band of the class */
-                            const int kh = (bl & 255) / GCLASS;         /* its hero's place */
-                            for (int k = 0; k < NBC; ++k) {
-                                const int c = k >= kh ? k - kh : k - kh + NBC;
-                                const int b = g + GCLASS * k;
-#else
-                            for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
-                                const int b = sw_band(bl & 255, c);
-                                const int k = b / GCLASS;
-#endif
-                                const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin;
-                                const float4 h = hg[b];
-                                const float q = h.x + h.y * cw;
-#ifdef EXACT_RSQRT
-                                const float rq = rsqrt(q);
-#else
-                                const float rq = native_rsqrt(q);
-#endif
-                                const float T = exp_neg(od[k] + mut_k[b].w * ts);
-                                acc[k] = add_sat(acc[k], (long)fmin(h.z * rq * rq * rq * w * T * FIX, 9.0e18f));
-                            }
-#endif
-                            ++M;
-                        }
-                    }
-                    }
-                }
-#ifdef BAND16
-                od16 += mutc[Lk * GCLASS + g] * len;
-#else
-                for (int k = 0; k < NBC; ++k) od[k] += optics[Lk * NB + g + GCLASS * k].w * len;
-#endif
-            }
-#ifdef BAND16
-            long acc[16];
-            vstore16(acc16, 0, acc);
-#endif
-            if (R > 0.0f) {
-                const float f = pp.w / (PI_F * R2) * INV_FIX;
-                for (int k = 0; k < NBC; ++k)
-                    if (acc[k] != 0) accp[k] += f * (float)acc[k];
-            }
+            ClassAcc acc;
+            class_acc_clear(&acc);
+            const uint M = gather_point(gp, P, iface, heights, vlay, cell_start, cls0, spos_w, sdir_b,
+                                        sslab, sextra, hgtab, optics, hgc, mutc, sw16, pslab, geo,
+                                        pt_piece[i], pt_piece[i + 1], R, R2, g, &od, &acc);
+            add_point(accp, &acc, pp, R, R2);
             if (M > 0u) atomic_add(&pt_M[i], M);    /* integers: the classes' order is immaterial */
         }
     }

@@ -25,7 +25,7 @@
  *                                  mirrored by clppm.hashgrid.GRID_PARAMS_DTYPE.
  *                                  Pass it by value as a kernel argument (or read
  *                                  it from a __constant/__global buffer into a
- *                                  private copy: the macros take a VALUE).
+ *                                  private copy: the functions take a VALUE).
  *   int  grid_axis(v, lo, inv_h, n)   cell coordinate of one axis, clamped to [0, n-1]
  *   int4 grid_coords(gp, p)           (ix, iy, iz, 0) of float3 p, clamped
  *   uint grid_cell_of(gp, p)          linear cell index of float3 p
@@ -38,25 +38,22 @@
  *                                  evaluated with FP_CONTRACT OFF so every kernel
  *                                  that uses it gets bit-identical results
  *
- *   GRID_FOR_EACH_ROW(gp, cell_start, x, R, begin, end) { ... } GRID_END_ROWS
- *       Loops over the (iy, iz) rows of cells overlapping the query sphere
- *       (centre float3 x, radius float R); in the body, `begin` and `end`
- *       (const uint, names chosen by the caller) bound the contiguous range of
- *       sorted photon indices of that row.  Example:
+ *   uint2 grid_row_range(gp, cell_start, x0, x1, iy, iz)
+ *                                  the contiguous range [begin, end) of sorted
+ *                                  photon indices in cells x0..x1 of row (iy, iz).
+ *       A query loops over the (iy, iz) rows of its cell range:
  *
  *         const float R2 = R * R;
- *         GRID_FOR_EACH_ROW(gp, cell_start, x, R, b, e) {
- *             for (uint j = b; j < e; ++j) {
- *                 const float4 p = spos_w[j];
- *                 if (grid_within(p.xyz, x, R2)) { ... }
+ *         int4 c0, c1;
+ *         grid_query_range(gp, x, R, &c0, &c1);
+ *         for (int iz = c0.z; iz <= c1.z; ++iz)
+ *             for (int iy = c0.y; iy <= c1.y; ++iy) {
+ *                 const uint2 jr = grid_row_range(gp, cell_start, c0.x, c1.x, iy, iz);
+ *                 for (uint j = jr.x; j < jr.y; ++j) {
+ *                     const float4 p = spos_w[j];
+ *                     if (grid_within(p.xyz, x, R2)) { ... }
+ *                 }
  *             }
- *         } GRID_END_ROWS
- *
- *       The body sits inside two nested for loops (iz, iy): `continue` goes to
- *       the next row, but `break` only ends the current iy loop (the search
- *       goes on with the next iz plane); to stop the whole search use a flag
- *       checked in the body, or goto.  gp, cell_start, x and R are evaluated
- *       more than once: pass plain names.
  *
  * Exactness: the query range is computed for R*(1 + GRID_R_PAD) (default 1e-4).
  * If grid_within(p, x, R*R) holds in float arithmetic, then |p.x - x.x| <
@@ -141,18 +138,11 @@ inline int grid_within(const float3 p, const float3 x, const float R2)
     return d2 < R2;
 }
 
-#define GRID_FOR_EACH_ROW(gp, cell_start, x, R, begin, end)                      \
-    {                                                                            \
-        int4 grid_c0_, grid_c1_;                                                 \
-        grid_query_range((gp), (x), (R), &grid_c0_, &grid_c1_);                  \
-        for (int grid_iz_ = grid_c0_.z; grid_iz_ <= grid_c1_.z; ++grid_iz_)      \
-        for (int grid_iy_ = grid_c0_.y; grid_iy_ <= grid_c1_.y; ++grid_iy_) {    \
-            const uint grid_row_ = grid_cell_index((gp), grid_c0_.x, grid_iy_, grid_iz_); \
-            const uint begin = (cell_start)[grid_row_];                          \
-            const uint end = (cell_start)[grid_row_ + (uint)(grid_c1_.x - grid_c0_.x) + 1u];
-
-#define GRID_END_ROWS                                                            \
-        }                                                                        \
-    }
+inline uint2 grid_row_range(const GridParams gp, __global const uint* cell_start, const int x0,
+                            const int x1, const int iy, const int iz)
+{
+    const uint row = grid_cell_index(gp, x0, iy, iz);
+    return (uint2)(cell_start[row], cell_start[row + (uint)(x1 - x0) + 1u]);
+}
 
 #endif /* CLPPM_GRID_H */

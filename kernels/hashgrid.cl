@@ -126,19 +126,23 @@ __kernel void gather_grid(const GridParams gp, const uint m, const float wscale,
     long B[NB];
     for (int b = 0; b < NB; ++b) B[b] = 0;
 
-    GRID_FOR_EACH_ROW(gp, cell_start, x, R, jb, je) {
-        cand += je - jb;
-        for (uint j = jb; j < je; ++j) {
-            const float4 p = spos_w[j];
-            if (grid_within(p.xyz, x, R2)) {
-                const long wf = convert_long_rte(p.w * wscale);
-                const int bi = (int)sdir_b[j].w & 255;
-                ++M;
-                W += wf;
-                if (bi >= 0 && bi < NB) B[bi] += wf;
+    int4 c0, c1;
+    grid_query_range(gp, x, R, &c0, &c1);
+    for (int iz = c0.z; iz <= c1.z; ++iz)
+        for (int iy = c0.y; iy <= c1.y; ++iy) {
+            const uint2 jr = grid_row_range(gp, cell_start, c0.x, c1.x, iy, iz);
+            cand += jr.y - jr.x;
+            for (uint j = jr.x; j < jr.y; ++j) {
+                const float4 p = spos_w[j];
+                if (grid_within(p.xyz, x, R2)) {
+                    const long wf = convert_long_rte(p.w * wscale);
+                    const int bi = (int)sdir_b[j].w & 255;
+                    ++M;
+                    W += wf;
+                    if (bi >= 0 && bi < NB) B[bi] += wf;
+                }
             }
         }
-    } GRID_END_ROWS
 
     count[q] = M;
     wsum[q] = W;

@@ -503,6 +503,261 @@ inline int pt_boundary(Track* t, int ev, float* beta, Rng* rng, VOLUME_ARGS,
 #endif
 
 /* ---------------------------------------------------------------- the pass */
+/* A pixel's counts over its samples: vertices, connections made and blocked, paths cut; the
+ * manifold solver's (NMNEE, clppm/pathtracer.py MNEE_STATS); the value by vertex index. */
+typedef struct {
+    ulong nvert, nmade, nblock, ncut;
+    ulong m_try, m_ok, m_it, m_cont, m_mis, m_sol;
+    SmsStat ss;
+    double bins[NBIN];
+} PtStats;
+
+HOT void pt_stats_clear(PtStats* st) {
+    st->nvert = 0; st->nmade = 0; st->nblock = 0; st->ncut = 0;
+    st->m_try = 0; st->m_ok = 0; st->m_it = 0; st->m_cont = 0; st->m_mis = 0; st->m_sol = 0;
+    st->ss.found = 0u; st->ss.other = 0u; st->ss.trials = 0u; st->ss.clamped = 0u;
+    for (int i = 0; i < NBIN; ++i) st->bins[i] = 0.0;
+}
+
+HOT void pt_stats_add(const PtStats* st, uint pix, __global ulong* pix_stats, __global ulong* pix_mnee,
+                      __global double* pix_bins) {
+    __global ulong* sp = pix_stats + (size_t)pix * 4;
+    sp[0] += st->nvert; sp[1] += st->nmade; sp[2] += st->nblock; sp[3] += st->ncut;
+    __global ulong* sm = pix_mnee + (size_t)pix * NMNEE;
+    sm[0] += st->m_try; sm[1] += st->m_ok; sm[2] += st->m_it; sm[3] += st->m_cont; sm[4] += st->m_mis;
+    sm[5] += st->m_sol;
+    sm[6] += st->ss.found; sm[7] += st->ss.other; sm[8] += st->ss.trials; sm[9] += st->ss.clamped;
+    for (int i = 0; i < NBIN; ++i) pix_bins[(size_t)pix * NBIN + i] += st->bins[i];
+}
+
+/* Interface crossing into the skin where the eye ray hit it (geometric normal gn): the
+ * highlight toward the point light (added to *value when asked), then refraction at the smooth
+ * surface's normal into layer 0.  Returns the path's radiance factor: the Fresnel transmittance
+ * times (n_outside / n_0)^2. */
+HOT float pt_enter_surface(Track* t, float3 gn, float3 lpos, float* value, __constant const PtParams* E,
+                           __constant const Params* P, __constant const float4* iface,
+                           __constant const float* layer_n, __global const float* smooth) {
+#ifdef FLAT
+    const float3 sn = (float3)(0.0f, 0.0f, 1.0f);
+#else
+    float3 sn = smooth_normal(P, iface, smooth, 0, t->pos.x, t->pos.y).xyz;
+    if (-dot(t->dir, sn) <= 1e-6f) sn = gn;
+#endif
+    if (E->specular) {
+        const float3 lp = lpos - t->pos;
+        const float d2 = dot(lp, lp);
+        *value += specular_geo(sn, -t->dir, lp * rsqrt(d2), E->alpha, P->n_above, layer_n[0]) / d2;
+    }
+    const float ci = -dot(t->dir, sn);
+    float ct;
+    const float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
+    float beta = (1.0f - R) * (P->n_above / layer_n[0]) * (P->n_above / layer_n[0]);
+    t->dir = refract3(t->dir, sn, P->n_above / layer_n[0], ci, ct);
+#ifndef FLAT
+    if (dot(t->dir, gn) >= 0.0f) t->dir = reflect3(t->dir, gn);
+#endif
+    t->L = 0;
+    return beta;
+}
+
+/* The optical depth in band b straight up from the vertex t->pos to the surface (the NEE
+ * roulette's measure of how far the light is). */
+HOT float nee_depth(const Track* t, int b, __constant const Params* P, __constant const float4* iface,
+                    __global const float* heights, __global const float4* optics) {
+    float odv = 0.0f;
+#ifdef FLAT
+    odv += optics[t->L * NB + b].w * (IF_Z(t->L) - t->pos.z);
+    for (int k = 0; k < t->L; ++k) odv += optics[k * NB + b].w * (IF_Z(k) - IF_Z(k + 1));
+#else
+    const int col = col_index(P, t->ix, t->iy);
+    float zt = iface_z(iface, heights, P, t->L, col);
+    odv += optics[t->L * NB + b].w * fmax(zt - t->pos.z, 0.0f);
+    for (int k = t->L - 1; k >= 0; --k) {
+        const float zk = iface_z(iface, heights, P, k, col);
+        odv += optics[k * NB + b].w * (zk - zt);
+        zt = zk;
+    }
+#endif
+    return odv;
+}
+
+/* The light's contribution at a scattering vertex (phase function g toward the path's direction
+ * t->dir) through a sampled specular chain, per unit intensity: flat layers in closed form
+ * (connect), the relief by manifold sampling (connect_mnee_sms) from the smooth layer of the
+ * vertex; with periodic sides the light's images one period away as well (nimg). */
+HOT float connect_light(const Track* t, float g, float3 lpos, int nimg, int b, Rng* rng, Rng* mrng,
+                        __constant const PtParams* E, __constant const float* chain, VOLUME_ARGS,
+                        __global const float* smooth, PtStats* st) {
+    Chain ch;
+    float c = 0.0f;
+#ifndef FLAT
+    real4 vr = R4((real)t->pos.x, (real)t->pos.y, (real)t->pos.z);
+    int Ls = smooth_layer(P, iface, smooth, vr, t->L);
+    if (Ls < 0) {
+        /* in the staircase's skin but above the smooth surface (within half a voxel): connected
+         * from the smooth surface just below, as the photons that reach this voxel light it in
+         * the photon pass */
+        HF f0;
+        hf_eval(P, iface, smooth, 0, vr.x, vr.y, &f0);
+        vr.z = f0.h - (real)1e-3;
+        Ls = smooth_layer(P, iface, smooth, vr, 0);
+        st->m_mis++;
+    }
+    if (Ls >= 0 && chain_build(&ch, Ls, (float)vr.z, lpos.z, 1, -1, rng, iface, chain)) {
+        for (int ix = -nimg; ix <= nimg; ++ix)
+            for (int iy = -nimg; iy <= nimg; ++iy) {
+                const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
+                MneeStat ms;
+                int nsol;
+                c += connect_mnee_sms(&ch, vr, Ls, (float4)(lpos - (float3)(sh, 0.0f), 0.0f), sh, b,
+                                      g, (float4)(t->dir, 0.0f), E->mnee_trials, mrng, P, iface,
+                                      layer_n, optics, smooth, &ms, &st->ss, &nsol);
+                st->m_try++; st->m_ok += (ulong)ms.ok; st->m_it += (ulong)ms.iters;
+                st->m_cont += (ulong)ms.cont; st->m_sol += (ulong)nsol;
+            }
+    }
+#else
+    if (chain_build(&ch, t->L, t->pos.z, lpos.z, 1, -1, rng, iface, chain)) {
+        for (int ix = -nimg; ix <= nimg; ++ix)
+            for (int iy = -nimg; iy <= nimg; ++iy) {
+                const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
+                float3 dl;
+                real pp, G;
+                const float f = connect(&ch, t->pos.xy, t->L, lpos.xy - sh, sh, b,
+                                        P, layer_n, optics, &dl, &pp, &G);
+                if (f > 0.0f) c += f * hg_eval(g, -dot(dl, t->dir));
+            }
+    }
+#endif
+    return c;
+}
+
+/* Next-event estimation at the nv-th scattering vertex (path factor beta), with roulette where
+ * the light is hopelessly far: made with probability q = exp(nee_od - od) (at least
+ * nee_q_floor) beyond optical depth nee_od, and weighted 1 / q.  Adds to *value. */
+HOT void next_event(const Track* t, float4 op, float beta, int nv, int b, float3 lpos, int nimg,
+                    Rng* rng, Rng* mrng, float* value, __constant const PtParams* E,
+                    __constant const float* chain, VOLUME_ARGS, __global const float* smooth,
+                    PtStats* st) {
+    float odv = nee_depth(t, b, P, iface, heights, optics);
+    float q = 1.0f;
+    if (odv > E->nee_od) q = fmax(exp(E->nee_od - odv), E->nee_q_floor);
+    if (q >= 1.0f || rng_u01(rng) <= q) {
+        float c = connect_light(t, op.y, lpos, nimg, b, rng, mrng, E, chain, VOLUME_PASS, smooth, st);
+        if (c > 0.0f) {
+            c *= beta / q;
+            *value += c;
+            st->bins[vertex_bin(nv)] += (double)c;
+            st->nmade++;
+        } else {
+            st->nblock++;
+        }
+    }
+}
+
+#ifdef FLAT
+/* A boundary event of the eye path between flat layers: Fresnel sampled at the interface
+ * (reflected: mirrored in z), the n^2 law into *beta; a domain side ends the path (open) or
+ * wraps it (periodic).  Returns 0 when the path ends. */
+HOT int pt_flat_boundary(Track* t, int ev, float* beta, Rng* rng, __constant const Params* P,
+                         __constant const float4* iface, __constant const float* layer_n) {
+    if (ev == EV_NONE) return 0;
+    if (ev == EV_TOP || ev == EV_BOTTOM) {
+        const int up = ev == EV_TOP;
+        const int L2 = up ? t->L - 1 : t->L + 1;
+        t->pos.z = IF_Z(up ? t->L : t->L + 1);
+        const float n1 = layer_n[t->L];
+        const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+        if (n1 != n2) {
+            const float c1 = fabs(t->dir.z);
+            float c2;
+            const float Rf = fresnel_R(n1, n2, c1, &c2);
+            if (rng_u01(rng) <= Rf) { t->dir.z = -t->dir.z; return 1; }
+            if (L2 < 0 || L2 >= NL) return 0;
+            t->dir = refract3(t->dir, (float3)(0.0f, 0.0f, up ? -1.0f : 1.0f), n1 / n2, c1, c2);
+            *beta *= (n1 / n2) * (n1 / n2);
+        } else if (L2 < 0 || L2 >= NL) {
+            return 0;
+        }
+        t->L = L2;
+        return 1;
+    }
+    /* a domain side: open ends the path, periodic wraps it */
+    return !cross_wall(t, P, (ev == EV_DOMAIN_X || ev == EV_WALL_X) ? 0 : 1, 1);
+}
+#endif
+
+/* The eye path's walk in band b from the skin's entry (path factor beta): free flight to a
+ * scattering vertex or a boundary; at a vertex absorption, next-event estimation, scattering
+ * and Russian roulette below rr_threshold of the entry's factor. */
+HOT void pt_walk(Track* t, float beta, int b, float3 lpos, int nimg, Rng* rng, Rng* mrng, float* value,
+                 __constant const PtParams* E, __constant const float* chain, VOLUME_ARGS,
+                 __global const float* smooth, PtStats* st) {
+    const float rr_w = E->rr_threshold * beta;
+    float tau = neg_log_u01(rng_u01(rng));
+    int nv = 0;
+    while (beta > 0.0f) {
+        const float4 op = optics[t->L * NB + b];  /* mua/mut, g, 1/(2g), mut */
+        const float mut = op.w;
+        int ev;
+        const float db = next_boundary(t, P, iface, heights, &ev);
+        const float sfl = mut > 0.0f ? tau / mut : BIG;
+        if (sfl < db) {
+            /* ---- scattering vertex */
+            t->pos += sfl * t->dir;
+            if (++nv > E->max_vertices) { st->ncut++; break; }
+            beta *= 1.0f - op.x;
+            if (!(beta > 0.0f)) break;
+            next_event(t, op, beta, nv, b, lpos, nimg, rng, mrng, value, E, chain, VOLUME_PASS, smooth, st);
+            /* scatter and roulette */
+            const float cth = hg_sample_cos_t(op.y, op.z, rng_u01(rng));
+            t->dir = scatter_dir(t->dir, cth, rng_u01(rng));
+            if (beta < rr_w) {
+                if (rng_u01(rng) * E->rr_m <= 1.0f) beta *= E->rr_m;
+                else break;
+            }
+            tau = neg_log_u01(rng_u01(rng));
+            continue;
+        }
+        /* ---- boundary */
+        t->pos += db * t->dir;
+        if (mut > 0.0f) tau = fmax(tau - db * mut, 0.0f);
+#ifndef FLAT
+        if (!pt_boundary(t, ev, &beta, rng, VOLUME_PASS, smooth)) break;
+#else
+        if (!pt_flat_boundary(t, ev, &beta, rng, P, iface, layer_n)) break;
+#endif
+    }
+    st->nvert += (ulong)nv;
+}
+
+/* Sample s of pixel pix in band b: the camera ray (jittered in the pixel), the highlight and
+ * the path through the skin.  Returns the path's value. */
+HOT float pt_sample(uint pix, int s, int b, int nimg, __constant const PtParams* E,
+                    __constant const float* chain, VOLUME_ARGS, __global const float* smooth,
+                    PtStats* st) {
+    const int px = (int)(pix % (uint)E->cam.width), py = (int)(pix / (uint)E->cam.width);
+    const float3 lpos = (float3)(E->lx, E->ly, E->lz);
+    Rng rng;
+    rng_init(&rng, pix * (uint)E->nspp + (uint)s, E->pass_, 5u, E->seed_lo, E->seed_hi);
+    Rng mrng;   /* the connections' own stream: their trials leave the walk's decisions as they are */
+#ifndef FLAT
+    rng_init(&mrng, pix * (uint)E->nspp + (uint)s, E->pass_, 10u, E->seed_lo, E->seed_hi);
+#endif
+    const float jx = rng_u01(&rng), jy = rng_u01(&rng);
+    Track t;
+    t.pos = camera_pos(&E->cam).xyz;
+    t.dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy).xyz;
+    t.L = -1; t.ix = 0; t.iy = 0;
+    float value = 0.0f;
+    float3 gn;
+    if (hit_surface(&t, P, iface, heights, &gn)) {
+        const float beta = pt_enter_surface(&t, gn, lpos, &value, E, P, iface, layer_n, smooth);
+        pt_walk(&t, beta, b, lpos, nimg, &rng, &mrng, &value, E, chain, VOLUME_PASS, smooth, st);
+    }
+    return value;
+}
+
 __kernel void pt_pass(VOLUME_ARGS,
                       __constant const PtParams* E,
                       __constant const float* chain,
@@ -516,190 +771,17 @@ __kernel void pt_pass(VOLUME_ARGS,
     const uint gid = (uint)get_global_id(0);
     if (gid >= E->count) return;
     const uint pix = E->pix_offset + gid;
-    const int px = (int)(pix % (uint)E->cam.width), py = (int)(pix / (uint)E->cam.width);
     const uint hb = lowbias32(pix) % (uint)NB;
-    const float3 lpos = (float3)(E->lx, E->ly, E->lz);
-    ulong nvert = 0, nmade = 0, nblock = 0, ncut = 0;
-    ulong m_try = 0, m_ok = 0, m_it = 0, m_cont = 0, m_mis = 0, m_sol = 0;
-    SmsStat ss = {0u, 0u, 0u, 0u};
-    double bins[NBIN];
-    for (int i = 0; i < NBIN; ++i) bins[i] = 0.0;
+    PtStats st;
+    pt_stats_clear(&st);
     const int nimg = P->lateral == 2 ? 1 : 0;           /* periodic: images -1..1 in x and y */
-
     for (int s = 0; s < E->nspp; ++s) {
         const int b = (int)((E->band0 + (uint)s + hb) % (uint)NB);
-        Rng rng;
-        rng_init(&rng, pix * (uint)E->nspp + (uint)s, E->pass_, 5u, E->seed_lo, E->seed_hi);
-#ifndef FLAT
-        Rng mrng;   /* the connections' own stream: their trials leave the walk's decisions as they are */
-        rng_init(&mrng, pix * (uint)E->nspp + (uint)s, E->pass_, 10u, E->seed_lo, E->seed_hi);
-#endif
-        const float jx = rng_u01(&rng), jy = rng_u01(&rng);
-        Track t;
-        t.pos = camera_pos(&E->cam).xyz;
-        t.dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy).xyz;
-        t.L = -1; t.ix = 0; t.iy = 0;
-        float value = 0.0f;
-        float3 gn;
-        if (hit_surface(&t, P, iface, heights, &gn)) {
-            /* ---- surface: highlight, then refraction with tw and (n_outside / n_0)^2 */
-#ifdef FLAT
-            const float3 sn = (float3)(0.0f, 0.0f, 1.0f);
-#else
-            float3 sn = smooth_normal(P, iface, smooth, 0, t.pos.x, t.pos.y).xyz;
-            if (-dot(t.dir, sn) <= 1e-6f) sn = gn;
-#endif
-            if (E->specular) {
-                const float3 lp = lpos - t.pos;
-                const float d2 = dot(lp, lp);
-                value += specular_geo(sn, -t.dir, lp * rsqrt(d2), E->alpha, P->n_above, layer_n[0]) / d2;
-            }
-            const float ci = -dot(t.dir, sn);
-            float ct;
-            const float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
-            float beta = (1.0f - R) * (P->n_above / layer_n[0]) * (P->n_above / layer_n[0]);
-            t.dir = refract3(t.dir, sn, P->n_above / layer_n[0], ci, ct);
-#ifndef FLAT
-            if (dot(t.dir, gn) >= 0.0f) t.dir = reflect3(t.dir, gn);
-#endif
-            t.L = 0;
-            const float rr_w = E->rr_threshold * beta;
-            float tau = neg_log_u01(rng_u01(&rng));
-            int nv = 0;
-            while (beta > 0.0f) {
-                const float4 op = optics[t.L * NB + b];  /* mua/mut, g, 1/(2g), mut */
-                const float mut = op.w;
-                int ev;
-                const float db = next_boundary(&t, P, iface, heights, &ev);
-                const float sfl = mut > 0.0f ? tau / mut : BIG;
-                if (sfl < db) {
-                    /* ---- scattering vertex */
-                    t.pos += sfl * t.dir;
-                    if (++nv > E->max_vertices) { ncut++; break; }
-                    beta *= 1.0f - op.x;
-                    if (!(beta > 0.0f)) break;
-                    /* next-event estimation, with roulette where the light is hopelessly far */
-                    float odv = 0.0f;
-#ifdef FLAT
-                    odv += optics[t.L * NB + b].w * (IF_Z(t.L) - t.pos.z);
-                    for (int k = 0; k < t.L; ++k) odv += optics[k * NB + b].w * (IF_Z(k) - IF_Z(k + 1));
-#else
-                    {
-                        const int col = col_index(P, t.ix, t.iy);
-                        float zt = iface_z(iface, heights, P, t.L, col);
-                        odv += optics[t.L * NB + b].w * fmax(zt - t.pos.z, 0.0f);
-                        for (int k = t.L - 1; k >= 0; --k) {
-                            const float zk = iface_z(iface, heights, P, k, col);
-                            odv += optics[k * NB + b].w * (zk - zt);
-                            zt = zk;
-                        }
-                    }
-#endif
-                    float q = 1.0f;
-                    if (odv > E->nee_od) q = fmax(exp(E->nee_od - odv), E->nee_q_floor);
-                    if (q >= 1.0f || rng_u01(&rng) <= q) {
-                        Chain ch;
-                        float c = 0.0f;
-#ifndef FLAT
-                        real4 vr = R4((real)t.pos.x, (real)t.pos.y, (real)t.pos.z);
-                        int Ls = smooth_layer(P, iface, smooth, vr, t.L);
-                        if (Ls < 0) {
-                            /* in the staircase's skin but above the smooth surface (within half a
-                             * voxel): connected from the smooth surface just below, as the photons
-                             * that reach this voxel light it in the photon pass */
-                            HF f0;
-                            hf_eval(P, iface, smooth, 0, vr.x, vr.y, &f0);
-                            vr.z = f0.h - (real)1e-3;
-                            Ls = smooth_layer(P, iface, smooth, vr, 0);
-                            m_mis++;
-                        }
-                        if (Ls >= 0 && chain_build(&ch, Ls, (float)vr.z, lpos.z, 1, -1, &rng, iface, chain)) {
-                            for (int ix = -nimg; ix <= nimg; ++ix)
-                                for (int iy = -nimg; iy <= nimg; ++iy) {
-                                    const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
-                                    MneeStat ms;
-                                    int nsol;
-                                    c += connect_mnee_sms(&ch, vr, Ls, (float4)(lpos - (float3)(sh, 0.0f), 0.0f), sh, b,
-                                                          op.y, (float4)(t.dir, 0.0f), E->mnee_trials, &mrng, P, iface,
-                                                          layer_n, optics, smooth, &ms, &ss, &nsol);
-                                    m_try++; m_ok += (ulong)ms.ok; m_it += (ulong)ms.iters;
-                                    m_cont += (ulong)ms.cont; m_sol += (ulong)nsol;
-                                }
-                        }
-#else
-                        if (chain_build(&ch, t.L, t.pos.z, lpos.z, 1, -1, &rng, iface, chain)) {
-                            for (int ix = -nimg; ix <= nimg; ++ix)
-                                for (int iy = -nimg; iy <= nimg; ++iy) {
-                                    const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
-                                    float3 dl;
-                                    real pp, G;
-                                    const float f = connect(&ch, t.pos.xy, t.L, lpos.xy - sh, sh, b,
-                                                            P, layer_n, optics, &dl, &pp, &G);
-                                    if (f > 0.0f) c += f * hg_eval(op.y, -dot(dl, t.dir));
-                                }
-                        }
-#endif
-                        if (c > 0.0f) {
-                            c *= beta / q;
-                            value += c;
-                            bins[vertex_bin(nv)] += (double)c;
-                            nmade++;
-                        } else {
-                            nblock++;
-                        }
-                    }
-                    /* scatter and roulette */
-                    const float cth = hg_sample_cos_t(op.y, op.z, rng_u01(&rng));
-                    t.dir = scatter_dir(t.dir, cth, rng_u01(&rng));
-                    if (beta < rr_w) {
-                        if (rng_u01(&rng) * E->rr_m <= 1.0f) beta *= E->rr_m;
-                        else break;
-                    }
-                    tau = neg_log_u01(rng_u01(&rng));
-                    continue;
-                }
-                /* ---- boundary */
-                t.pos += db * t.dir;
-                if (mut > 0.0f) tau = fmax(tau - db * mut, 0.0f);
-#ifndef FLAT
-                if (!pt_boundary(&t, ev, &beta, &rng, VOLUME_PASS, smooth)) break;
-                continue;
-#endif
-                if (ev == EV_NONE) break;
-                if (ev == EV_TOP || ev == EV_BOTTOM) {
-                    const int up = ev == EV_TOP;
-                    const int L2 = up ? t.L - 1 : t.L + 1;
-                    t.pos.z = IF_Z(up ? t.L : t.L + 1);
-                    const float n1 = layer_n[t.L];
-                    const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-                    if (n1 != n2) {
-                        const float c1 = fabs(t.dir.z);
-                        float c2;
-                        const float Rf = fresnel_R(n1, n2, c1, &c2);
-                        if (rng_u01(&rng) <= Rf) { t.dir.z = -t.dir.z; continue; }
-                        if (L2 < 0 || L2 >= NL) break;
-                        t.dir = refract3(t.dir, (float3)(0.0f, 0.0f, up ? -1.0f : 1.0f), n1 / n2, c1, c2);
-                        beta *= (n1 / n2) * (n1 / n2);
-                    } else if (L2 < 0 || L2 >= NL) {
-                        break;
-                    }
-                    t.L = L2;
-                    continue;
-                }
-                /* a domain side: open ends the path, periodic wraps it */
-                if (cross_wall(&t, P, (ev == EV_DOMAIN_X || ev == EV_WALL_X) ? 0 : 1, 1)) break;
-            }
-            nvert += (ulong)nv;
-        }
+        const float value = pt_sample(pix, s, b, nimg, E, chain, VOLUME_PASS, smooth, &st);
         pix_sum[(size_t)pix * NB + b] += (double)value;
         pix_sq[(size_t)pix * NB + b] += (double)value * (double)value;
     }
-    __global ulong* st = pix_stats + (size_t)pix * 4;
-    st[0] += nvert; st[1] += nmade; st[2] += nblock; st[3] += ncut;
-    __global ulong* sm = pix_mnee + (size_t)pix * NMNEE;
-    sm[0] += m_try; sm[1] += m_ok; sm[2] += m_it; sm[3] += m_cont; sm[4] += m_mis; sm[5] += m_sol;
-    sm[6] += ss.found; sm[7] += ss.other; sm[8] += ss.trials; sm[9] += ss.clamped;
-    for (int i = 0; i < NBIN; ++i) pix_bins[(size_t)pix * NBIN + i] += bins[i];
+    pt_stats_add(&st, pix, pix_stats, pix_mnee, pix_bins);
 }
 
 /* ---------------------------------------------------------------- test entry point */
@@ -708,6 +790,12 @@ __kernel void pt_pass(VOLUME_ARGS,
  * the factor connect() returns, cos theta_L and the chain's points from the vertex to the
  * light (the last should be the light): out[i * 8 + ...] = p, dOmega/dA_h, factor, cos theta_L,
  * selection probability, ok, number of points; pts[(i * (MAXE + 2) + j) * 4 + ...] = x, y, z, layer. */
+/* point *np of a chain's walk (x, y, z, the layer after it; -1: the light) */
+inline void put_point(__global real* pp, int* np, real qx, real qy, real qz, int k) {
+    pp[4 * *np] = qx; pp[4 * *np + 1] = qy; pp[4 * *np + 2] = qz; pp[4 * *np + 3] = k;
+    (*np)++;
+}
+
 __kernel void t_connect(VOLUME_ARGS, __constant const float* chain, const float4 light,
                         const int mode, const uint n, __global const float4* verts,
                         __global real* out, __global real* pts) {
@@ -737,8 +825,7 @@ __kernel void t_connect(VOLUME_ARGS, __constant const float* chain, const float4
     real qx = v.x, qy = v.y, qz = v.z;
     int up = ch.up, np = 0;
     __global real* pp = pts + (size_t)i * (MAXE + 2) * 4;
-#define PUT(k) { pp[4 * np] = qx; pp[4 * np + 1] = qy; pp[4 * np + 2] = qz; pp[4 * np + 3] = (k); np++; }
-    PUT(Lv);
+    put_point(pp, &np, qx, qy, qz, Lv);
     for (int e = 0; e < ch.ne; ++e) {
         const int fi = ch.ev[e] & 255, k = (ch.ev[e] >> 8) & 255, refl = ch.ev[e] >> 16;
         const real n = layer_n[k];
@@ -746,14 +833,13 @@ __kernel void t_connect(VOLUME_ARGS, __constant const float* chain, const float4
         const real zi = IF_Z(fi);
         const real adv = fabs(zi - qz) * tn;
         qx += adv * ux; qy += adv * uy; qz = zi;
-        PUT(k);
+        put_point(pp, &np, qx, qy, qz, k);
         if (refl) up = !up;
     }
     const real na = P->n_above;
     const real adv = ((real)light.z - qz) * (p / na) / sqrt(1 - (p / na) * (p / na));
     qx += adv * ux; qy += adv * uy; qz = light.z;
-    PUT(-1);
-#undef PUT
+    put_point(pp, &np, qx, qy, qz, -1);
     o[6] = np;
 }
 

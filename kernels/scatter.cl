@@ -6,11 +6,11 @@
  *   piece_od       once per scene: each piece's optical depth from the ray's entry, per band
  *                  (the gather's running sum, the same expression in the same order)
  *   piece_cells    per pass (R changes): each piece's query box in the photon grid's cells
- *                  (BEAM_PIECE, the box the gather's query visits); pass 0 counts the pieces per
+ *                  (beam_box, the box the gather's query visits); pass 0 counts the pieces per
  *                  cell, pass 1 files them (atomic cursors: the order inside a cell is
  *                  arbitrary, the sums are integers); also the piece's layer at its column
  *   scatter_beam   a work item per stored photon (in the grid's cell order, so neighbouring
- *                  lanes test the same pieces): the pieces of its cell, BEAM_PAIR, the band
+ *                  lanes test the same pieces): the pieces of its cell, beam_pair, the band
  *                  terms (BAND16's expressions) added with atom_add into acc[point][band]
  *   scatter_finish a work item per pixel and band class: the gather's per-point float sums,
  *                  in the same point order, into the pixel accumulators
@@ -80,27 +80,25 @@ __kernel void piece_cells(const GridParams gp, __constant const Params* P,
 {
     const uint k = get_global_id(0);
     if (k >= npieces) return;
-    const float4 g0 = geo[2 * k], g1 = geo[2 * k + 1];
-    const float3 s0 = g0.xyz, d = g1.xyz;
-    const float len = g0.w;
-    const int Lk = (int)g1.w;
+    BeamPiece pc = beam_piece_at(geo, k);
     const uint i = piece_pt[k];
     const float R = global_radius ? pt_R[i] * radius_scale : pt_R[i];
-    if (!(R > 0.0f && len > 0.0f)) {
+    if (!(R > 0.0f && pc.len > 0.0f)) {
         if (fill) pinfo[k] = (float4)(0.0f, 0.0f, 0.0f, 0.0f);
         return;
     }
-    const float4 pslab_k = pslab[k];
-    BEAM_PIECE
-    if (fill) pinfo[k] = (float4)(tb_r.x, tb_r.y, R, (float)conform);
-    for (int iy = c0.y; iy <= c1.y; ++iy) {
-    const int2 xr = BEAM_ROW_X(iy);             /* the disc's chord over the row (beam.h) */
-    for (int iz = c0.z; iz <= c1.z; ++iz)
-    for (int ix = xr.x; ix <= xr.y; ++ix) {
-        const uint c = grid_cell_index(gp, ix, iy, iz);
-        const uint slot = atomic_inc(&cursor[c]);
-        if (fill) plist[slot] = k;
-    }
+    beam_axis(&pc);
+    beam_frame(&pc, pslab[k]);
+    const BeamBox bx = beam_box(gp, vlay, iface, &pc, R);
+    if (fill) pinfo[k] = (float4)(pc.tb_r.x, pc.tb_r.y, R, (float)pc.conform);
+    for (int iy = bx.c0.y; iy <= bx.c1.y; ++iy) {
+        const int2 xr = beam_box_row(gp, &bx, iy);      /* the disc's chord over the row */
+        for (int iz = bx.c0.z; iz <= bx.c1.z; ++iz)
+            for (int ix = xr.x; ix <= xr.y; ++ix) {
+                const uint c = grid_cell_index(gp, ix, iy, iz);
+                const uint slot = atomic_inc(&cursor[c]);
+                if (fill) plist[slot] = k;
+            }
     }
 }
 
@@ -142,25 +140,23 @@ __kernel void scatter_beam(const GridParams gp, __constant const Params* P,
     const uint t1 = pstart[cell + 1];
     for (uint t = pstart[cell]; t < t1; ++t) {
         const uint k = plist[t];
-        const float4 g0 = geo[2 * k], g1 = geo[2 * k + 1];
-        const float3 s0 = g0.xyz, d = g1.xyz;
-        const float len = g0.w;
-        const int Lk = (int)g1.w;
+        BeamPiece pc = beam_piece_at(geo, k);
         const float4 pi = pinfo[k];
-        const float2 tb_r = pi.xy;
+        pc.tb_r = pi.xy;
         const float R = pi.z;
-        const int conform = pi.w != 0.0f;
+        pc.conform = pi.w != 0.0f;
         const float R2 = R * R;
         const float Rwin = window_reach(R);
-        BEAM_PIECE_AXIS
-        BEAM_PAIR
-        const float cw = dot(dd.xyz, d);                   /* w_eye = -d */
+        beam_axis(&pc);
+        BeamHit h;
+        if (!beam_pair(P, &pc, R, R2, Rwin, p, bl, tb_p, &h)) continue;
+        const float cw = dot(dd.xyz, pc.d);                /* w_eye = -d */
         __global const float* ok = od + (size_t)k * NB + g * NBC;
         const float16 od16 = (float16)(vload8(0, ok), ok[8], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f);
-        const float16 w = wj * wax * wl * wwin;
+        const float16 w = wj * pc.wax * h.wl * h.wwin;
         const float16 q = hx + hy * cw;
         const float16 rq = native_rsqrt16(q);
-        const float16 T = exp_neg16(od16 + mutc[Lk * GCLASS + g] * ts);
+        const float16 T = exp_neg16(od16 + mutc[pc.Lk * GCLASS + g] * h.ts);
         const long16 x = convert_long16(fmin(hz * rq * rq * rq * w * T * FIX, 9.0e18f));
         const uint i = piece_pt[k];
         volatile __global long* ai = acc + (size_t)i * NB + g;
