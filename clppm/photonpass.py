@@ -22,6 +22,7 @@ from .config import render_settings
 from .bands import Bands
 from .light import Light
 from .device import Device, kernel_defines, launch, surface_fp64
+from .kernelcall import Kernel
 from .volume import Volume, VolumeBuffers, upload_volume, volume_params
 
 W0 = 2 ** 38
@@ -221,7 +222,7 @@ class PhotonPass:
         self.items = persistent_items(dev)
         self.prg = dev.build("photon.cl", kernel_defines(vol, hero=self.hero, pt_fp64=surface_fp64(dev, vol),
                                                          photon_counters=self.counters))
-        self.kernel = cl.Kernel(self.prg, "photon_pass")
+        self.kernel = Kernel(self.prg, "photon_pass")
         self.vbuf = vbuf or upload_volume(dev, vol)
         self.spectrum = self.bands.spectrum
         self.band = self.bands.fixed
@@ -272,6 +273,8 @@ class PhotonPass:
             self.counter_buf = cl.Buffer(dev.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=self.counter_host)
             self.lane_buf = cl.Buffer(dev.ctx, mf.READ_WRITE, 8 * (self.items + 64))
             self.lane_steps: list[np.ndarray] = []
+        else:       # the kernel declares them always and touches them only in counter builds
+            self.counter_buf = self.lane_buf = cl.Buffer(dev.ctx, mf.READ_WRITE, 8)
 
     def set_emission(self, how: str) -> None:
         """"random" (Philox per photon) or "qmc" (a randomly shifted R3 sequence per pass)."""
@@ -299,13 +302,14 @@ class PhotonPass:
         self.p["count"] = n
         cl.enqueue_copy(q, self.pbuf, self.p)
         cl.enqueue_copy(q, self.count_buf, np.zeros(1, np.uint32), dst_offset=4)   # no photon taken yet
-        extra = (self.counter_buf, self.lane_buf) if self.counters else ()
         items = min(n, self.items)
-        self.kernel(q, *launch(self.kernel, q, items), self.pbuf, *self.vbuf.args(), self.store_imp, self.cdf,
-                    self.band_spi, self.logmu, self.pos_w, self.dir_b, self.extra, self.count_buf, self.tally_buf,
-                    self.vbuf.smooth, self.tile_z, *extra)
+        self.kernel(q, items, **self.vbuf.named(self.pbuf), store_imp=self.store_imp, band_cdf=self.cdf,
+                    band_spi=self.band_spi, logmu=self.logmu, store_pos_w=self.pos_w,
+                    store_dir_b=self.dir_b, store_extra=self.extra, store_count=self.count_buf,
+                    tallies=self.tally_buf, smooth=self.vbuf.smooth, tile_z=self.tile_z,
+                    counters=self.counter_buf, lane_steps=self.lane_buf)
         if self.counters:
-            steps = np.empty((launch(self.kernel, q, items)[0][0], 2), np.uint32)
+            steps = np.empty((launch(self.kernel.kernel, q, items)[0][0], 2), np.uint32)
             cl.enqueue_copy(q, steps, self.lane_buf)
             self.lane_steps.append(steps[:items])
 

@@ -37,10 +37,8 @@ enum { K_ENTERED = 0, K_MISSED, K_STEPS, K_COLLISIONS, K_STORED, K_IFACE, K_IFAC
        K_ZONE, K_WALL, K_DOMAIN, K_REENTER, K_TILE, K_NCOUNT };
 #ifdef PHOTON_COUNTERS
 #define COUNT(k) (cnt[k]++)
-#define COUNTER_ARGS , __global long* counters, __global uint* lane_steps
 #else
 #define COUNT(k)
-#define COUNTER_ARGS
 #endif
 
 inline int sample_band(__global const float* cdf, float u) {
@@ -389,8 +387,9 @@ __kernel void photon_pass(VOLUME_ARGS,
                           __global volatile uint* store_count,   /* [0] stored, [1] photons taken */
                           __global long* tallies,
                           __global const float* smooth,     /* Volume.smooth (relief builds) */
-                          __global const float2* tile_z     /* tile_bounds (relief builds) */
-                          COUNTER_ARGS)
+                          __global const float2* tile_z,    /* tile_bounds (relief builds) */
+                          __global long* counters,          /* PHOTON_COUNTERS builds only */
+                          __global uint* lane_steps)        /* PHOTON_COUNTERS builds only */
 {
 #ifdef PHOTON_COUNTERS
     uint cnt[K_NCOUNT];

@@ -238,9 +238,10 @@ def _forearm_pass(dev, scale, qmin, exact=False, seed=4):
     pp = photonpass.PhotonPass(dev, vol, cfg, capacity=60_000, seed=seed, bands=Bands.from_config(cfg))
     if exact:
         from clppm.device import kernel_defines, surface_fp64
+        from clppm.kernelcall import Kernel
         pp.prg = dev.build("photon.cl", {**kernel_defines(vol, hero=pp.hero, pt_fp64=surface_fp64(dev, vol)),
                                          "STORE_EXACT": 1})
-        pp.kernel = cl.Kernel(pp.prg, "photon_pass")
+        pp.kernel = Kernel(pp.prg, "photon_pass")
     pp.p["store_zmin"] = -320.0
     pp.set_storage("importance", cone_deg=8.0, scale=scale, qmin=qmin)
     return pp
