@@ -243,6 +243,7 @@ __kernel void gather(const GridParams gp,
     }
     __global double* out = pix_acc + (size_t)pix * NB;
     for (int b = 0; b < NB; ++b) out[b] += (double)accp[b] * pass_scale;
+    pix_pairs[pix] += pairs;
 }
 
 /* Initial radius: the radius at which the first search finds K photons, estimated from the

@@ -15,6 +15,8 @@ import sys
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.once      # runs every implementation in its own processes
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 BLOCK = 10
 GROUPS = 3

@@ -266,6 +266,7 @@ def _wavy_cfg(amplitude, **kw):
     return config.validate(raw, "test")
 
 
+@pytest.mark.once
 @pytest.mark.slow
 def test_beam_conforming_depth_invisible_interface(dev):
     """The beam estimator measures depth within each layer where a layer's boundary is wavy (a

@@ -108,6 +108,7 @@ def test_a_broken_named_device_is_refused_with_one_line(dev, env, tmp_path, faul
     assert "Traceback" not in r.stderr and not (tmp_path / "out" / "x.png").exists()
 
 
+@pytest.mark.once
 def test_the_default_passes_over_a_broken_implementation(env, tmp_path):
     specs = _usable_specs(env)
     if len(specs) < 2:

@@ -84,6 +84,7 @@ def photon_pass(dev, cfg, hero=1, capacity=2_000_000, seed=5, band=None):
     return pp
 
 
+@pytest.mark.once
 @pytest.mark.parametrize("C", [3, 9])
 def test_hero_bands_unbiased_per_band(dev, C):
     """Every band's stored power per layer and direction with C bands per path (hero h and
@@ -135,6 +136,7 @@ def test_hero_weights_finite_for_degenerate_bands(dev):
     assert pw.sum() > 0
 
 
+@pytest.mark.once
 @pytest.mark.parametrize("C", [1, 9])
 def test_importance_storage_unbiased(dev, C):
     """Importance-driven storage against storing every event, on the same paths (the storage
@@ -199,6 +201,7 @@ def _slab_render_cfg(storage, C, seed, photons):
     return config.validate(raw, "test")
 
 
+@pytest.mark.once
 @pytest.mark.slow
 def test_layered_slab_radiance_unchanged_by_storage_and_bands(dev):
     """The rendered radiance of a layered skin slab (9 bands, wide beam, view from above) per band:
