@@ -330,7 +330,7 @@ typedef struct {
 /* the normal refracted at: the smooth surface's where interface k varies and the indices differ
  * (as the photon pass and the path tracer), else the face's own; the face's where the ray does
  * not cross the smooth one (fresnel_cross, common.h) */
-HOT Face eye_face(const Track* t, int ev, int L, int L2, __constant const Params* P,
+HOT void eye_face(Face* out, const Track* t, int ev, int L, int L2, __constant const Params* P,
                   __constant const float4* iface, __constant const float* layer_n,
                   __global const float* smooth) {
     Face fc;
@@ -349,7 +349,7 @@ HOT Face eye_face(const Track* t, int ev, int L, int L2, __constant const Params
     fc.sn = sn;
     fc.ci = ci;
     fc.R = fresnel_R(fc.n1, fc.n2, ci, &fc.ct);
-    return fc;
+    *out = fc;      /* written out, not returned: oclgrind cannot run a struct return's inlined form */
 }
 
 /* Out through the relief (a furrow wall): leave with Fresnel, cross the air gap and enter again
@@ -453,7 +453,8 @@ __kernel void eye_pass(VOLUME_ARGS,
         const int L2 = layer_beyond(&t, ev, L, &out, P, iface, heights);
         if (out) break;
         if (L2 == L) continue;
-        const Face fc = eye_face(&t, ev, L, L2, P, iface, layer_n, smooth);
+        Face fc;
+        eye_face(&fc, &t, ev, L, L2, P, iface, layer_n, smooth);
         if (fc.R >= 1.0f) {
             /* total internal reflection: all the radiance comes along the mirrored path, so the
              * eye ray reflects and stays in L (at a 5 um stair step of the relief a steep ray
