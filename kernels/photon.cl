@@ -36,9 +36,11 @@ enum { T_SPEC = 0, T_RD, T_TT, T_LOST, T_RRGAIN, T_RRLOSS, T_MISS, T_RCONE, T_AB
 enum { K_ENTERED = 0, K_MISSED, K_STEPS, K_COLLISIONS, K_STORED, K_IFACE, K_IFACE_SMOOTH,
        K_ZONE, K_WALL, K_DOMAIN, K_REENTER, K_TILE, K_NCOUNT };
 #ifdef PHOTON_COUNTERS
-#define COUNT(k) (cnt[k]++)
+typedef struct { uint k[K_NCOUNT]; } Counters;
+#define COUNT(c, k) ((c)->k[k]++)
 #else
-#define COUNT(k)
+typedef struct { uint none; } Counters;
+#define COUNT(c, k)
 #endif
 
 inline int sample_band(__global const float* cdf, float u) {
@@ -370,6 +372,167 @@ HOT long emit_photon(uint id, VOLUME_ARGS, __global const float* band_cdf, __glo
     return W;
 }
 
+/* The photon map's buffers: where an event is stored, and the launch's counters
+ * ([0] events stored, [1] photons taken). */
+typedef struct {
+    __global float4* pos_w;            /* x, y, z, weight of the hero band */
+    __global float4* dir_b;            /* direction, hero band + 256 layer */
+    __global float* extra;             /* HERO_C-1 weights of the other bands */
+    __global volatile uint* count;
+} PhotonMap;
+
+/* Store the scattering event at t with weight W (importance storage under store rule 1: kept
+ * with probability q and weighted 1/q; every event under rule 0).  The decision draws from the
+ * storage stream srng only, so the path is the same under every rule. */
+HOT void store_event(__constant const Params* P, const Track* t, Spectral* sw, long W, int b,
+                     Rng* srng, __global const float2* store_imp, __global const float2* band_spi,
+                     __global const float4* optics, __global const float* logmu, PhotonMap map,
+                     Counters* cnt) {
+    const float a_h = (float)W * (1.0f / W0F);
+    float F[HERO_C];
+    float q = 1.0f;
+    int keep = 1;
+    if (P->store_rule == 1) {
+        const float u = rng_u01(srng);
+        const float ce = cone_cos(P, t->dir);
+#ifndef STORE_EXACT                     /* tests: q for every event (the same decisions) */
+        keep = u <= clamp(P->store_scale * store_bound(store_imp, t->L, ce, sw_amax(sw, a_h), t->pos.z),
+                          P->store_qmin, 1.0f);
+#endif
+        if (keep) {
+            sw_weights(sw, a_h, band_spi, optics, logmu, F);
+            q = store_probability(P, ce, t->L, b, F, band_spi, optics, store_imp, t->pos.z);
+            keep = u <= q;
+        }
+    } else {
+        sw_weights(sw, a_h, band_spi, optics, logmu, F);
+    }
+    if (!keep) return;
+    const float iq = 1.0f / q;
+    for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
+    COUNT(cnt, K_STORED);
+    uint i = atomic_inc(map.count);
+    if (i < P->capacity) {
+        map.pos_w[i] = (float4)(t->pos, F[0]);
+        map.dir_b[i] = (float4)(t->dir, (float)(b + 256 * t->L));   /* band, layer */
+        for (int j = 1; j < HERO_C; ++j) map.extra[(size_t)i * (HERO_C - 1) + j - 1] = F[j];
+    }
+}
+
+/* A new direction from the layer's Henyey-Greenstein phase function, then Russian roulette
+ * below rr_threshold (survivors multiplied by rr_m, the gain and loss tallied). */
+HOT void scatter_photon(__constant const Params* P, float4 op, Track* t, Spectral* sw, long* W, Fates* f,
+                        __global const float4* optics, Rng* rng) {
+    float ct = hg_sample_cos_t(op.y, op.z, rng_u01(rng));
+    t->dir = scatter_dir(t->dir, ct, rng_u01(rng));
+    sw_scatter(sw, optics, t->L, op.y, ct);
+    if (*W >= (long)(P->rr_threshold * W0F)) return;
+    if (rng_u01(rng) * P->rr_m <= 1.0f) {
+        long g2 = *W * (long)(P->rr_m) - *W;
+        f->gain += g2; *W += g2;
+        sw_scale(sw, P->rr_m);
+    } else {
+        f->loss += *W; *W = 0;
+    }
+}
+
+/* A collision after free path s: absorb by weight (the layer's albedo), store the event
+ * inside the storage depth, scatter; then the next optical depth to travel. */
+HOT void collide(__constant const Params* P, float4 op, float s, Track* t, Spectral* sw, long* W, int b,
+                 Fates* f, float* tau, Rng* rng, Rng* srng, __global const float2* store_imp,
+                 __global const float2* band_spi, __global const float4* optics,
+                 __global const float* logmu, PhotonMap map, Counters* cnt) {
+    COUNT(cnt, K_COLLISIONS);
+    t->pos += s * t->dir;
+    sw_flight(sw, optics, logmu, t->L, op.w, s);
+    sw_collide(sw, logmu, t->L);
+    long dw = convert_long_rte((float)*W * op.x);
+#ifdef CLPPM_FAULT_WRONG                /* the self-test's tests only: a miscompiled absorption */
+    dw = convert_long_rte((float)dw * 1.5f);
+#endif
+    dw = dw < 0 ? 0 : (dw > *W ? *W : dw);
+    f->absorbed[t->L] += dw; *W -= dw;
+    if (*W > 0 && op.x < 1.0f) {
+        if (P->capacity > 0u && t->pos.z > P->store_zmin)
+            store_event(P, t, sw, *W, b, srng, store_imp, band_spi, optics, logmu, map, cnt);
+        scatter_photon(P, op, t, sw, W, f, optics, rng);
+    } else if (*W > 0) {
+        /* pure absorber reached here only when mus = 0 and mua > 0: all absorbed */
+        f->absorbed[t->L] += *W; *W = 0;
+    }
+    *tau = neg_log_u01(rng_u01(rng));
+}
+
+/* The photon went through a face into layer L2: out of the top (unless the relief takes it
+ * back in: returns 1), out of the bottom, or on in layer L2. */
+HOT int enter_layer(Track* t, int L2, long* W, Fates* f, VOLUME_ARGS, __global const float* smooth,
+                    Rng* rng, Counters* cnt) {
+    if (L2 < 0 && reenter(t, VOLUME_PASS, smooth, rng)) { COUNT(cnt, K_REENTER); return 1; }
+    if (L2 < 0) { f->rd += *W; if (t->dir.z > P->rcone_cos) f->rcone += *W; *W = 0; return 0; }
+    if (L2 >= NL) { f->tt += *W; *W = 0; return 0; }
+    t->L = L2;
+    return 0;
+}
+
+/* The photon is at the top (up) or bottom face of its layer's slab in its column: snap onto
+ * that interface (in core mode only flat interfaces raise TOP/BOTTOM), then reflect or refract
+ * there.  Returns 1 if it left through the top and the relief took it back in. */
+HOT int cross_interface(int up, Track* t, long* W, Fates* f, VOLUME_ARGS, __global const float* smooth,
+                        Rng* rng, Counters* cnt) {
+    COUNT(cnt, K_IFACE);
+    const int L2 = up ? t->L - 1 : t->L + 1;
+    t->pos.z = iface_z(iface, heights, P, up ? t->L : t->L + 1, col_index(P, t->ix, t->iy));
+    const float n1 = layer_n[t->L];
+    const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+    const float4 gn2 = (float4)(0.0f, 0.0f, up ? 1.0f : -1.0f, 0.0f);
+#ifndef FLAT
+    if (n1 != n2 && IF_VAR(up ? t->L : t->L + 1) >= 0) COUNT(cnt, K_IFACE_SMOOTH);
+#endif
+    float4 d = (float4)(t->dir, 0.0f);
+    const int through = cross_face(&d, gn2, up ? t->L : t->L + 1, t->L, L2, t->pos.x, t->pos.y, n1, n2,
+                                   P, iface, smooth, rng_u01(rng));
+    t->dir = d.xyz;
+    return through && enter_layer(t, L2, W, f, VOLUME_PASS, smooth, rng, cnt);
+}
+
+/* The photon meets a column wall or a side of the domain (ev): into the next column (or lost
+ * out of the side); in a relief build, if that column's interfaces put it in another layer,
+ * reflect or refract at the wall's face into it, or back into the old column. */
+HOT void cross_lateral(int ev, Track* t, long* W, Fates* f, VOLUME_ARGS, __global const float* smooth,
+                       Rng* rng, Counters* cnt) {
+    const int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
+    const int domain_only = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
+#ifdef PHOTON_COUNTERS
+    if (domain_only) COUNT(cnt, K_DOMAIN); else COUNT(cnt, K_WALL);
+#endif
+#ifndef FLAT
+    const int oix = t->ix, oiy = t->iy;
+    const float3 opos = t->pos;
+#endif
+    if (cross_wall(t, P, axis, domain_only)) { f->lost += *W; *W = 0; return; }
+#ifndef FLAT
+    if (domain_only) { locate_column(t, P); }
+    const int col = col_index(P, t->ix, t->iy);
+    const int L2 = layer_at(iface, heights, P, col, t->pos.z, t->L);
+    if (L2 == t->L) return;
+    const float n1 = layer_n[t->L];
+    const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+    if (n1 != n2 && IF_VAR(L2 < t->L ? t->L : t->L + 1) >= 0) COUNT(cnt, K_IFACE_SMOOTH);
+    COUNT(cnt, K_IFACE);
+    const float4 gnw = axis == 0 ? (float4)(t->dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f, 0.0f)
+                                 : (float4)(0.0f, t->dir.y > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f);
+    float4 d = (float4)(t->dir, 0.0f);
+    const int through = cross_face(&d, gnw, L2 < t->L ? t->L : t->L + 1, t->L, L2, t->pos.x, t->pos.y, n1, n2,
+                                   P, iface, smooth, rng_u01(rng));
+    t->dir = d.xyz;
+    if (through) {
+        enter_layer(t, L2, W, f, VOLUME_PASS, smooth, rng, cnt);
+    } else {
+        t->ix = oix; t->iy = oiy; t->pos = opos;      /* reflected back into the old column */
+    }
+#endif
+}
+
 /* The photons of a launch are drawn from a shared counter by a fixed number of work items
  * (persistent threads): a work item whose photon has ended takes the next one at the top of the
  * same loop, so neighbouring work items that a SIMD compiler runs in lanes (Intel's CPU runtime,
@@ -381,9 +544,9 @@ __kernel void photon_pass(VOLUME_ARGS,
                           __global const float* band_cdf,    /* hero selection pi, as a cdf */
                           __global const float2* band_spi,   /* [NB] light power s, pi (spectral.h) */
                           __global const float* logmu,       /* the band table (spectral.h) */
-                          __global float4* store_pos_w,      /* x, y, z, weight of the hero band */
-                          __global float4* store_dir_b,      /* direction, hero band + 256 layer */
-                          __global float* store_extra,       /* HERO_C-1 weights of the other bands */
+                          __global float4* store_pos_w,      /* PhotonMap.pos_w */
+                          __global float4* store_dir_b,      /* PhotonMap.dir_b */
+                          __global float* store_extra,       /* PhotonMap.extra */
                           __global volatile uint* store_count,   /* [0] stored, [1] photons taken */
                           __global long* tallies,
                           __global const float* smooth,     /* Volume.smooth (relief builds) */
@@ -391,12 +554,12 @@ __kernel void photon_pass(VOLUME_ARGS,
                           __global long* counters,          /* PHOTON_COUNTERS builds only */
                           __global uint* lane_steps)        /* PHOTON_COUNTERS builds only */
 {
+    const PhotonMap map = { store_pos_w, store_dir_b, store_extra, store_count };
+    Counters cnt;
 #ifdef PHOTON_COUNTERS
-    uint cnt[K_NCOUNT];
-    for (int k = 0; k < K_NCOUNT; ++k) cnt[k] = 0u;
+    for (int k = 0; k < K_NCOUNT; ++k) cnt.k[k] = 0u;
     uint iterations = 0u;
 #endif
-    const long rr_w = (long)(P->rr_threshold * W0F);
     Rng rng, srng;
     Spectral sw;
     Track t;
@@ -418,7 +581,7 @@ __kernel void photon_pass(VOLUME_ARGS,
             W = emit_photon(P->photon_offset + k, VOLUME_PASS, band_cdf, smooth, tallies, &rng, &srng,
                             &t, &sw, &b, &f);
 #ifdef PHOTON_COUNTERS
-            if (t.L < 0) COUNT(K_MISSED); else COUNT(K_ENTERED);
+            if (t.L < 0) COUNT(&cnt, K_MISSED); else COUNT(&cnt, K_ENTERED);
 #endif
             live = t.L >= 0;
             events = 0;
@@ -427,7 +590,7 @@ __kernel void photon_pass(VOLUME_ARGS,
             continue;
         }
         if (++events > P->max_events) { f.lost += W; W = 0; continue; }
-        COUNT(K_STEPS);
+        COUNT(&cnt, K_STEPS);
         const float4 op = optics[t.L * NB + b];     /* mua/mut, g, 1/(2g), mut in um^-1 */
         const float mut = op.w;
         int ev;
@@ -439,70 +602,11 @@ __kernel void photon_pass(VOLUME_ARGS,
 #endif
         const float s = mut > 0.0f ? tau / mut : BIG;
         if (s < db) {
-            /* ---- collision: absorb by weight, store, scatter, roulette */
-            COUNT(K_COLLISIONS);
-            t.pos += s * t.dir;
-            sw_flight(&sw, optics, logmu, t.L, mut, s);
-            sw_collide(&sw, logmu, t.L);
-            long dw = convert_long_rte((float)W * op.x);
-#ifdef CLPPM_FAULT_WRONG                /* the self-test's tests only: a miscompiled absorption */
-            dw = convert_long_rte((float)dw * 1.5f);
-#endif
-            dw = dw < 0 ? 0 : (dw > W ? W : dw);
-            f.absorbed[t.L] += dw; W -= dw;
-            if (W > 0 && op.x < 1.0f) {
-                if (P->capacity > 0u && t.pos.z > P->store_zmin) {
-                    const float a_h = (float)W * (1.0f / W0F);
-                    float F[HERO_C];
-                    float q = 1.0f;
-                    int keep = 1;
-                    if (P->store_rule == 1) {
-                        const float u = rng_u01(&srng);
-                        const float ce = cone_cos(P, t.dir);
-#ifndef STORE_EXACT                     /* tests: q for every event (the same decisions) */
-                        keep = u <= clamp(P->store_scale * store_bound(store_imp, t.L, ce, sw_amax(&sw, a_h), t.pos.z),
-                                          P->store_qmin, 1.0f);
-#endif
-                        if (keep) {
-                            sw_weights(&sw, a_h, band_spi, optics, logmu, F);
-                            q = store_probability(P, ce, t.L, b, F, band_spi, optics, store_imp, t.pos.z);
-                            keep = u <= q;
-                        }
-                    } else {
-                        sw_weights(&sw, a_h, band_spi, optics, logmu, F);
-                    }
-                    if (keep) {
-                        const float iq = 1.0f / q;
-                        for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
-                        COUNT(K_STORED);
-                        uint i = atomic_inc(store_count);
-                        if (i < P->capacity) {
-                            store_pos_w[i] = (float4)(t.pos, F[0]);
-                            store_dir_b[i] = (float4)(t.dir, (float)(b + 256 * t.L));   /* band, layer */
-                            for (int j = 1; j < HERO_C; ++j) store_extra[(size_t)i * (HERO_C - 1) + j - 1] = F[j];
-                        }
-                    }
-                }
-                float ct = hg_sample_cos_t(op.y, op.z, rng_u01(&rng));
-                t.dir = scatter_dir(t.dir, ct, rng_u01(&rng));
-                sw_scatter(&sw, optics, t.L, op.y, ct);
-                if (W < rr_w) {
-                    if (rng_u01(&rng) * P->rr_m <= 1.0f) {
-                        long g2 = W * (long)(P->rr_m) - W;
-                        f.gain += g2; W += g2;
-                        sw_scale(&sw, P->rr_m);
-                    } else {
-                        f.loss += W; W = 0;
-                    }
-                }
-            } else if (W > 0) {
-                /* pure absorber reached here only when mus = 0 and mua > 0: all absorbed */
-                f.absorbed[t.L] += W; W = 0;
-            }
-            tau = neg_log_u01(rng_u01(&rng));
+            collide(P, op, s, &t, &sw, &W, b, &f, &tau, &rng, &srng, store_imp, band_spi, optics, logmu,
+                    map, &cnt);
             continue;
         }
-        /* ---- boundary */
+        /* ---- boundary: move onto it */
         still = db < TRAP_UM ? still + 1 : 0;
         if (still > TRAPPED_STEPS) { f.lost += W; W = 0; continue; }
         t.pos += db * t.dir;
@@ -510,76 +614,20 @@ __kernel void photon_pass(VOLUME_ARGS,
         if (mut > 0.0f) { tau -= db * mut; tau = tau > 0.0f ? tau : 0.0f; }
         if (ev == EV_NONE) { f.lost += W; W = 0; continue; }   /* semi-infinite, direction flat */
         if (ev == EV_TOP || ev == EV_BOTTOM) {
-            const int up = (ev == EV_TOP);
-            COUNT(K_IFACE);
-            const int L2 = up ? t.L - 1 : t.L + 1;
-            /* snap onto the interface (in core mode only flat interfaces raise TOP/BOTTOM) */
-            t.pos.z = iface_z(iface, heights, P, up ? t.L : t.L + 1, col_index(P, t.ix, t.iy));
-            const float n1 = layer_n[t.L];
-            const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-            const float4 gn2 = (float4)(0.0f, 0.0f, up ? 1.0f : -1.0f, 0.0f);
-#ifndef FLAT
-            if (n1 != n2 && IF_VAR(up ? t.L : t.L + 1) >= 0) COUNT(K_IFACE_SMOOTH);
-#endif
-            float4 d = (float4)(t.dir, 0.0f);
-            const int through = cross_face(&d, gn2, up ? t.L : t.L + 1, t.L, L2, t.pos.x, t.pos.y, n1, n2,
-                                           P, iface, smooth, rng_u01(&rng));
-            t.dir = d.xyz;
-            if (through) {
-                if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) { events++; COUNT(K_REENTER); continue; }
-                if (L2 < 0) { f.rd += W; if (t.dir.z > P->rcone_cos) f.rcone += W; W = 0; continue; }
-                if (L2 >= NL) { f.tt += W; W = 0; continue; }
-                t.L = L2;
-            }
+            if (cross_interface(ev == EV_TOP, &t, &W, &f, VOLUME_PASS, smooth, &rng, &cnt)) events++;
             continue;
         }
-        if (ev == EV_ZONE) { COUNT(K_ZONE); locate_column(&t, P); continue; }
+        if (ev == EV_ZONE) { COUNT(&cnt, K_ZONE); locate_column(&t, P); continue; }
 #ifndef FLAT
-        if (ev == EV_TILE_Z) { COUNT(K_ZONE); t.pos.z = plane; locate_column_ahead(&t, P); continue; }
-        if (ev == EV_TILE_X || ev == EV_TILE_Y) { COUNT(K_TILE); cross_tile(&t, P, ev == EV_TILE_Y); continue; }
+        if (ev == EV_TILE_Z) { COUNT(&cnt, K_ZONE); t.pos.z = plane; locate_column_ahead(&t, P); continue; }
+        if (ev == EV_TILE_X || ev == EV_TILE_Y) { COUNT(&cnt, K_TILE); cross_tile(&t, P, ev == EV_TILE_Y); continue; }
 #endif
-        /* lateral: column wall or domain side */
-        const int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
-        const int domain_only = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
-#ifdef PHOTON_COUNTERS
-        if (domain_only) COUNT(K_DOMAIN); else COUNT(K_WALL);
-#endif
-#ifndef FLAT
-        const int oix = t.ix, oiy = t.iy;
-        const float3 opos = t.pos;
-#endif
-        if (cross_wall(&t, P, axis, domain_only)) { f.lost += W; W = 0; continue; }
-#ifdef FLAT
-        continue;
-#else
-        if (domain_only) { locate_column(&t, P); }
-        const int col = col_index(P, t.ix, t.iy);
-        const int L2 = layer_at(iface, heights, P, col, t.pos.z, t.L);
-        if (L2 == t.L) continue;
-        const float n1 = layer_n[t.L];
-        const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-        if (n1 != n2 && IF_VAR(L2 < t.L ? t.L : t.L + 1) >= 0) COUNT(K_IFACE_SMOOTH);
-        COUNT(K_IFACE);
-        const float4 gnw = axis == 0 ? (float4)(t.dir.x > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f, 0.0f)
-                                     : (float4)(0.0f, t.dir.y > 0.0f ? 1.0f : -1.0f, 0.0f, 0.0f);
-        float4 d = (float4)(t.dir, 0.0f);
-        const int through = cross_face(&d, gnw, L2 < t.L ? t.L : t.L + 1, t.L, L2, t.pos.x, t.pos.y, n1, n2,
-                                       P, iface, smooth, rng_u01(&rng));
-        t.dir = d.xyz;
-        if (through) {
-            if (L2 < 0 && reenter(&t, VOLUME_PASS, smooth, &rng)) { COUNT(K_REENTER); continue; }
-            if (L2 < 0) { f.rd += W; if (t.dir.z > P->rcone_cos) f.rcone += W; W = 0; continue; }
-            if (L2 >= NL) { f.tt += W; W = 0; continue; }
-            t.L = L2;
-        } else {
-            t.ix = oix; t.iy = oiy; t.pos = opos;      /* reflected back into the old column */
-        }
-#endif
+        cross_lateral(ev, &t, &W, &f, VOLUME_PASS, smooth, &rng, &cnt);
     }
 #ifdef PHOTON_COUNTERS
     for (int k = 0; k < K_NCOUNT; ++k)
-        if (cnt[k]) atom_add(counters + k, (long)cnt[k]);
-    lane_steps[2 * get_global_id(0)] = cnt[K_STEPS];
+        if (cnt.k[k]) atom_add(counters + k, (long)cnt.k[k]);
+    lane_steps[2 * get_global_id(0)] = cnt.k[K_STEPS];
     lane_steps[2 * get_global_id(0) + 1] = iterations;
 #endif
 }
