@@ -9,7 +9,8 @@ _icd.own_pocl_cache()
 
 
 def render(config, integrator="ppm", **kwargs):
-    """Render a skin scene; return a :class:`clppm.output.film.RenderResult` (the image and its report).
+    """Render a skin scene; return a :class:`clppm.output.film.RenderResult` (the image and its
+    report).
 
     ``config``: a TOML file, a shipped config's name (``"forearm"``, ``"cheek"``; see
     ``clppm config --example``) or a dict from :func:`clppm.config.load` (changed with

@@ -5,8 +5,8 @@ For one scene, every method is rendered progressively until its time budget is s
 new default mode and in the paper's mode (config.PAPER_MODE: every event stored, one band per
 path, the sphere estimator); the path tracer runs too, where the scene allows it.  At a
 geometric schedule of passes (and at the last one) each image is compared with a converged
-reference (:mod:`clppm.analysis.reference`, computed once and cached): the unbiased path tracer where
-the scene allows it (flat, point light), else a long PPM run.  The comparison is over squares
+reference (:mod:`clppm.analysis.reference`, computed once and cached): the unbiased path tracer
+where the scene allows it (flat, point light), else a long PPM run.  The comparison is over squares
 of ``block`` x ``block`` skin pixels (the path tracer's reference pixels), so that it measures
 bias plus the noise left at that scale:
 

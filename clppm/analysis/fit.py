@@ -11,8 +11,8 @@ Four parameters of a layered model (by default the forearm model, configs/forear
 * ``scattering``: a factor on the Jacques scattering multiplier ``k`` of every layer that uses
   the Jacques recipe.
 
-Forward model: R(λ) from the photon pass (:func:`clppm.analysis.reflectance.trace_bands`) on the flat
-version of the model (relief and papillae off, sides infinite), a collimated beam at 8°,
+Forward model: R(λ) from the photon pass (:func:`clppm.analysis.reflectance.trace_bands`) on the
+flat version of the model (relief and papillae off, sides infinite), a collimated beam at 8°,
 specular included, a fixed number of photons per band and the *same seed in every evaluation*
 (common random numbers).  By default the fit is a hybrid (space mapping): a smooth
 adding-doubling surrogate of the same layer stack (iadpython; one refractive index, normal

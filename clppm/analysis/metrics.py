@@ -13,8 +13,8 @@
 
 Skin pixels (the errors are taken over them) are the pixels all of whose eye rays hit the
 model (:func:`skin_mask_from_eye`).  The reference itself (its cache, its two halves, its own
-noise) is :mod:`clppm.analysis.reference`; these functions read only its arrays (``xyz``, ``spectral``,
-``wl``, ``mask``, ``exposure``, ``block``, ``halves_xyz``, ``error``).
+noise) is :mod:`clppm.analysis.reference`; these functions read only its arrays (``xyz``,
+``spectral``, ``wl``, ``mask``, ``exposure``, ``block``, ``halves_xyz``, ``error``).
 """
 from __future__ import annotations
 

@@ -2,9 +2,9 @@
 
 A reference is the mean of two independent renders ("halves") of the same scene with
 different seeds.  Where the scene allows it (flat layers, a point light) it is the unbiased
-path tracer (:mod:`clppm.integrators.pathtracer`) with jittered rays, averaged over ``block`` x ``block``
-squares of pixels, so that each reference pixel is the exact mean of its square; the compared
-image is averaged over the same squares.  Otherwise it is PPM
+path tracer (:mod:`clppm.integrators.pathtracer`) with jittered rays, averaged over ``block`` x
+``block`` squares of pixels, so that each reference pixel is the exact mean of its square; the
+compared image is averaged over the same squares.  Otherwise it is PPM
 with many more stored photons per pass and passes than the runs it is compared with.  It is
 computed once and stored as
 ``<cache>/ref-<key>.npz`` + ``.json``, where ``key`` is a SHA-256 over everything that

@@ -54,7 +54,8 @@ def _band_groups(img: np.ndarray) -> list[float]:
 
 def measure(dev, seed: int = REFERENCE_SEEDS[0]) -> dict:
     """Every known-answer quantity of the tiny scene on ``dev`` (a
-    :class:`clppm.compute.device.Device`) at ``seed``: name -> value.  Raises AssertionError where an exact check fails."""
+    :class:`clppm.compute.device.Device`) at ``seed``: name -> value.  Raises AssertionError where
+    an exact check fails."""
     from .. import config
     from ..integrators import hashgrid, pathtracer, photonpass
     from ..run import progressive

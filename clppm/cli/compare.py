@@ -1,4 +1,5 @@
-"""``clppm compare``: its options and the run it plans (the experiment itself: clppm.analysis.compare)."""
+"""``clppm compare``: its options and the run it plans (the experiment itself:
+clppm.analysis.compare)."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,5 @@
-"""``clppm reflectance``: its options and output (the measurement itself: clppm.analysis.reflectance)."""
+"""``clppm reflectance``: its options and output (the measurement itself:
+clppm.analysis.reflectance)."""
 from __future__ import annotations
 
 import json

@@ -117,7 +117,8 @@ def cache_dir() -> str:
 
 
 def _sources_digest() -> str:
-    """The kernel sources, the self-test (both sides) and the reference: a change of any reruns the self-test."""
+    """The kernel sources, the self-test (both sides) and the reference: a change of any reruns the
+    self-test."""
     from importlib import resources
     h = hashlib.sha256()
     kdir = resources.files("clppm.kernels")

@@ -201,7 +201,8 @@ def signature(name: str) -> Signature:
 
 class Kernel:
     """A built kernel called by parameter name: ``k(queue, size, rows=None, **args)`` launches
-    it over ``size`` work items (``rows`` rows of them) with :func:`clppm.compute.device.launch`'s sizes."""
+    it over ``size`` work items (``rows`` rows of them) with :func:`clppm.compute.device.launch`'s
+    sizes."""
 
     def __init__(self, program, name: str | None = None, *, kernel=None):
         import pyopencl as cl

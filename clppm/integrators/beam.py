@@ -17,10 +17,10 @@ they give the same image (byte-identical under PoCL, tests/test_layouts.py):
 ``"auto"`` (the default) picks per device type by measurement (``bench/gather.py``,
 docs/gather.md): :data:`AUTO`.
 
-:class:`BeamGather` is the estimator (:mod:`clppm.integrators.estimators`) a :class:`clppm.integrators.ppm.Pipeline`
-holds with ``render.estimator = "beam"``: it owns the beam's kernels, tables and grid depth,
-and its layout (:class:`GatherLayout` or :class:`ScatterLayout`, which owns the scatter's
-buffers).
+:class:`BeamGather` is the estimator (:mod:`clppm.integrators.estimators`) a
+:class:`clppm.integrators.ppm.Pipeline` holds with ``render.estimator = "beam"``: it owns the
+beam's kernels, tables and grid depth, and its layout (:class:`GatherLayout` or
+:class:`ScatterLayout`, which owns the scatter's buffers).
 """
 from __future__ import annotations
 

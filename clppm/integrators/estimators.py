@@ -5,8 +5,8 @@ A :class:`clppm.integrators.ppm.Pipeline` holds one estimator, chosen by ``rende
 * :class:`SphereGather` (``sphere``, and its ``layer`` and ``clip`` variants): each sample
   point gathers the photons within its radius (kernels/gather.cl ``gather``), the paper's
   estimate (Kamatani & Kawai; Hachisuka et al. 2008).
-* :class:`clppm.integrators.beam.BeamGather` (``beam``): each eye-ray piece gathers the photons within a
-  disc around it, in one of two layouts (gather or scatter).
+* :class:`clppm.integrators.beam.BeamGather` (``beam``): each eye-ray piece gathers the photons
+  within a disc around it, in one of two layouts (gather or scatter).
 
 An estimator has two stages of a pass: :meth:`grid` (the photon grid it searches, and what it
 files with it) and :meth:`estimate` (the gather, which adds the pass's radiance into the
@@ -22,8 +22,8 @@ from ..compute.kernelcall import Kernel
 
 @dataclass
 class PassGrid:
-    """A pass's photon grid (clppm.integrators.hashgrid.Grid) and what the estimator filed with it (the
-    beam: each sorted photon's layer slab)."""
+    """A pass's photon grid (clppm.integrators.hashgrid.Grid) and what the estimator filed with it
+    (the beam: each sorted photon's layer slab)."""
 
     grid: object
     slabs: object = None

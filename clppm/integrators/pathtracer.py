@@ -337,9 +337,9 @@ def mnee_report(tot: list[int]) -> dict:
 
 def render_pt(req: RenderRequest | dict, **kw) -> film.RenderResult:
     """Path-trace a request (point light); the image and report as ``render``, stepped by
-    :func:`clppm.integrators.driver.drive` (the budget's ``on_snapshot(passes, wall seconds, result)`` every
-    ``snapshot_every`` passes, True to stop).  ``req``: a :class:`clppm.request.RenderRequest`,
-    or a config and :meth:`RenderRequest.of`'s keywords."""
+    :func:`clppm.integrators.driver.drive` (the budget's ``on_snapshot(passes, wall seconds,
+    result)`` every ``snapshot_every`` passes, True to stop).  ``req``: a
+    :class:`clppm.request.RenderRequest`, or a config and :meth:`RenderRequest.of`'s keywords."""
     t_start = time.perf_counter()
     req = req if isinstance(req, RenderRequest) else RenderRequest.of(req, "pt", **kw)
     cfg, rc, source = req.scene, req.settings, req.source
@@ -376,8 +376,8 @@ def render_pt(req: RenderRequest | dict, **kw) -> film.RenderResult:
 
 
 class PTRun:
-    """A path-traced render in progress, as :func:`clppm.integrators.driver.drive` steps it: a step is a
-    pass of N paths per pixel."""
+    """A path-traced render in progress, as :func:`clppm.integrators.driver.drive` steps it: a step
+    is a pass of N paths per pixel."""
 
     resume_flags = "--integrator pt --resume"
 

@@ -4,8 +4,8 @@
 kernels, the density estimate); :meth:`Pipeline.calibrate` finds the initial radius and the
 storage depth from a photon pass of its own that never reaches the image; then passes.  A pass
 (:meth:`Pipeline.run_pass`) is the stages in order: photon pass, grid, density estimate (the
-pipeline's estimator, :mod:`clppm.integrators.estimators`: the sphere gather or the beam gather), which
-accumulates the pass's radiance into an :class:`Accumulators` and, with the per-point radius,
+pipeline's estimator, :mod:`clppm.integrators.estimators`: the sphere gather or the beam gather),
+which accumulates the pass's radiance into an :class:`Accumulators` and, with the per-point radius,
 updates the points' R and N.
 
 Passes are grouped in chunks of ``render.chunk_passes``.  A chunk starts from zeroed

@@ -61,7 +61,8 @@ def save(path: str, meta: dict, state: dict, arrays: dict, integrator: str = "pp
 
 def _write(path: str, header: dict, arrays: dict) -> None:
     """Atomically: a temporary file in the same folder, flushed, renamed over the old one (a full
-    disk keeps the old checkpoint and raises :class:`clppm.output.paths.WriteError` naming the file)."""
+    disk keeps the old checkpoint and raises :class:`clppm.output.paths.WriteError` naming the
+    file)."""
     d = os.path.dirname(os.path.abspath(path))
     os.makedirs(d, exist_ok=True)
 

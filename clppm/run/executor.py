@@ -7,8 +7,8 @@ with its ``dask worker``s.  Nothing here schedules, retries or moves data itself
 Client (:func:`render_distributed`): one worker builds the scene and calibrates (R0 per sample
 point, the storage depth); the request and the calibration then travel to the workers once, as
 task results the chunks depend on (a lost copy is recomputed, unlike scattered data).  Each
-task is one chunk of passes (:meth:`clppm.integrators.ppm.Pipeline.run_chunk`) and returns its sums.  The client
-adds the chunk sums in chunk order, holding chunks that arrive early
+task is one chunk of passes (:meth:`clppm.integrators.ppm.Pipeline.run_chunk`) and returns its
+sums.  The client adds the chunk sums in chunk order, holding chunks that arrive early
 (:class:`Reduction`), so the float64 total rounds exactly as in the in-process loop: the EXR
 is byte-identical to ``progressive.render`` with the same seed and ``render.chunk_passes`` on
 the same kind of device.  A chunk whose worker dies is rerun by Dask; since a chunk is a pure
@@ -101,9 +101,9 @@ class ClppmWorker(WorkerPlugin):
 
 
 def dask_setup(worker) -> None:
-    """Preload hook of :func:`local_cluster`'s workers (``preload=["clppm.run.executor"]``): they share
-    the client's terminal, and Ctrl-C is the client's to handle (stop, checkpoint, image), not a
-    reason for its workers to die under it."""
+    """Preload hook of :func:`local_cluster`'s workers (``preload=["clppm.run.executor"]``): they
+    share the client's terminal, and Ctrl-C is the client's to handle (stop, checkpoint, image),
+    not a reason for its workers to die under it."""
     import signal
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -518,9 +518,9 @@ class _Job:
 
 
 class DaskRun:
-    """A render on a cluster, as :func:`clppm.integrators.driver.drive` steps it: every chunk not yet done
-    is submitted at once; a step waits (at most half a second, so a signal is seen) for chunks
-    to finish and reduces them in pass order."""
+    """A render on a cluster, as :func:`clppm.integrators.driver.drive` steps it: every chunk not
+    yet done is submitted at once; a step waits (at most half a second, so a signal is seen) for
+    chunks to finish and reduces them in pass order."""
 
     resume_flags = "--resume"
 

@@ -1,7 +1,8 @@
-"""Progressive photon mapping in this process: the run that :func:`clppm.integrators.driver.drive` steps.
+"""Progressive photon mapping in this process: the run that :func:`clppm.integrators.driver.drive`
+steps.
 
-The passes themselves are the stages of a :class:`clppm.integrators.ppm.Pipeline`.  State between passes
-stays on the device (sample-point R and N, the pixel x band accumulators of the closed chunks
+The passes themselves are the stages of a :class:`clppm.integrators.ppm.Pipeline`.  State between
+passes stays on the device (sample-point R and N, the pixel x band accumulators of the closed chunks
 and of the open one); the host sees counters, the radii (to size the grid) and, at snapshots, the image.
 A checkpoint is the pass index plus that state: photon pass p draws its random numbers from
 (seed, p) alone, so a resumed render repeats the remaining passes bit for bit.
@@ -123,8 +124,8 @@ class PPMRun:
         sc.timing.update({k: v for k, v in st["timing"].items() if k in ppm.STAGES + ("calibration",)})
 
     def step(self) -> None:
-        """Pass p into the open chunk (:meth:`clppm.integrators.ppm.Pipeline.run_passes`, as a Dask chunk runs it);
-        the chunk closes every ``render.chunk_passes`` passes."""
+        """Pass p into the open chunk (:meth:`clppm.integrators.ppm.Pipeline.run_passes`, as a Dask
+        chunk runs it); the chunk closes every ``render.chunk_passes`` passes."""
         p = self.p
         info, = self.sc.run_passes(self.cal, self.points, [p], self.chunk, self.tallies)
         self.emitted.append(info["emitted"])
