@@ -40,7 +40,7 @@ def render_bench(argv=None) -> int:
     ap.add_argument("--list", action="store_true")
     a = ap.parse_args(argv)
 
-    from clppm.device import describe, list_devices
+    from clppm.compute.device import describe, list_devices
     devs = list_devices()
     if not devs:
         print("no OpenCL device found", file=sys.stderr)
@@ -114,7 +114,12 @@ def _best(fn, repeat: int) -> float:
 def measure(spec: str, repeat: int = 3) -> dict:
     """The figures for one device (run in a worker process)."""
     import numpy as np
-    from clppm import config, device, hashgrid, pathtracer, photonpass, progressive, testing, tiny, volume
+    from clppm import config
+    from clppm.compute import device
+    from clppm.integrators import hashgrid, pathtracer, photonpass
+    from clppm.run import progressive
+    from clppm.checks import testing, tiny
+    from clppm.scene import volume
     dev = device.open_device(spec)
     out = {"device": device.describe(dev.device)}
     for key, cfg, n in (("photon_slab", config.slab_config(SLAB), 200_000),
@@ -204,7 +209,7 @@ def main(argv=None) -> int:
         with open(a.worker_out, "w") as f:
             json.dump(measure(a.worker, a.repeat), f)
         return 0
-    from clppm.device import compiler_problem, implementation, list_devices
+    from clppm.compute.device import compiler_problem, implementation, list_devices
     rows, rc = [], 0
     for ip, idev, _, d in list_devices():
         tag = f"{implementation(d)} {d.name.strip()}"

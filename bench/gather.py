@@ -40,7 +40,7 @@ ROOT = os.path.dirname(HERE)
 # --------------------------------------------------------------------------- worker
 
 class _FreeFunctions:
-    """A tree before clppm.ppm.Pipeline: its Scene and free functions, as the pipeline's methods."""
+    """A tree before clppm.integrators.ppm.Pipeline: its Scene and free functions, as the pipeline's methods."""
 
     def __init__(self, ppm, sc):
         self.ppm, self.sc = ppm, sc
@@ -94,7 +94,7 @@ def _private_mem(sc) -> dict:
     out = {}
     for name, k in _kernels(sc).items():
         if name.startswith("gather") or name.startswith("scatter"):
-            k = getattr(k, "kernel", k)         # clppm.kernelcall.Kernel wraps the pyopencl one
+            k = getattr(k, "kernel", k)         # clppm.compute.kernelcall.Kernel wraps the pyopencl one
             out[name] = int(k.get_work_group_info(cl.kernel_work_group_info.PRIVATE_MEM_SIZE,
                                                   sc.dev.device))
     return out
@@ -106,13 +106,13 @@ def _candidates(sc, cal, st, info, ppm, photonpass, flat: bool) -> int | None:
     import dataclasses
     import numpy as np
     try:
-        from clppm.device import kernel_defines
+        from clppm.compute.device import kernel_defines
     except ImportError:                     # a tree before kernel_defines
         return None
     if not sc.beam:
         return None
     prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam", count_candidates=True))
-    from clppm.kernelcall import Kernel
+    from clppm.compute.kernelcall import Kernel
     acc = ppm.Accumulators.zeros(sc)
     if hasattr(ppm, "Pipeline"):
         est = sc.estimator
@@ -151,17 +151,18 @@ def _tree_kernels() -> str:
     mod = importlib.util.module_from_spec(spec)
     sys.modules["clppm.kernels"] = mod
     spec.loader.exec_module(mod)
-    from clppm.device import kernel_dir
+    from clppm.compute.device import kernel_dir
     return str(kernel_dir())
 
 
 def worker(a) -> dict:
     kdir = _tree_kernels()
     import numpy as np
-    from clppm import config as C, ppm
-    from clppm.device import open_device
+    from clppm import config as C
+    from clppm.integrators import ppm
+    from clppm.compute.device import open_device
     try:
-        from clppm import photonpass
+        from clppm.integrators import photonpass
     except ImportError:                     # a tree before the photon pass's module had its name
         from clppm import transport as photonpass
     cfg = C.load(a.config)
@@ -265,7 +266,7 @@ def main(argv=None):
     if a.devices:
         specs = a.devices.split(",")
     else:
-        from clppm.device import list_devices
+        from clppm.compute.device import list_devices
         specs = [f"{p}:{d}" for p, d, _, _ in list_devices()]
     trees = [("this", ROOT)]
     for b in (a.base.split(",") if a.base else []):     # several: base, base2, ...

@@ -28,9 +28,9 @@ import time
 
 import numpy as np
 
-from clppm import hashgrid as hg
-from clppm import testing
-from clppm.device import open_device
+from clppm.integrators import hashgrid as hg
+from clppm.checks import testing
+from clppm.compute.device import open_device
 
 
 def scene(rng, n_ph, n_q, depth_mean, side, thick, target):

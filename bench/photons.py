@@ -91,7 +91,7 @@ def quiet_fds(log_path: Path):
 
 
 def open_all_devices(spec: str | None):
-    from clppm import device
+    from clppm.compute import device
     if spec is not None:
         return [device.open_device(spec)]
     out = []
@@ -105,7 +105,7 @@ def bench_trace(dev, cfg, vol, n, label, repeats=3):
     """Best of ``repeats`` timed traces of n photons (other passes of the same seed): on a
     shared machine the interference only ever slows a run down, so the fastest run is the
     estimate of the device's rate; the median is reported beside it."""
-    from clppm import photonpass
+    from clppm.integrators import photonpass
     t0 = _now()
     pp = photonpass.PhotonPass(dev, vol, cfg, seed=1)
     pp.trace(min(n, 4096), pass_index=99)                  # build + first launch
@@ -128,7 +128,7 @@ def bench_trace(dev, cfg, vol, n, label, repeats=3):
 
 
 def bench_store(dev, cfg, vol, target, passes, label):
-    from clppm import photonpass
+    from clppm.integrators import photonpass
     t0 = _now()
     # the renderer's slack (progressive.py): a pass stops past the target, by up to one launch
     pp = photonpass.PhotonPass(dev, vol, cfg, capacity=int(target * 1.2) + 4096, seed=1)
@@ -367,8 +367,11 @@ def lane_utilisation(steps: list, width: int) -> float:
 def events_worker(spec: dict) -> dict:
     """One tree, one implementation, one scene: timed traces (and counters if asked and built)."""
     import inspect
-    from clppm import config, device, photonpass, volume
-    from clppm.bands import Bands
+    from clppm import config
+    from clppm.compute import device
+    from clppm.integrators import photonpass
+    from clppm.scene import volume
+    from clppm.scene.bands import Bands
     from clppm.config import render_settings
     cfg = config.load(str(ROOT / "configs" / (spec["scene"] + ".toml")))
     vol = volume.build(cfg, spec["scene"])
@@ -529,7 +532,9 @@ def main(argv=None) -> int:
     if a.render:
         return render_ab(base, impls, a.rounds, a.render_args.split(), ROOT / "out" / "bench_photons_render.json")
 
-    from clppm import config, device, volume
+    from clppm import config
+    from clppm.compute import device
+    from clppm.scene import volume
 
     q = a.quick
     n_mcml = 400_000 if q else 4_000_000

@@ -87,7 +87,7 @@ def peak_rss_bytes() -> int:
 
 def device_bytes(report: dict, photons: int) -> dict:
     """The buffers a render allocates (as progressive.render's allocation check counts them)."""
-    from clppm import eyepass, hashgrid
+    from clppm.integrators import eyepass, hashgrid
     from clppm.config import wavelengths
     cap = int(photons * 1.2) + 4096
     res = report["config"]["camera"]["resolution"]
@@ -106,7 +106,7 @@ def device_bytes(report: dict, photons: int) -> dict:
 
 def run_series(cfg, method, passes, photons, resolution, dev, seed=None):
     """One render; per-pass stage seconds, pairs, emitted and stored photons."""
-    from clppm.progressive import render
+    from clppm.run.progressive import render
     cum = []
 
     def snap(p, wall, res):
@@ -168,7 +168,7 @@ def extrapolate(per: list, eye_s: float, output_s: float, curve: np.ndarray) -> 
 
 
 def bench_method(cfg, method, dev, passes, photons, resolution, alpha, beta=None) -> dict:
-    from clppm.skin import PAPER_RENDER_TIME_S
+    from clppm.scene.skin import PAPER_RENDER_TIME_S
     t0 = time.perf_counter()
     res, cum, per = run_series(cfg, method, passes, photons, resolution, dev)
     r = res.report
@@ -328,9 +328,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=os.path.join("out", "bench"))
     a = ap.parse_args(argv)
 
-    from clppm import config, volume
-    from clppm.device import open_device
-    from clppm.progressive import render
+    from clppm import config
+    from clppm.scene import volume
+    from clppm.compute.device import open_device
+    from clppm.run.progressive import render
 
     cfg = config.load(a.config)
     dev = open_device(a.device)

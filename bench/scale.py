@@ -5,7 +5,7 @@ Runs, side by side on one device kind (PoCL on this machine's cores):
 
 * in-process: ``progressive.render`` (PoCL with all cores);
 * 1 worker x all cores, 1 worker x 1 core, and W workers x cores/W (``POCL_MAX_PTHREAD_COUNT``),
-  each a local Dask cluster of worker processes (``clppm.executor.local_cluster``).
+  each a local Dask cluster of worker processes (``clppm.run.executor.local_cluster``).
 
 Each distributed run is timed from the first chunk submitted to the last chunk reduced
 (``report["executor"]["passes_wall_s"]``), after a warm-up render that built the scene on every
@@ -52,7 +52,8 @@ from distributed import Client, wait
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from clppm import config as C, executor, progressive  # noqa: E402
+from clppm import config as C
+from clppm.run import executor, progressive  # noqa: E402
 
 STAGES = ("photon", "grid", "gather")
 NET_10GBE = 1.25e9            # bytes/s, assumed between machines
@@ -70,7 +71,7 @@ def bench_cfg(path, resolution, photons, k, chunks) -> dict:
 
 
 def in_process(cfg, repeat) -> dict:
-    from clppm.device import open_device
+    from clppm.compute.device import open_device
     dev = open_device(None)
     runs = []
     for _ in range(repeat):
@@ -81,7 +82,7 @@ def in_process(cfg, repeat) -> dict:
 
 
 def device_spec() -> str:
-    from clppm.device import list_devices, open_device
+    from clppm.compute.device import list_devices, open_device
     d = open_device(None).device
     return next(f"{ip}:{i}" for ip, i, _, dd in list_devices() if dd == d)
 

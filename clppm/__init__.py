@@ -1,15 +1,16 @@
 """clppm: spectral progressive photon mapping of a layered voxel skin model in OpenCL."""
-__version__ = "0.1.0"
+from .version import __version__  # noqa: F401
 
 # Before anything queries OpenCL platforms: let the ICD loader see pip-installed drivers.
-from . import icd as _icd  # noqa: E402
+from .compute import icd as _icd  # noqa: E402
 
 _icd.register()
 _icd.own_pocl_cache()
 
 
 def render(config, integrator="ppm", **kwargs):
-    """Render a skin scene; return a :class:`clppm.film.RenderResult` (the image and its report).
+    """Render a skin scene; return a :class:`clppm.output.film.RenderResult` (the image and its
+    report).
 
     ``config``: a TOML file, a shipped config's name (``"forearm"``, ``"cheek"``; see
     ``clppm config --example``) or a dict from :func:`clppm.config.load` (changed with
@@ -29,13 +30,13 @@ def render(config, integrator="ppm", **kwargs):
     * ``progress``: print progress to stderr;
     * ``resume``: a checkpoint ``NAME.ckpt.npz`` to continue (``passes`` the new total);
     * ``devices`` (``"all"`` or ``"P:D,P:D"``) or ``scheduler`` (an address): render on a
-      Dask cluster (:func:`clppm.executor.render_distributed`), the same bytes as in-process.
+      Dask cluster (:func:`clppm.run.executor.render_distributed`), the same bytes as in-process.
 
     With ``integrator="pt"``: ``passes``, ``seed``, ``resolution``, ``device``, ``out``,
-    ``progress`` and ``resume`` (:func:`clppm.pathtracer.render_pt`).
+    ``progress`` and ``resume`` (:func:`clppm.integrators.pathtracer.render_pt`).
 
     Raises :class:`clppm.config.ConfigError` for a bad value (exit 2 on the command line) and
-    :class:`clppm.device.DeviceError` when no device can run it (exit 3).
+    :class:`clppm.compute.device.DeviceError` when no device can run it (exit 3).
 
     >>> res = clppm.render("forearm", resolution=(64, 48), passes=2, photons=100_000)
     >>> res.spectral.shape, res.rgb.shape        # ((48, 64, 81), (48, 64, 3))
@@ -48,12 +49,12 @@ def render(config, integrator="ppm", **kwargs):
     cfg = _config.load(_config.find(config)) if isinstance(config, str) else config
     req = RenderRequest.of(cfg, integrator, **kwargs)
     if req.integrator == "pt":
-        from .pathtracer import render_pt
+        from .integrators.pathtracer import render_pt
         return render_pt(req)
     if req.cluster is not None and (req.cluster.devices or req.cluster.scheduler):
-        from .executor import render_distributed
+        from .run.executor import render_distributed
         return render_distributed(req)
-    from . import progressive
+    from .run import progressive
     return progressive.render(req.replace(cluster=None))
 
 

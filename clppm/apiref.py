@@ -23,7 +23,7 @@ a config's keys are those of [config](config.md)."""
 #: (module, names): the public API, in the order of the page
 PUBLIC = [
     ("clppm", ["render"]),
-    ("clppm.film", ["RenderResult"]),
+    ("clppm.output.film", ["RenderResult"]),
     ("clppm.config", ["load", "set_item", "find", "shipped_configs", "to_toml", "ConfigError"]),
     ("clppm.image", ["read_exr", "write_exr", "write_png", "load_heightmap"]),
 ]
@@ -85,7 +85,7 @@ def reference_markdown() -> str:
     for module, names in PUBLIC:
         mod = importlib.import_module(module)
         out.append(f"## `{module}`\n")
-        if module != "clppm.film":
+        if module != "clppm.output.film":
             out.append(_markdown((inspect.getdoc(mod) or "").split("\n\n")[0]) + "\n")
         out += [entry_markdown(module, n) for n in names]
     return "\n".join(out)

@@ -1,6 +1,6 @@
 """Image files: OpenEXR (RGB plus spectral channels, Fichet et al.'s naming), 8-bit sRGB PNG,
 and height maps (.npy, 16-bit PNG, EXR).  The colour conversions are in
-:mod:`clppm.colorimetry`.
+:mod:`clppm.scene.colorimetry`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 
 import OpenEXR
 
-from .colorimetry import SRGB, encode_srgb
+from .scene.colorimetry import SRGB, encode_srgb
 
 __all__ = [
     "spectral_channel_name",
@@ -246,7 +246,7 @@ def write_png(path, rgb_linear, exposure: float = 1.0) -> None:
     enc = encode_srgb(a * float(exposure))
     u8 = np.ascontiguousarray(np.round(enc * 255.0).astype(np.uint8))
     path = os.fspath(path)
-    from .paths import write_atomic           # a kill mid-write leaves the old file, not half a PNG
+    from .output.paths import write_atomic    # a kill mid-write leaves the old file, not half a PNG
     write_atomic(path, lambda tmp: Image.fromarray(u8, mode=mode).save(tmp, format="PNG"))
 
 

@@ -4,8 +4,8 @@ The config (a validated dict, :mod:`clppm.config`) describes the scene and its d
 command line or the API may ask for another method, pass count, photon count, resolution, seed
 or sample count for this run.  Those values live in a :class:`RenderRequest`, built once by
 ``clppm render`` or :func:`clppm.render` and passed explicitly to the integrator
-(:func:`clppm.progressive.render`, :func:`clppm.pathtracer.render_pt`,
-:func:`clppm.executor.render_distributed`); nothing writes them back into the config.
+(:func:`clppm.run.progressive.render`, :func:`clppm.integrators.pathtracer.render_pt`,
+:func:`clppm.run.executor.render_distributed`); nothing writes them back into the config.
 
 The request answers what the run uses (:attr:`RenderRequest.settings`, the ``[render]`` table
 with the run's values; :attr:`RenderRequest.camera`) and what a checkpoint or a report records
@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from . import config as C
-from .camera import Camera, from_config as camera_from_config
+from .scene.camera import Camera, from_config as camera_from_config
 from .config import RenderSettings, render_settings
 
 #: the run's values: (flag, config section, config key); the flag names a refusal
@@ -80,7 +80,7 @@ class Outputs:
 
     @property
     def checkpoint_path(self) -> str | None:
-        from .checkpoint import default_path
+        from .output.checkpoint import default_path
         return self.checkpoint or (default_path(self.out) if self.out else None)
 
 
@@ -128,7 +128,7 @@ class RenderRequest:
     seed: int | None = None
     spp: int | None = None
     device: str | None = None        # a device spec (``PYOPENCL_CTX`` syntax; None: the default)
-    dev: object = field(default=None, compare=False)   # an opened clppm.device.Device, if any
+    dev: object = field(default=None, compare=False)   # an opened clppm.compute.device.Device, if any
     outputs: Outputs = Outputs()
     resume: str | None = None        # a checkpoint to continue
     budget: Budget = Budget()

@@ -1,5 +1,5 @@
 /* The pinhole camera shared by the eye pass (eye.cl) and the path tracer (pt.cl): one struct,
- * one ray generation.  Host side: clppm/camera.py (CAMERA_DTYPE, Camera.struct). */
+ * one ray generation.  Host side: clppm/scene/camera.py (CAMERA_DTYPE, Camera.struct). */
 #ifndef CLPPM_CAMERA_H
 #define CLPPM_CAMERA_H
 
@@ -20,7 +20,7 @@ inline float4 camera_pos(__constant const Camera* c) {
 }
 
 /* Unit direction of the ray through image point (u, v), in pixels from the top-left corner
- * (clppm/camera.py Camera.ray). */
+ * (clppm/scene/camera.py Camera.ray). */
 inline float4 camera_dir(__constant const Camera* c, float u, float v) {
     const float sx = (2.0f * u / (float)c->width - 1.0f) * c->tan_half * c->aspect;
     const float sy = (1.0f - 2.0f * v / (float)c->height) * c->tan_half;

@@ -44,7 +44,7 @@
 #define HOT __attribute__((always_inline)) inline
 #define BIG 1e30f
 
-/* Mirrors clppm/structs.py PARAMS_DTYPE (checked by tests/test_structs.py): 4-byte fields
+/* Mirrors clppm/compute/structs.py PARAMS_DTYPE (checked by tests/test_structs.py): 4-byte fields
  * only, in this order. */
 typedef struct {
     /* volume */

@@ -1,5 +1,5 @@
 /* Codes the host writes into the kernels' parameters and reads back from their tallies, named
- * once for both sides: clppm/constants.py holds the same names and values, and
+ * once for both sides: clppm/compute/constants.py holds the same names and values, and
  * tests/test_constants.py checks the two against each other. */
 #ifndef CLPPM_CONSTANTS_H
 #define CLPPM_CONSTANTS_H

@@ -1,6 +1,6 @@
 /* grid.h -- the device photon lookup grid (uniform grid, cells x-fastest).
  *
- * Built every pass by clppm/hashgrid.py (kernels in hashgrid.cl): a uniform
+ * Built every pass by clppm/integrators/hashgrid.py (kernels in hashgrid.cl): a uniform
  * grid over the box [lo, lo + (h*nx, h*ny, hz*nz)) with cells of edge h (µm) laterally and
  * depth hz (cubic, hz = h, unless the caller asks for flat cells: the beam estimator's discs
  * have no depth, and its eye-ray pieces are a few um deep against R of hundreds).
@@ -22,7 +22,7 @@
  * API
  * ---
  *   GridParams                     plain struct, 4-byte fields only, 48 bytes;
- *                                  mirrored by clppm.hashgrid.GRID_PARAMS_DTYPE.
+ *                                  mirrored by clppm.integrators.hashgrid.GRID_PARAMS_DTYPE.
  *                                  Pass it by value as a kernel argument (or read
  *                                  it from a __constant/__global buffer into a
  *                                  private copy: the functions take a VALUE).

@@ -58,7 +58,7 @@ typedef float real;
 #endif
 #define CLPPM_REAL              /* surface.h: real is defined */
 
-/* Mirrors clppm/pathtracer.py PT_DTYPE: 4-byte fields only, in this order. */
+/* Mirrors clppm/integrators/pathtracer.py PT_DTYPE: 4-byte fields only, in this order. */
 typedef struct {
     Camera cam;
     int nspp;                   /* samples per pixel in this pass */
@@ -78,12 +78,12 @@ typedef struct {
 } PtParams;
 
 #define MAXE (4 * NL + 8)       /* chain events; a longer chain (R^4 smaller) counts as blocked */
-#define NMNEE 10                /* solver counts per pixel (clppm/pathtracer.py MNEE_STATS) */
+#define NMNEE 10                /* solver counts per pixel (clppm/integrators/pathtracer.py MNEE_STATS) */
 /* Counts of specular manifold sampling over a pixel's connections (relief builds) */
 typedef struct { uint found, other, trials, clamped; } SmsStat;
 #define NBIN 8                  /* contribution by vertex index: 1, 2, 3, 4, 5-8, 9-16, 17-64, 65+ */
 
-/* The chain tables (host, clppm/pathtracer.py chain_tables): r0[i] normal-incidence Fresnel R
+/* The chain tables (host, clppm/integrators/pathtracer.py chain_tables): r0[i] normal-incidence Fresnel R
  * of interface i (0 where the indices are equal or below a semi-infinite layer) and
  * tail[i] = sum_{j >= i} r0[j]; 2 NL + 3 floats. */
 #define R0(i) (chain[(i)])
@@ -504,7 +504,7 @@ inline int pt_boundary(Track* t, int ev, float* beta, Rng* rng, VOLUME_ARGS,
 
 /* ---------------------------------------------------------------- the pass */
 /* A pixel's counts over its samples: vertices, connections made and blocked, paths cut; the
- * manifold solver's (NMNEE, clppm/pathtracer.py MNEE_STATS); the value by vertex index. */
+ * manifold solver's (NMNEE, clppm/integrators/pathtracer.py MNEE_STATS); the value by vertex index. */
 typedef struct {
     ulong nvert, nmade, nblock, ncut;
     ulong m_try, m_ok, m_it, m_cont, m_mis, m_sol;
@@ -766,7 +766,7 @@ __kernel void pt_pass(VOLUME_ARGS,
                       __global ulong* pix_stats,        /* [npix * 4] vertices, NEE made, blocked, cut */
                       __global double* pix_bins,        /* [npix * NBIN] value by vertex index */
                       __global const float* smooth,     /* Volume.smooth (relief builds) */
-                      __global ulong* pix_mnee)         /* [npix * NMNEE] clppm/pathtracer.py MNEE_STATS */
+                      __global ulong* pix_mnee)         /* [npix * NMNEE] clppm/integrators/pathtracer.py MNEE_STATS */
 {
     const uint gid = (uint)get_global_id(0);
     if (gid >= E->count) return;

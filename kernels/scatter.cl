@@ -1,5 +1,5 @@
 /* scatter.cl -- the beam estimator's atomic flux accumulation layout (render.layout = "scatter",
- * clppm/beam.py): the same (piece, photon) pairs and the same 64-bit fixed-point terms as
+ * clppm/integrators/beam.py): the same (piece, photon) pairs and the same 64-bit fixed-point terms as
  * gather_beam (kernels/gather.cl), found from the photon's side.
  *
  *   piece_points   once per scene: the sample point of each eye-ray piece
@@ -18,7 +18,7 @@
  * The gather saturates its per-point sums at 2^63 - 1 (add_sat); atom_add wraps.  A term is at
  * most 9e18 and the sums of this renderer are below 1e16, so neither ever happens: the same
  * sums.  Needs cl_khr_int64_base_atomics and the default band layout (9 bands per photon, all
- * of one class of 9): clppm/beam.py falls back to the gather otherwise.
+ * of one class of 9): clppm/integrators/beam.py falls back to the gather otherwise.
  */
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable

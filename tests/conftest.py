@@ -8,7 +8,7 @@ import pytest
 
 @pytest.fixture(scope="session")
 def dev():
-    from clppm.device import DeviceError, open_device
+    from clppm.compute.device import DeviceError, open_device
     try:
         return open_device(None)
     except DeviceError as e:            # pragma: no cover - no OpenCL here

@@ -21,7 +21,7 @@ import time
 import numpy as np
 import pytest
 
-from clppm import checkpoint as ckpt
+from clppm.output import checkpoint as ckpt
 from clppm import cli
 from scenes import tiny_toml
 
@@ -33,7 +33,7 @@ CONFIG = tiny_toml(photons=500000, initial_photons=50, passes=PASSES, seed=11,  
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
-    from clppm.device import DeviceError, open_device
+    from clppm.compute.device import DeviceError, open_device
     try:
         open_device(None)
     except DeviceError as e:               # pragma: no cover - no OpenCL here

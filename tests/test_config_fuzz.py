@@ -534,7 +534,7 @@ def valid_config(draw):
                                                                  HealthCheck.function_scoped_fixture])
 @given(valid_config())
 def test_render_random_valid_config(dev, raw):
-    from clppm import progressive
+    from clppm.run import progressive
     cfg = C.validate(raw, SRC)
     res = progressive.render(cfg, dev=dev, source=SRC)
     L = res.spectral

@@ -1,7 +1,7 @@
 """The codes shared by host and kernels are defined twice: kernels/constants.h for the kernels,
-clppm/constants.py for the host.  This test reads the header's ``#define``s and compares them
+clppm/compute/constants.py for the host.  This test reads the header's ``#define``s and compares them
 with the Python names one by one, and checks the photon pass's own copies (its tally enum in
-kernels/photon.cl, its storage and category tables in clppm/photonpass.py) against them.
+kernels/photon.cl, its storage and category tables in clppm/integrators/photonpass.py) against them.
 
 Reference: the header's text, parsed independently of the host.
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from clppm import constants as C
-from clppm.kernelcall import object_macros, strip_comments
+from clppm.compute import constants as C
+from clppm.compute.kernelcall import object_macros, strip_comments
 
 KERNELS = Path(__file__).resolve().parents[1] / "kernels"
 
@@ -36,7 +36,8 @@ def test_photon_kernel_tally_order_matches():
 
 
 def test_photon_pass_tables_match():
-    from clppm import light, photonpass
+    from clppm.scene import light
+    from clppm.integrators import photonpass
     assert photonpass.STORAGE == C.STORAGE
     assert tuple(photonpass.CATEGORIES) == C.TALLIES
     assert photonpass.NA == C.TALLY_ABSORBED0

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from clppm import config as C
-from clppm import image, progressive
+from clppm import image
+from clppm.run import progressive
 from scenes import tiny_dict, tiny_toml
 
 BASE = tiny_dict(photons=20000, initial_photons=50, passes=3, checkpoint_every=0, seed=5)

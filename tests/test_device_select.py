@@ -3,8 +3,8 @@ import os
 
 import pytest
 
-from clppm import device as D
-from clppm import icd
+from clppm.compute import device as D
+from clppm.compute import icd
 
 
 def test_select_by_implementation_name(dev):

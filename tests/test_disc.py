@@ -72,7 +72,7 @@ def test_window_estimates_a_linear_density_at_its_centre(ex, ey):
 def _header_constant(name):
     import os
     import re
-    from clppm.device import kernel_dir
+    from clppm.compute.device import kernel_dir
     with open(os.path.join(kernel_dir(), "disc.h")) as f:
         return float(re.search(rf"#define {name} ([0-9.]+)f", f.read()).group(1))
 

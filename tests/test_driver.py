@@ -1,4 +1,4 @@
-"""The render driver (clppm/driver.py) on a stand-in run that counts what it is asked to do:
+"""The render driver (clppm/integrators/driver.py) on a stand-in run that counts what it is asked to do:
 the stop rules, the checkpoint and preview cadence when a step finishes several passes (as a
 Dask step can), and a device error's one line.  Reference: the cadence rules as documented in
 the driver (a checkpoint whenever the passes done cross a multiple of checkpoint_every, at a
@@ -8,8 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clppm import driver, film
-from clppm.device import DeviceError
+from clppm.integrators import driver
+from clppm.output import film
+from clppm.compute.device import DeviceError
 
 
 class FakeRun:

@@ -25,8 +25,10 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from clppm import checkpoint as ckpt  # noqa: E402
-from clppm import cli, executor, ppm, progressive  # noqa: E402
+from clppm.output import checkpoint as ckpt  # noqa: E402
+from clppm import cli
+from clppm.run import executor, progressive
+from clppm.integrators import ppm  # noqa: E402
 from clppm import config as C  # noqa: E402
 from scenes import tiny_toml  # noqa: E402
 
@@ -37,7 +39,7 @@ CONFIG = tiny_toml(photons=50000, initial_photons=50, passes=PASSES,  # ~0.25 s 
 
 
 def _spec(dev) -> str:
-    from clppm.device import list_devices
+    from clppm.compute.device import list_devices
     return next(f"{ip}:{i}" for ip, i, _, d in list_devices() if d == dev.device)
 
 
@@ -142,10 +144,10 @@ def test_two_workers_give_the_in_process_bytes(work, cfg, reference, client):
 
 
 def test_two_workers_in_the_scatter_layout_give_the_in_process_gather_bytes(work, dev, client):
-    """The atomic scatter layout (render.layout = "scatter", clppm/beam.py) on the cluster: the
+    """The atomic scatter layout (render.layout = "scatter", clppm/integrators/beam.py) on the cluster: the
     tiny scene with 9 bands, all carried by every path (the layout's condition), rendered by
     two workers in the scatter layout gives the in-process gather's EXR bytes."""
-    from clppm import beam
+    from clppm.integrators import beam
     text = CONFIG.replace("start_nm = 450.0\nstop_nm = 650.0\nstep_nm = 50.0",
                           "start_nm = 420.0\nstop_nm = 740.0\nstep_nm = 40.0")
     assert text != CONFIG
@@ -271,7 +273,8 @@ def test_per_point_radius_is_refused(work, capsys):
 @pytest.fixture
 def no_work(monkeypatch):
     """Any scene, volume, device or cluster use fails the test."""
-    from clppm import device, volume
+    from clppm.compute import device
+    from clppm.scene import volume
 
     def forbidden(*a, **k):
         raise AssertionError("work started before the output paths were checked")

@@ -14,7 +14,8 @@ import os
 import numpy as np
 import pytest
 
-from clppm import config, fit, nist
+from clppm import config
+from clppm.analysis import fit, nist
 from clppm.config import ConfigError
 
 ROOT = os.path.dirname(os.path.dirname(__file__))

@@ -1,4 +1,4 @@
-"""The beam gather's layout (kernels/gather.cl, clppm/ppm.py) against the plain one, on the same
+"""The beam gather's layout (kernels/gather.cl, clppm/integrators/ppm.py) against the plain one, on the same
 photons: flat grid cells (GridParams.hz), photons of layer-conforming layers filed at their
 conformed depth (photon_keys), a work item per pixel and band class (GCLASS) -- against cubic
 cells, photons at their z and a work item per pixel over all bands, the layout of commit
@@ -17,9 +17,10 @@ cl = pytest.importorskip("pyopencl")
 import copy  # noqa: E402
 import dataclasses  # noqa: E402
 
-from clppm import beam, config as C, photonpass, ppm  # noqa: E402
-from clppm.kernelcall import Kernel  # noqa: E402
-from clppm.device import kernel_defines  # noqa: E402
+from clppm.integrators import beam, photonpass, ppm
+from clppm import config as C  # noqa: E402
+from clppm.compute.kernelcall import Kernel  # noqa: E402
+from clppm.compute.device import kernel_defines  # noqa: E402
 
 
 def _cfg(path: str):

@@ -17,11 +17,13 @@ import warnings
 import numpy as np
 import pytest
 
-from clppm import checkpoint as ckpt
+from clppm.output import checkpoint as ckpt
 from clppm import cli
 from clppm import config as C
-from clppm import device as D
-from clppm import photonpass, progressive, volume
+from clppm.compute import device as D
+from clppm.integrators import photonpass
+from clppm.run import progressive
+from clppm.scene import volume
 
 H, W = 16, 24
 
@@ -263,7 +265,7 @@ def test_cli_too_many_photons_exit_3(dev, tmp_path, capsys):
 
 def test_huge_resolution_checked_before_eye_pass(dev, monkeypatch):
     _small_device(monkeypatch, 64, 16)
-    from clppm import eyepass
+    from clppm.integrators import eyepass
     monkeypatch.setattr(eyepass, "run", lambda *a, **k: pytest.fail("eye pass ran before the memory check"))
     cfg = _cfg(**{"camera.resolution": [4096, 4096]})
     with pytest.raises(D.DeviceError, match="MiB"):
@@ -368,7 +370,7 @@ class _DeviceLost:
         self.at, self.real, self.cl = at, photonpass.PhotonPass.run_pass, cl
 
     def __call__(self, pp, pass_index, target, tallies=None):
-        from clppm.ppm import CAL_PASS
+        from clppm.integrators.ppm import CAL_PASS
         if pass_index != CAL_PASS and pass_index + 1 >= self.at:
             raise self.cl.RuntimeError("clEnqueueNDRangeKernel failed: DEVICE_NOT_AVAILABLE")
         return self.real(pp, pass_index, target, tallies)
@@ -439,7 +441,7 @@ def _toml(raw: dict) -> str:
 def test_memory_check_counts_the_multi_band_photon_record():
     """A path carrying C bands stores C-1 extra float weights per photon: the memory check counts
     32 + 4 (C - 1) bytes per stored photon (and 4 more sorted), so 9 bands need twice the bytes."""
-    from clppm import ppm
+    from clppm.integrators import ppm
     raw = copy.deepcopy(BASE)
     cfgs = {}
     for C_ in (1, 9):

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clppm import hashgrid as hg
-from clppm import testing
-from clppm import structs
+from clppm.integrators import hashgrid as hg
+from clppm.checks import testing
+from clppm.compute import structs
 
 NB = 8
 METHODS = ["counting", "radix"]

@@ -60,7 +60,7 @@ def exr_hash(path: str) -> str:
 
 def device_spec(device) -> str:
     """``P:D`` of an opened pyopencl device (``--devices`` takes indices)."""
-    from clppm.device import list_devices
+    from clppm.compute.device import list_devices
     return next(f"{ip}:{idev}" for ip, idev, _, d in list_devices() if d.int_ptr == device.int_ptr)
 
 
@@ -89,7 +89,7 @@ def load_store() -> dict:
 @pytest.fixture(scope="module")
 def stored(dev):
     """(P:D, the stored hashes) of the session's device; skips where none are stored."""
-    from clppm.device import describe
+    from clppm.compute.device import describe
     key = implementation_key(describe(dev.device))
     sets = {k: v for k, v in load_store().items() if not k.startswith("_")}
     if key not in sets:
@@ -110,7 +110,7 @@ def test_render_is_byte_identical_to_the_stored_hash(stored, case, tmp_path):
 
 
 def main(argv: list[str]) -> int:
-    from clppm.device import describe, open_device
+    from clppm.compute.device import describe, open_device
     dev = open_device(None)
     spec, key = device_spec(dev.device), implementation_key(describe(dev.device))
     store = load_store()

@@ -9,7 +9,8 @@ import pytest
 import colour
 import OpenEXR
 
-from clppm import colorimetry, image
+from clppm.scene import colorimetry
+from clppm import image
 
 WL = np.arange(380.0, 781.0, 5.0)  # 81 bands
 

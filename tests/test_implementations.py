@@ -23,7 +23,7 @@ GROUPS = 3
 
 
 def _implementations() -> dict[str, str]:
-    from clppm.device import device_problem, implementation, list_devices
+    from clppm.compute.device import device_problem, implementation, list_devices
     out = {}
     for ip, idev, _, d in list_devices():
         impl = implementation(d)

@@ -1,4 +1,4 @@
-"""Kernel launches by name (clppm.kernelcall): the parameter lists read from the kernels' source
+"""Kernel launches by name (clppm.compute.kernelcall): the parameter lists read from the kernels' source
 (macros expanded), and a call with a missing, extra, misspelt or wrongly typed argument refused
 with a message naming it.
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from clppm import kernelcall as K
+from clppm.compute import kernelcall as K
 
 cl = pytest.importorskip("pyopencl")
 

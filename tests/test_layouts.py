@@ -1,4 +1,4 @@
-"""The beam gather's two layouts (render.layout, clppm/beam.py): the gather (a work item per pixel
+"""The beam gather's two layouts (render.layout, clppm/integrators/beam.py): the gather (a work item per pixel
 and band class querying the photon grid) and the scatter (a work item per photon adding its
 terms into per point x band 64-bit fixed-point sums with atomic adds, kernels/scatter.cl).
 They find the same (piece, photon) pairs and add the same fixed-point terms, and the scatter
@@ -17,7 +17,9 @@ import pytest
 
 cl = pytest.importorskip("pyopencl")
 
-from clppm import beam, config as C, photonpass, ppm, progressive  # noqa: E402
+from clppm.integrators import beam, photonpass, ppm
+from clppm import config as C
+from clppm.run import progressive  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -98,7 +100,7 @@ def test_resume_in_the_other_layout(dev, tmp_path):
     out = str(tmp_path / "a.exr")
     progressive.render(_cfg("forearm.toml", "gather", passes=2, chunk_passes=1), dev=dev, out=out,
                        stop_after=1)
-    from clppm import checkpoint as ckpt
+    from clppm.output import checkpoint as ckpt
     res = progressive.render(_cfg("forearm.toml", "scatter", passes=2, chunk_passes=1), dev=dev,
                              out=str(tmp_path / "b.exr"), resume=ckpt.default_path(out))
     assert np.array_equal(np.asarray(full.spectral), np.asarray(res.spectral))

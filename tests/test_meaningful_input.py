@@ -97,7 +97,7 @@ def test_one_error_prefix_for_every_command(args):
 
 
 def test_scheme_label_reads_as_words():
-    from clppm.eyepass import scheme
+    from clppm.integrators.eyepass import scheme
     assert scheme("e").label() == "e: random spacing, mean 1/extinction (mean over the bands)"
     assert scheme("b").label() == "b: equal spacing 7 um"
 

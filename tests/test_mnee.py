@@ -14,8 +14,11 @@ import math
 import numpy as np
 import pytest
 
-from clppm import checkpoint as ckpt
-from clppm import config, pathtracer as pt, testing, volume
+from clppm.output import checkpoint as ckpt
+from clppm import config
+from clppm.integrators import pathtracer as pt
+from clppm.checks import testing
+from clppm.scene import volume
 
 
 def lay(name, t, n, mua=10.0, mus=90.0, g=0.75, bottom="flat"):
@@ -371,10 +374,10 @@ def test_relief_same_seed_same_bytes_and_resume_is_byte_identical(dev, tmp_path)
 
 
 def test_compare_and_bias_take_the_path_tracer_as_the_relief_reference():
-    """clppm compare (and bench/studies/bias.py through clppm.reference) use the path tracer on relief
+    """clppm compare (and bench/studies/bias.py through clppm.analysis.reference) use the path tracer on relief
     scenes now, with the manifold kernels in the reference's cache key."""
-    from clppm.compare import QUICK, reference_spec
-    from clppm.reference import RefSpec, reference_key
+    from clppm.analysis.compare import QUICK, reference_spec
+    from clppm.analysis.reference import RefSpec, reference_key
     from clppm import config as C
     cfg = C.load(C.find("forearm"))
     assert reference_spec(cfg, (80, 60), QUICK).integrator == "pt"

@@ -17,7 +17,7 @@ import pytest
 cl = pytest.importorskip("pyopencl")
 from scipy import integrate, stats  # noqa: E402
 
-from clppm.device import global_size  # noqa: E402
+from clppm.compute.device import global_size  # noqa: E402
 
 N_HG = 200_000
 SEED = 12345

@@ -100,7 +100,7 @@ def test_long_names_refused_before_work(tmp_path, no_work, stem):
 def test_checkpoint_of_another_render_refused_before_work(tmp_path, monkeypatch, change, needle):
     cfg, out = tiny(tmp_path), tmp_path / "x.png"
     assert _render(cfg, out).returncode == 0
-    import clppm.volume as V
+    import clppm.scene.volume as V
 
     def boom(*a, **k):
         pytest.fail("the volume was built before the checkpoint was refused")
@@ -137,7 +137,7 @@ def test_disk_full_at_the_image_keeps_the_checkpoint(tmp_path, monkeypatch):
 
 def test_disk_full_at_the_first_checkpoint_names_it(tmp_path, monkeypatch):
     cfg, d = tiny(tmp_path), tmp_path / "out"
-    import clppm.checkpoint as K
+    import clppm.output.checkpoint as K
     real = K.np.savez
 
     def full(f, *a, **k):
@@ -152,7 +152,7 @@ def test_disk_full_at_the_first_checkpoint_names_it(tmp_path, monkeypatch):
 def test_printed_resume_command_works_as_printed(tmp_path, monkeypatch):
     """Interrupted after its first pass, a render given --resolution, --passes, --photons,
     --seed and --set prints a command that, run as printed, finishes it."""
-    from clppm import driver
+    from clppm.integrators import driver
     cfg, out = tiny(tmp_path), tmp_path / "out" / "s.png"
     real_enter = driver.Interrupt.__enter__
 

@@ -26,7 +26,8 @@ from pathlib import Path
 
 import pytest
 
-from clppm import cli, paths
+from clppm import cli
+from clppm.output import paths
 from clppm import config as C
 
 from test_cli import assert_one_line_error, clppm, clppm_inproc
@@ -53,11 +54,11 @@ def tiny(tmp_path, photons=3000, passes=2) -> Path:
 @pytest.fixture
 def no_work(monkeypatch):
     """Any render, trace or reflectance that gets as far as a device fails the test."""
-    import clppm.device as D
+    import clppm.compute.device as D
 
     def boom(*a, **k):
         pytest.fail("work started before the bad input was refused")
-    import clppm.compare, clppm.fit, clppm.pathtracer, clppm.progressive, clppm.reflectance  # noqa: F401
+    import clppm.analysis.compare, clppm.analysis.fit, clppm.integrators.pathtracer, clppm.run.progressive, clppm.analysis.reflectance  # noqa: F401
     for m in list(sys.modules.values()):     # all imported first: none binds the patched name
         if getattr(m, "__name__", "").startswith("clppm") and getattr(m, "open_device", None) is D.open_device:
             monkeypatch.setattr(m, "open_device", boom)
@@ -282,7 +283,7 @@ def test_bare_clppm_prints_help(capsys):
 
 
 def test_internal_error_one_line_and_verbose_traceback(tmp_path, monkeypatch, capsys):
-    from clppm import photonpass  # noqa: F401 (monkeypatched below)
+    from clppm.integrators import photonpass  # noqa: F401 (monkeypatched below)
 
     def bug(*a, **k):
         raise RuntimeError("a bug\nover two lines")
@@ -297,7 +298,7 @@ def test_internal_error_one_line_and_verbose_traceback(tmp_path, monkeypatch, ca
 
 
 def test_device_error_one_line_details_with_verbose(tmp_path, monkeypatch, capsys):
-    import clppm.device as D
+    import clppm.compute.device as D
 
     def nope(*a, **k):
         raise D.DeviceError("this render needs 9 MiB:\n  pixels: 9 MiB\noptions: fewer --photons")
@@ -391,7 +392,7 @@ def test_wheel_install_renders_a_shipped_config(tmp_path):
     def run(*args):
         return subprocess.run([py, "-m", "clppm.cli", *args], cwd=work, env=env, capture_output=True,
                               text=True, timeout=300)
-    where = subprocess.run([py, "-c", "import clppm, clppm.fit as f; print(clppm.__file__); "
+    where = subprocess.run([py, "-c", "import clppm, clppm.analysis.fit as f; print(clppm.__file__); "
                             "print(f.default_config_path())"], cwd=work, env=env, capture_output=True,
                            text=True, check=True).stdout.split()
     assert all(w.startswith(vsite) for w in where), where

@@ -1,4 +1,4 @@
-"""The path tracer (clppm/pathtracer.py, kernels/pt.cl).
+"""The path tracer (clppm/integrators/pathtracer.py, kernels/pt.cl).
 
 Each test names its reference: Snell's law and the light's position (the connection), a
 finite-difference Jacobian of the refraction map from a separate float64 ray tracer written
@@ -14,8 +14,12 @@ import math
 import numpy as np
 import pytest
 
-from clppm import checkpoint as ckpt
-from clppm import cli, config, pathtracer as pt, photonpass, progressive, testing, volume
+from clppm.output import checkpoint as ckpt
+from clppm import cli, config
+from clppm.integrators import pathtracer as pt, photonpass
+from clppm.run import progressive
+from clppm.checks import testing
+from clppm.scene import volume
 from scenes import tiny_toml
 
 

@@ -16,11 +16,13 @@ import pytest
 cl = pytest.importorskip("pyopencl")
 from scipy import stats  # noqa: E402
 
-from clppm import bands, config, photonpass, volume  # noqa: E402
-from clppm.photonpass import CATEGORIES, W0  # noqa: E402
+from clppm.scene import bands, volume
+from clppm import config
+from clppm.integrators import photonpass  # noqa: E402
+from clppm.integrators.photonpass import CATEGORIES, W0  # noqa: E402
 
 try:                                   # categories that make up a photon's weight
-    from clppm.photonpass import BALANCE, NA# noqa: E402
+    from clppm.integrators.photonpass import BALANCE, NA# noqa: E402
 except ImportError:                    # pragma: no cover - before the cone tally existed
     BALANCE, NA = list(range(len(CATEGORIES))), len(CATEGORIES)
 

@@ -14,7 +14,8 @@ import os
 import numpy as np
 import pytest
 
-from clppm import config, nist, reflectance
+from clppm import config
+from clppm.analysis import nist, reflectance
 from clppm.config import ConfigError
 
 HERE = os.path.dirname(__file__)
@@ -118,14 +119,14 @@ def test_method_reflectance_small(dev):
 
 
 def test_white_region_matches_white_reference_at_centre():
-    from clppm import bands, camera, film
-    from clppm.light import Light
+    from clppm.scene import bands, camera
+    from clppm.scene.light import Light, white_reference
     cfg = _forearm(camera={"resolution": [4, 4]})
     cam = camera.from_config(cfg["camera"])
     wl = config.wavelengths(cfg)
     s = bands.source_spectrum(cfg, wl)
     w = reflectance.white_region(cfg, cam, wl, s, (1, 1, 3, 3))
-    centre = film.white_reference(Light.from_config(cfg), cam, wl, s)
+    centre = white_reference(Light.from_config(cfg), cam, wl, s)
     assert w.shape == (2, 2, len(wl))
     assert np.allclose(w.mean((0, 1)), centre, rtol=0.02)    # the four pixels around the centre
     assert w[0, 0, 40] > w[1, 1, 40]                          # nearer the light at the upper left
@@ -172,7 +173,8 @@ def test_nist_plot(tmp_path):
 
 # ----------------------------------------------------------------------------- CLI
 def test_cli_reflectance(tmp_path, capsys):
-    from clppm import cli, fit
+    from clppm import cli
+    from clppm.analysis import fit
     cfg = _forearm(relief={"kind": "flat"}, papillae={"amplitude_um": 0.0})
     toml = tmp_path / "flat.toml"
     toml.write_text(fit.to_toml(cfg))

@@ -10,9 +10,11 @@ import os
 import numpy as np
 import pytest
 
-from clppm import config, eyepass, photonpass, volume
-from clppm import progressive as pr
-from clppm.skin import PAPER_TABLE1
+from clppm import config
+from clppm.integrators import eyepass, photonpass
+from clppm.scene import volume
+from clppm.run import progressive as pr
+from clppm.scene.skin import PAPER_TABLE1
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FOREARM = os.path.join(ROOT, "configs", "forearm.toml")

@@ -1,6 +1,6 @@
-"""The known-answer self-test (clppm/selftest.py), verified builds and their caches.
+"""The known-answer self-test (clppm/checks/selftest.py), verified builds and their caches.
 
-Broken devices are made by ``CLPPM_FAULT`` (clppm/device.py ``_inject_fault``): a kernel that
+Broken devices are made by ``CLPPM_FAULT`` (clppm/compute/device.py ``_inject_fault``): a kernel that
 crashes at its first launch, a program that lacks a kernel, a photon pass that absorbs too much.
 Each must be refused with one line naming what failed, and the default choice must fall back to
 another implementation.  The PoCL kernel cache is poisoned the way a crashed compile leaves it
@@ -13,8 +13,9 @@ import sys
 import numpy as np
 import pytest
 
-from clppm import selftest
-from clppm.device import device_spec, expected_kernels, implementation, list_devices
+from clppm.checks import selftest
+from clppm.compute import devicecheck
+from clppm.compute.device import device_spec, expected_kernels, implementation, list_devices
 
 SMALL = ["--resolution", "16x12", "--passes", "1", "--photons", "4000"]
 
@@ -83,12 +84,12 @@ def test_expected_kernels_follow_ifdef_and_leave_if_undecided():
 
 def test_classify_names_signal_stage_and_hang():
     out = "clppm-selftest-stage: photon_pass's first launch\nclppm-selftest-stage: gather_beam's first launch\n"
-    r = selftest._classify(-6, out, "LLVM ERROR: Cannot select", 3.0)
+    r = devicecheck._classify(-6, out, "LLVM ERROR: Cannot select", 3.0)
     assert not r.passed and r.reason == "aborted (SIGABRT) in gather_beam's first launch"
-    r = selftest._classify(None, out, "", selftest.TIMEOUT_S)
+    r = devicecheck._classify(None, out, "", devicecheck.TIMEOUT_S)
     assert r.reason.startswith("hung: no answer") and r.reason.endswith("gather_beam's first launch")
-    ok = selftest.RESULT + json.dumps({"values": {"A": 1.0}, "bad": [], "seconds": 1.0})
-    assert selftest._classify(-6, ok, "", 1.0).passed       # an abort after the answer: passed
+    ok = devicecheck.RESULT + json.dumps({"values": {"A": 1.0}, "bad": [], "seconds": 1.0})
+    assert devicecheck._classify(-6, ok, "", 1.0).passed       # an abort after the answer: passed
 
 
 @pytest.mark.parametrize("fault, says", [
@@ -134,7 +135,7 @@ def _pocl_spec():
 
 BUILD = """
 import os, sys
-from clppm.device import open_device
+from clppm.compute.device import open_device
 d = open_device(sys.argv[1])
 prg = d.build("hashgrid.cl", {"NB": 4})
 print("kernels", ";".join(sorted(k for k in prg.kernel_names.split(";") if k)), flush=True)

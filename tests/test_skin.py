@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clppm import skin, spectra
+from clppm.scene import skin, spectra
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 FIELDS = {f.name for f in dataclasses.fields(skin.Layer)}

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from clppm import colorimetry, spectra
+from clppm.scene import colorimetry, spectra
 
 
 def test_wavelengths_default_81_bands_inclusive():

@@ -14,8 +14,10 @@ import pytest
 
 cl = pytest.importorskip("pyopencl")
 
-from clppm import config, photonpass, volume  # noqa: E402
-from clppm.bands import Bands, source_spectrum  # noqa: E402
+from clppm import config
+from clppm.integrators import photonpass
+from clppm.scene import volume  # noqa: E402
+from clppm.scene.bands import Bands, source_spectrum  # noqa: E402
 
 SKIN = [  # the Jacques recipe over 9 bands: mu_s ~ lambda^-1.5, g(lambda), melanin and blood absorption
     {"name": "epidermis", "thickness_um": 60.0, "n": 1.4, "melanin": 0.05, "baseline": 0.95},
@@ -209,7 +211,7 @@ def test_layered_slab_radiance_unchanged_by_storage_and_bands(dev):
     per path -- the same within their seed-to-seed spread in every band.  The view spans most of
     the lit square so that every path counts; storing every event needs 100x the stored photons
     for a comparable spread (one band per path, ~100 correlated events each)."""
-    from clppm import progressive
+    from clppm.run import progressive
     runs = {}
     for key, photons in ((("all", 1), 2_000_000), (("importance", 9), 20_000)):
         runs[key] = np.array([progressive.render(_slab_render_cfg(*key, seed, photons), dev=dev).spectral.mean(axis=(0, 1))
@@ -240,8 +242,8 @@ def _forearm_pass(dev, scale, qmin, exact=False, seed=4):
     vol = volume.build(cfg, "forearm")
     pp = photonpass.PhotonPass(dev, vol, cfg, capacity=60_000, seed=seed, bands=Bands.from_config(cfg))
     if exact:
-        from clppm.device import kernel_defines, surface_fp64
-        from clppm.kernelcall import Kernel
+        from clppm.compute.device import kernel_defines, surface_fp64
+        from clppm.compute.kernelcall import Kernel
         pp.prg = dev.build("photon.cl", {**kernel_defines(vol, hero=pp.hero, pt_fp64=surface_fp64(dev, vol)),
                                          "STORE_EXACT": 1})
         pp.kernel = Kernel(pp.prg, "photon_pass")

@@ -27,9 +27,11 @@ import os
 import numpy as np
 import pytest
 
-from clppm import config, photonpass, volume
-from clppm import progressive as pr
-from clppm.reference import skin_mask
+from clppm import config
+from clppm.integrators import photonpass
+from clppm.scene import volume
+from clppm.run import progressive as pr
+from clppm.analysis.reference import skin_mask
 
 LAYERS = [
     dict(name="stratum corneum", thickness_um=15.0, n=1.5, baseline=1.0, k=1.0),
@@ -391,7 +393,7 @@ def test_colour_shift_against_spacing_and_photons(dev):
     points.  Reuse (gather pairs per stored photon) does grow ~3x from 14 to 4 um spacing;
     with the same photons (same seed) the mean skin colour moves by little (loose bound), so
     reuse is not a colour bias here; the full measurement is in `clppm compare`."""
-    from clppm.compare import colour_shift_experiment
+    from clppm.analysis.compare import colour_shift_experiment
     exp = colour_shift_experiment(scene(), spacings=(4.0, 14.0), photons=(4000, 16000), passes=4, dev=dev)
     rows = exp["rows"]
     assert len(rows) == 4
@@ -407,8 +409,8 @@ def test_colour_shift_against_spacing_and_photons(dev):
 # ----------------------------------------------------------------------------- reference, metrics
 def test_error_metrics_signs_and_zero():
     """An image against itself: all errors 0; a bluer copy: negative Δb*, Δv'; a brighter one: dY."""
-    from clppm import colorimetry
-    from clppm.metrics import error_metrics
+    from clppm.scene import colorimetry
+    from clppm.analysis.metrics import error_metrics
     rng = np.random.default_rng(0)
     xyz = rng.uniform(0.1, 0.5, (6, 8, 3)) * colorimetry.D65_XYZ * np.array([1.1, 1.0, 0.7])
     mask = np.ones((6, 8), bool)
@@ -426,9 +428,9 @@ def test_accuracy_of_seeds_separates_bias_from_noise():
     reference with 2 % noise of its own: the mean of n images has the bias plus 4/sqrt(n) %, one
     image's noise reads 4 %, and the bias with both noises removed reads b's 3 % (within the
     sampling error of 2,000 squares), for n = 2 and 8."""
-    from clppm import colorimetry
-    from clppm.metrics import accuracy_of_seeds
-    from clppm.reference import Reference, RefSpec
+    from clppm.scene import colorimetry
+    from clppm.analysis.metrics import accuracy_of_seeds
+    from clppm.analysis.reference import Reference, RefSpec
     rng = np.random.default_rng(3)
     h, w = 40, 50
     truth = rng.uniform(0.2, 0.4, (h, w, 1)) * colorimetry.D65_XYZ
@@ -458,9 +460,9 @@ def test_squares_beyond_the_bound_only_when_shown():
     reference whose halves differ by its 1 % noise: the standard error per square is the mean's
     and the reference's noise together; every 10 % square is beyond 2 % beyond doubt, none of the
     unbiased ones is, and the 2.5 % ones are beyond 2 % often but shown so seldom."""
-    from clppm import colorimetry
-    from clppm.metrics import accuracy_of_seeds
-    from clppm.reference import Reference, RefSpec
+    from clppm.scene import colorimetry
+    from clppm.analysis.metrics import accuracy_of_seeds
+    from clppm.analysis.reference import Reference, RefSpec
     rng = np.random.default_rng(5)
     h, w, n = 40, 50, 8
     truth = rng.uniform(0.2, 0.4, (h, w, 1)) * colorimetry.D65_XYZ
@@ -478,7 +480,7 @@ def test_squares_beyond_the_bound_only_when_shown():
     for _ in range(n):
         x = truth * (1 + bias) * (1 + 0.02 * rng.standard_normal((h, w, 1)))
         imgs.append((x, x))
-    from clppm.metrics import square_standard_errors
+    from clppm.analysis.metrics import square_standard_errors
     se = square_standard_errors(imgs, ref)
     assert np.median(se) == pytest.approx(math.sqrt(0.02 ** 2 / n + 0.01 ** 2), rel=0.1)
     m = accuracy_of_seeds(imgs, ref)
@@ -501,7 +503,7 @@ def test_reference_cached_and_keyed(dev, tmp_path):
     """Computed once, then loaded from the cache bit for bit; another parameter, another key;
     its own error estimate from the two halves is finite.  (A PPM reference, averaged over
     3x3-pixel squares.)"""
-    from clppm.reference import RefSpec, get_reference, reference_key
+    from clppm.analysis.reference import RefSpec, get_reference, reference_key
     cfg = scene()
     spec = RefSpec(integrator="ppm", method="f", resolution=(12, 9), block=3, photons=8000, passes=3,
                    initial_photons=50, seeds=(11, 12))
@@ -524,8 +526,8 @@ def test_path_tracer_reference_squares(dev, tmp_path):
     mean of a block x block square of image pixels); accuracy() averages an image over the same
     squares: an image equal to the reference square by square has no error, one 10 % brighter
     has +10 % in Y in every square and in every 50-nm band group."""
-    from clppm.metrics import accuracy
-    from clppm.reference import RefSpec, get_reference
+    from clppm.analysis.metrics import accuracy
+    from clppm.analysis.reference import RefSpec, get_reference
     spec = RefSpec(integrator="pt", resolution=(12, 9), block=3, paths=256, seeds=(5, 6))
     ref = get_reference(scene(), spec, str(tmp_path), dev=dev, log=lambda *a: None)
     assert ref.xyz.shape == (3, 4, 3) and ref.spectral.shape == (3, 4, 7)
@@ -541,8 +543,8 @@ def test_path_tracer_reference_squares(dev, tmp_path):
 
 def test_compare_run_stops_at_budget(dev, tmp_path):
     """run_method stops once the render seconds pass the budget and records snapshots."""
-    from clppm.compare import run_method
-    from clppm.reference import RefSpec, get_reference
+    from clppm.analysis.compare import run_method
+    from clppm.analysis.reference import RefSpec, get_reference
     cfg = scene()
     ref = get_reference(cfg, RefSpec(integrator="ppm", method="f", resolution=(12, 9), block=3, photons=8000,
                                      passes=3, initial_photons=50, seeds=(11, 12)),
@@ -553,6 +555,6 @@ def test_compare_run_stops_at_budget(dev, tmp_path):
         assert 1 <= r["passes"] < 50 and r["seconds"] >= 0.05
         assert r["snapshots"][-1]["pass"] == r["passes"]
         assert all(math.isfinite(s["de2000"]) and math.isfinite(s["block_Y_rms"]) for s in r["snapshots"])
-    from clppm.compare import run_pt
+    from clppm.analysis.compare import run_pt
     r = run_pt(cfg, ref, budget=0.05, dev=dev, log=lambda *a: None)
     assert r["passes"] >= 1 and r["seconds"] >= 0.05 and math.isfinite(r["final"]["block_Y_rms"])

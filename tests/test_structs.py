@@ -69,7 +69,7 @@ def _key(name: str) -> str:
 
 
 def _structs():
-    from clppm import structs
+    from clppm.compute import structs
     return [
         ("common.h", "Params", structs.PARAMS_DTYPE),
         ("grid.h", "GridParams", structs.GRID_PARAMS_DTYPE),
@@ -99,6 +99,6 @@ def test_parser_catches_a_swapped_pair(tmp_path):
     """The check must fail for two swapped fields of one type (which a size check passes)."""
     src = (KERNELS / "grid.h").read_text().replace("float lo_x, lo_y, lo_z;", "float lo_y, lo_x, lo_z;")
     (tmp_path / "grid.h").write_text(src)
-    from clppm import structs
+    from clppm.compute import structs
     c = c_struct_fields("grid.h", "GridParams", tmp_path)
     assert [n for n, _ in c] != list(structs.GRID_PARAMS_DTYPE.names)

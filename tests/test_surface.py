@@ -15,7 +15,9 @@ import math
 import numpy as np
 import pytest
 
-from clppm import config, eyepass, photonpass, volume
+from clppm import config
+from clppm.integrators import eyepass, photonpass
+from clppm.scene import volume
 
 SLOPE = 0.15                    # 8.5 degrees
 SIZE_MM = 1.0

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from clppm import config as C
-from clppm import photonpass, volume
+from clppm.integrators import photonpass
+from clppm.scene import volume
 
 
 def _forearm(*items):

@@ -8,7 +8,12 @@ import sys
 
 import numpy as np
 
-from clppm import config, device, photonpass, progressive, tiny, volume
+from clppm import config
+from clppm.compute import device
+from clppm.integrators import photonpass
+from clppm.run import progressive
+from clppm.checks import tiny
+from clppm.scene import volume
 
 SLAB = "mua=10,mus=90,g=0.75,n=1.4,d=0.02"
 SLAB_PHOTONS = 40_000

@@ -1,8 +1,8 @@
 """Bias of every scheme against the path tracer, on the flat forearm (configs/forearm_flat.toml).
 
-For each resolution, the reference is the unbiased path tracer (clppm.pathtracer) rendered at
+For each resolution, the reference is the unbiased path tracer (clppm.integrators.pathtracer) rendered at
 1/10 of the resolution with jittered rays: each reference pixel is the exact mean of a 10x10
-square of image pixels (clppm.reference).  Each scheme a-f renders in the paper's mode
+square of image pixels (clppm.analysis.reference).  Each scheme a-f renders in the paper's mode
 (config.PAPER_MODE) and in the default mode, and is compared over the skin's 10x10 squares at
 the paper's 200 passes (paper mode) or the config's default budget (default mode), and longer:
 1000 paper passes (method e), 4x the default budget (method e).  Reported per run:
@@ -34,11 +34,12 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 
-from clppm import config as C, volume              # noqa: E402
-from clppm.compare import MODES, render_seconds    # noqa: E402
-from clppm.progressive import render               # noqa: E402
-from clppm.metrics import accuracy, accuracy_of_seeds, block_mean  # noqa: E402
-from clppm.reference import RefSpec, get_reference  # noqa: E402
+from clppm import config as C
+from clppm.scene import volume              # noqa: E402
+from clppm.analysis.compare import MODES, render_seconds    # noqa: E402
+from clppm.run.progressive import render               # noqa: E402
+from clppm.analysis.metrics import accuracy, accuracy_of_seeds, block_mean  # noqa: E402
+from clppm.analysis.reference import RefSpec, get_reference  # noqa: E402
 
 #: paths per 10x10 square in each half of the reference (noise ~ 1.6 / sqrt(2 paths))
 REF_PATHS = {(80, 60): 1_500_000, (320, 240): 140_000}
@@ -56,7 +57,7 @@ def relief_heights(cfg: dict, res: tuple, vol) -> np.ndarray | None:
     """Per pixel, the surface height under it: the mean of the relief over 4x4 rays through the
     pixel to the plane z = 0 (the relief is 20 um deep under a camera 40 mm away).  None on a
     flat surface."""
-    from clppm import camera
+    from clppm.scene import camera
     if vol.iface[0, 3] < 0:
         return None
     cam = camera.from_config(cfg["camera"] | {"resolution": list(res)})
@@ -134,7 +135,7 @@ def run(cfg: dict, mode: str, method: str, res: tuple, ref, dev, log=print, long
 
 
 def mark_row(p: int, imgs: list, secs: list, ref, log=print) -> dict:
-    """A mark's row: :func:`clppm.metrics.accuracy_of_seeds` of its images, its seconds."""
+    """A mark's row: :func:`clppm.analysis.metrics.accuracy_of_seeds` of its images, its seconds."""
     row = {"passes": p, "seconds": float(np.median(secs)), **accuracy_of_seeds(imgs, ref)}
     # where the error lies: Y / Y_pt - 1 of the (mean) image per square, NaN off the skin
     Y = np.mean([x[..., 1] for x, _ in imgs], 0)
@@ -218,7 +219,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default="out/cache")
     ap.add_argument("-o", "--out", default="out/bench")
     a = ap.parse_args(argv)
-    from clppm.device import open_device
+    from clppm.compute.device import open_device
     dev = open_device(None)
     cfg = C.load(a.config)
     cfg = C.override(cfg, "render", "specular", False)

@@ -24,9 +24,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 sys.path.insert(0, ROOT)
 
 from clppm import config as C                      # noqa: E402
-from clppm import pathtracer as pt                 # noqa: E402
-from clppm import volume                           # noqa: E402
-from clppm.device import open_device               # noqa: E402
+from clppm.integrators import pathtracer as pt                 # noqa: E402
+from clppm.scene import volume                           # noqa: E402
+from clppm.compute.device import open_device               # noqa: E402
 
 
 def one(cfg, vol, dev, passes):

@@ -15,8 +15,10 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-from clppm import config as C, volume, pathtracer as pt   # noqa: E402
-from clppm.device import open_device                       # noqa: E402
+from clppm import config as C
+from clppm.scene import volume
+from clppm.integrators import pathtracer as pt   # noqa: E402
+from clppm.compute.device import open_device                       # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -28,9 +28,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 sys.path.insert(0, ROOT)
 
 from clppm import config as C                      # noqa: E402
-from clppm import testing                           # noqa: E402
-from clppm import volume                           # noqa: E402
-from clppm.device import open_device               # noqa: E402
+from clppm.checks import testing                           # noqa: E402
+from clppm.scene import volume                           # noqa: E402
+from clppm.compute.device import open_device               # noqa: E402
 
 
 def dense_search(dev, vol, light, verts, r0, use):

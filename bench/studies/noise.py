@@ -35,10 +35,11 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
 
-from clppm import colorimetry, config as C, image, volume                # noqa: E402
-from clppm.compare import render_seconds, schedule          # noqa: E402
-from clppm.progressive import render                       # noqa: E402
-from clppm.metrics import skin_mask_from_eye  # noqa: E402
+from clppm.scene import colorimetry, volume
+from clppm import config as C, image                # noqa: E402
+from clppm.analysis.compare import render_seconds, schedule          # noqa: E402
+from clppm.run.progressive import render                       # noqa: E402
+from clppm.analysis.metrics import skin_mask_from_eye  # noqa: E402
 
 STAGES = ("eye", "calibration", "photon", "grid", "gather")   # the stage times kept per row
 PAPER = C.PAPER_MODE
@@ -90,8 +91,9 @@ def run_mode(cfg: dict, overrides: dict, seeds=(11, 22), budget: float = 60.0, m
     # skin pixels and exposure from a one-pass render's report (same for both seeds)
     rep0 = snaps[0][common[-1]][2]
     exposure = rep0["exposure"]
-    from clppm import eyepass, volume
-    from clppm.device import open_device
+    from clppm.integrators import eyepass
+    from clppm.scene import volume
+    from clppm.compute.device import open_device
     dev = dev or open_device(None)
     vol = volume.build(c)
     eye = eyepass.run(dev, vol, volume.upload_volume(dev, vol), c, geometry=False)
@@ -159,7 +161,7 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="e")
     ap.add_argument("-o", "--out", default="out/bench")
     a = ap.parse_args(argv)
-    from clppm.device import open_device
+    from clppm.compute.device import open_device
     dev = open_device(None)
     cfg = C.load(a.config)
     cfg = C.override(cfg, "render", "method", a.method)

@@ -45,8 +45,35 @@ def seeds_of(s: str) -> list[int]:
     return out
 
 
+class SpotsKernel:
+    """kernels/scatter.cl's scatter_beam with its benchmark arguments on (``spots = 1``): each
+    launch also records per pixel its largest single pair in ``pix_max`` (float bits)."""
+
+    def __init__(self, inner, pt_pix, pix_max):
+        self.inner, self.pt_pix, self.pix_max = inner, pt_pix, pix_max
+
+    def __call__(self, queue, size, /, **args):
+        return self.inner(queue, size, **{**args, "spots": 1, "pt_pix": self.pt_pix,
+                                          "pix_max": self.pix_max})
+
+
+def measure_spots(sc, ss):
+    """From now on each pass of the scatter layout's state ``ss`` records per pixel its largest
+    single pair: the returned buffer (float bits; clear it before a pass)."""
+    import pyopencl.array as cla
+    from clppm.compute.kernelcall import Kernel
+    q, e = sc.dev.queue, sc.eye
+    prg = sc.dev.build("scatter.cl", sc.estimator.layout.beam.defines())
+    pt_pix = cla.zeros(q, max(e.npoints, 1), np.uint32)
+    Kernel(prg, "point_pixels")(q, sc.npix, ray_start=e.ray_start, npix=sc.npix,
+                                spp=e.camera.spp, pt_pix=pt_pix)
+    spots = cla.zeros(q, max(sc.npix, 1), np.uint32)
+    ss.k["scatter_beam"] = SpotsKernel(ss.k["scatter_beam"], pt_pix, spots)
+    return spots
+
+
 def one_seed(dev, cfg, passes: int) -> dict:
-    from clppm import beam, ppm, photonpass
+    from clppm.integrators import beam, ppm, photonpass
     sc = ppm.Pipeline.build(cfg, dev)
     if sc.estimator.layout.name != "scatter":
         why = beam.supports_scatter(dev, sc.vol.nb, sc.gclass, sc.pp.hero)
@@ -56,13 +83,13 @@ def one_seed(dev, cfg, passes: int) -> dict:
     st = sc.point_state(cal)
     acc = ppm.Accumulators.zeros(sc)
     ss = sc.estimator.layout.scatter_state()
-    ss.measure_spots()
+    spots = measure_spots(sc, ss)
     top = np.zeros(sc.npix, np.float64)
     for p in range(passes):
-        ss.spots.fill(0)
+        spots.fill(0)
         info = sc.run_pass(cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
         scale = 1.0 / max(info["emitted"], 1) if sc.global_radius else 1.0
-        m = ss.spots.get().view(np.float32).astype(np.float64) * scale
+        m = spots.get().view(np.float32).astype(np.float64) * scale
         top = np.maximum(top, m)
     pix, _ = acc.host()
     total = pix.reshape(sc.npix, -1).sum(-1)
@@ -87,7 +114,7 @@ def photon_tail(dev, cfg, passes: int) -> dict:
     """Per stored photon: X_j (see the module docstring), over ``passes`` photon passes."""
     import math
     import pyopencl as cl
-    from clppm import ppm, photonpass
+    from clppm.integrators import ppm, photonpass
     sc = ppm.Pipeline.build(cfg, dev)
     cal = sc.calibrate()
     sc.apply(cal)
@@ -142,7 +169,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     from clppm import config as C
     from clppm.request import resolved_config
-    from clppm.device import open_device
+    from clppm.compute.device import open_device
     dev = open_device(a.device)
     if a.photons_tail:
         cfg = resolved_config(C.load(a.config), resolution=tuple(a.res), photons=a.photons)

@@ -34,10 +34,13 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))   # bench/studies/noise.py
 
-from clppm import config as C, photonpass, ppm, progressive, volume  # noqa: E402
-from clppm.bands import Bands                                        # noqa: E402
+from clppm import config as C
+from clppm.integrators import photonpass, ppm
+from clppm.run import progressive
+from clppm.scene import volume  # noqa: E402
+from clppm.scene.bands import Bands                                        # noqa: E402
 from clppm.request import RenderRequest                               # noqa: E402
-from clppm.reference import skin_mask                                # noqa: E402
+from clppm.analysis.reference import skin_mask                                # noqa: E402
 from noise import two_seed_noise                          # noqa: E402
 
 PAPER = dict(C.PAPER_MODE)
@@ -90,7 +93,7 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="e")
     ap.add_argument("-o", "--out", default="out/bench")
     a = ap.parse_args(argv)
-    from clppm.device import open_device
+    from clppm.compute.device import open_device
     dev = open_device(None)
     cfg = C.load(a.config)
     cfg = C.override(cfg, "camera", "resolution", [80, 60])

@@ -23,7 +23,7 @@ from .options import ERROR_PREFIX, EXIT, METHODS_HELP, InputError, Parser
 
 def _versions() -> str:
     """clppm, pyopencl and the OpenCL platforms found, one a line."""
-    from .. import __version__
+    from ..version import __version__
     lines = [f"clppm {__version__}"]
     try:
         import pyopencl as cl
@@ -103,8 +103,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.cmd is None:
         ap.error("give a COMMAND")
-    from ..checkpoint import CheckpointError
-    from ..device import DeviceError
+    from ..output.checkpoint import CheckpointError
+    from ..compute.device import DeviceError
     verbose = getattr(a, "verbose", False)
     try:
         old = signal.signal(signal.SIGTERM, _on_sigterm)

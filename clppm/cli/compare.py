@@ -1,4 +1,5 @@
-"""``clppm compare``: its options and the run it plans (the experiment itself: clppm.compare)."""
+"""``clppm compare``: its options and the run it plans (the experiment itself:
+clppm.analysis.compare)."""
 from __future__ import annotations
 
 import json
@@ -7,10 +8,12 @@ import time
 from dataclasses import dataclass
 
 from .. import config as C
-from .. import image, volume
-from ..compare import (BLOCK, METHODS, QUICK, STANDARD, colour_shift_experiment, plot, reference_spec,
-                       results_markdown, run_method, run_pt, shift_markdown, summarise, table1_markdown)
-from ..reference import RefSpec, get_reference
+from .. import image
+from ..scene import volume
+from ..analysis.compare import (BLOCK, METHODS, QUICK, STANDARD, colour_shift_experiment, plot,
+                                reference_spec, results_markdown, run_method, run_pt,
+                                shift_markdown, summarise, table1_markdown)
+from ..analysis.reference import RefSpec, get_reference
 from . import options
 
 
@@ -79,7 +82,7 @@ class _Plan:
 
 
 def _plan(a) -> _Plan:
-    from .. import paths
+    from ..output import paths
     d = QUICK if a.quick else STANDARD
     # the subsurface image is compared: the GGX highlight is the same function in every run
     cfg = C.override(C.load(C.find(a.config)), "render", "specular", False)
@@ -97,7 +100,7 @@ def _plan(a) -> _Plan:
 
 
 def cmd_compare(a) -> int:
-    from ..device import open_device
+    from ..compute.device import open_device
     pl = _plan(a)
     os.makedirs(os.path.join(pl.out, "images"), exist_ok=True)
     dev = open_device(a.device)

@@ -1,4 +1,4 @@
-"""``clppm fit``: its options and output (the fit itself: clppm.fit)."""
+"""``clppm fit``: its options and output (the fit itself: clppm.analysis.fit)."""
 from __future__ import annotations
 
 import json
@@ -8,7 +8,8 @@ import numpy as np
 
 from .. import config as C
 from ..config import ConfigError
-from ..fit import DEFAULT_BANDS, DEFAULT_PHOTONS, default_config_path, fit, load_measured, plot_fit, write_toml
+from ..analysis.fit import (DEFAULT_BANDS, DEFAULT_PHOTONS, default_config_path, fit,
+                            load_measured, plot_fit, write_toml)
 from . import options
 
 
@@ -50,7 +51,7 @@ def add_parser(subparsers) -> None:
 
 
 def cmd_fit(a) -> int:
-    from .. import paths
+    from ..output import paths
     cfg_path = C.find(a.config) if a.config else default_config_path()
     cfg = C.load(cfg_path)
     src = os.path.basename(cfg_path)

@@ -1,4 +1,5 @@
-"""``clppm reflectance``: its options and output (the measurement itself: clppm.reflectance)."""
+"""``clppm reflectance``: its options and output (the measurement itself:
+clppm.analysis.reflectance)."""
 from __future__ import annotations
 
 import json
@@ -8,7 +9,7 @@ import numpy as np
 
 from .. import config as C
 from ..config import ConfigError
-from ..reflectance import DEFAULT_ANGLE, method_reflectance, spectral_reflectance
+from ..analysis.reflectance import DEFAULT_ANGLE, method_reflectance, spectral_reflectance
 from . import options
 
 
@@ -63,8 +64,9 @@ def add_parser(subparsers) -> None:
 
 
 def cmd_reflectance(a) -> int:
-    from .. import nist, paths
-    from ..device import open_device
+    from ..analysis import nist
+    from ..output import paths
+    from ..compute.device import open_device
     cfg = C.load(C.find(a.config))
     src = os.path.basename(a.config)
     spec = a.specular == "included"

@@ -62,9 +62,11 @@ def _check_render_paths(a, cfg):
     """-o, its sidecars, the output set, the inputs, the run's values, --resume against the
     checkpoint, and the scene: everything that can be refused before any work.  Returns the
     request (:func:`render_request`)."""
-    from .. import config, paths, scene
-    from ..checkpoint import check_matches
-    from ..driver import check_resume_passes
+    from .. import config
+    from ..output import paths
+    from ..scene import scene
+    from ..output.checkpoint import check_matches
+    from ..integrators.driver import check_resume_passes
     if a.resume and a.force:
         raise ConfigError("command line", "--force", True, "conflicts with --resume (--resume continues "
                           "the checkpoint, --force starts over): give one of them")
@@ -112,16 +114,17 @@ def _import_renderers() -> None:
     except (AttributeError, ValueError, OSError):     # no pthread_sigmask, or not the main thread
         old = None
     try:
-        from .. import pathtracer, progressive  # noqa: F401
+        from ..integrators import pathtracer
+        from ..run import progressive  # noqa: F401
     finally:
         if old is not None:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def cmd_render(a) -> int:
-    from .. import paths
-    from ..device import DeviceError
-    from ..driver import interrupt_signal
+    from ..output import paths
+    from ..compute.device import DeviceError
+    from ..integrators.driver import interrupt_signal
     cfg = _render_config(a)
     req = _check_render_paths(a, cfg)
     first = cfg["render"]["initial_photons"]
@@ -163,12 +166,12 @@ def cmd_render(a) -> int:
 
 
 def _render_ppm(a, req):
-    from .. import progressive
+    from ..run import progressive
     if req.cluster is None:
         return progressive.render(req)
     cl = req.cluster
     try:
-        from .. import executor
+        from ..run import executor
     except ImportError as e:
         raise ConfigError("command line", cl.flag if cl.scheduler else "--devices", cl.scheduler or cl.devices,
                           f"needs dask.distributed ({e}): pip install 'clppm[dask]'") from None
@@ -188,8 +191,8 @@ def _refuse_ppm_flags(a) -> None:
 
 
 def _render_pt(a, req):
-    from ..driver import say
-    from ..pathtracer import render_pt
+    from ..integrators.driver import say
+    from ..integrators.pathtracer import render_pt
     say(not a.quiet, "path tracer: building the volume...")
     return render_pt(req)
 

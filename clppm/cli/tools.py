@@ -6,14 +6,15 @@ import os
 import sys
 
 from ..config import ConfigError
-from .options import METHODS_HELP, add_device, load_config, method_or_spacing, resolution_arg, write_json
+from .options import (METHODS_HELP, add_device, load_config, method_or_spacing, resolution_arg,
+                      write_json)
 
 
 def cmd_devices(a) -> int:
     """Each OpenCL device, its compiler check and its known-answer self-test (cached; ``--check``
     reruns it); ``--json`` the same as a list for scripts (CI picks the devices to test on)."""
-    from .. import selftest
-    from ..device import compiler_problem, describe, device_spec, list_devices, select_device, NO_PLATFORM_HELP
+    from ..compute.device import (NO_PLATFORM_HELP, compiler_problem, describe, device_spec,
+                                  list_devices, select_device, self_test)
     devs = list_devices()
     if not devs:
         print(NO_PLATFORM_HELP, file=sys.stderr)
@@ -29,7 +30,7 @@ def cmd_devices(a) -> int:
             continue
         d = describe(dev)
         why = compiler_problem(dev)
-        test = None if why else selftest.check(dev, spec, rerun=a.check)
+        test = None if why else self_test(dev, spec, rerun=a.check)
         rows.append({"spec": spec, **d, "compiler_problem": why,
                      "self_test": None if test is None else {
                          "passed": test.passed, "seconds": round(test.seconds, 2),
@@ -44,7 +45,7 @@ def cmd_devices(a) -> int:
               flush=True)
         print(f"      not usable: {why}" if why else f"      {test.line()}", flush=True)
         if a.kernels and not why and test.passed:
-            from ..tiny import print_kernel_report
+            from ..checks.tiny import print_kernel_report
             print_kernel_report(spec)
     if a.json:
         print(json.dumps(rows, indent=1))
@@ -52,7 +53,11 @@ def cmd_devices(a) -> int:
 
 
 def cmd_trace(a) -> int:
-    from .. import config, device, paths, photonpass, volume
+    from .. import config
+    from ..compute import device
+    from ..output import paths
+    from ..integrators import photonpass
+    from ..scene import volume
     if (a.config is None) == (a.slab is None):
         raise ConfigError("clppm trace", "CONFIG/--slab", None, "give a config file or --slab, not both")
     slab = None
@@ -95,9 +100,12 @@ def cmd_trace(a) -> int:
 
 
 def cmd_samples(a) -> int:
-    from .. import device, eyepass, paths, volume
+    from ..compute import device
+    from ..integrators import eyepass
+    from ..output import paths
+    from ..scene import volume
     from ..request import resolved_config
-    from ..skin import PAPER_TABLE1
+    from ..scene.skin import PAPER_TABLE1
     method_or_spacing(a)
     cfg = resolved_config(load_config(a.config), method=a.method, spacing=a.spacing,
                           resolution=a.resolution)

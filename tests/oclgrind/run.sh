@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Oclgrind's memory checks and race detector on a tiny scene through every kernel family
-# (clppm/tiny.py).  `oclgrind` preloads its own OpenCL runtime, so the process sees only the
+# (clppm/checks/tiny.py).  `oclgrind` preloads its own OpenCL runtime, so the process sees only the
 # Oclgrind platform and never loads PoCL's or Intel's LLVM (two LLVMs in one process segfault);
 # its device is told a 32-item work-group limit, below the 64/128 clppm asks for, to check that
 # clppm queries limits.  Fails on any report from clppm's kernels (tests/oclgrind/check_log.py).

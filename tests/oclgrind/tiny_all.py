@@ -5,7 +5,8 @@
 import sys
 import time
 
-from clppm import device, tiny
+from clppm.compute import device
+from clppm.checks import tiny
 
 t0 = time.perf_counter()
 dev = device.open_device(None)

@@ -1,0 +1,421 @@
+"""Progressive photon mapping on the skin volume: one :class:`Pipeline` per scene and device.
+
+:meth:`Pipeline.build` puts the scene on a device (volume, eye pass, photon and grid buffers,
+kernels, the density estimate); :meth:`Pipeline.calibrate` finds the initial radius and the
+storage depth from a photon pass of its own that never reaches the image; then passes.  A pass
+(:meth:`Pipeline.run_pass`) is the stages in order: photon pass, grid, density estimate (the
+pipeline's estimator, :mod:`clppm.integrators.estimators`: the sphere gather or the beam gather),
+which accumulates the pass's radiance into an :class:`Accumulators` and, with the per-point radius,
+updates the points' R and N.
+
+Passes are grouped in chunks of ``render.chunk_passes``.  A chunk starts from zeroed
+accumulators, and chunk sums are added to the total in chunk order, here and in a distributed
+run alike (:mod:`clppm.run.executor`): the float64 sums then round the same way wherever the chunks
+ran, so the same seed gives the same bytes.  With ``render.radius = "global"`` (Knaus & Zwicker
+2011) pass p's radii are R0 * s(p), a function of p alone, so chunks are independent given the
+calibration; with the per-point radius (Hachisuka et al. 2008) each pass needs the R and N that
+all earlier passes left, so chunks run in order on one device.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import eyepass, hashgrid, photonpass
+from ..scene import volume
+from .beam import BeamGather
+from .estimators import PassGrid, SphereGather
+from ..scene.bands import Bands
+from ..config import RenderSettings, render_settings
+from ..compute.device import Device, check_alloc, kernel_defines
+from ..compute.kernelcall import Kernel
+from ..request import RenderRequest
+
+#: pass index of the calibration photon pass (its photons set R0 and are then dropped)
+CAL_PASS = 0xFFFFFFFF
+#: the calibration pass stores this fraction of a pass's photons (from CAL_FRACTION_FROM on)
+CAL_FRACTION = 0.25
+CAL_FRACTION_FROM = 4 * 20_000
+CAL_RADIUS_ITERS = 4             # init_radius's refinements of the cell-count estimate
+CAL_SUBSAMPLE = 20_000           # points whose exact counts set the global factor (about)
+CAL_ROUNDS = 3                   # rounds of counting and scaling
+CAL_CLAMP = (0.5, 2.0)           # the global factor of one round, at most
+STAGES = ("photon", "grid", "gather")
+
+
+def radius_scale(p: int, alpha: float, dim: int = 3) -> float:
+    """Knaus & Zwicker's radius of pass p (0-based) relative to pass 0's:
+    r_{i+1}^d = r_i^d (i + alpha)/(i + 1), i = 1, 2, ...  In closed form
+    (r_{p+1}/r_1)^d = Gamma(p + 1 + alpha) / (Gamma(1 + alpha) Gamma(p + 2)), evaluated in
+    float64 from p alone, so a pass's radii do not depend on which passes ran before it."""
+    if p <= 0:
+        return 1.0
+    ln = math.lgamma(p + 1 + alpha) - math.lgamma(1 + alpha) - math.lgamma(p + 2)
+    return math.exp(ln / dim)
+
+
+@dataclass
+class Calibration:
+    """What the calibration pass decides for every later pass."""
+
+    R0: np.ndarray                   # (npts,) float32 initial radius per sample point (um)
+    store_zmin: float | None         # photons below this z are never gathered (not stored)
+    first_search_mean: float | None  # photons the first search finds per point, on average
+
+    @classmethod
+    def from_checkpoint(cls, st: dict) -> "Calibration":
+        """The calibration a checkpoint's state holds (clppm.output.checkpoint.load)."""
+        return cls(R0=st["R0"].astype(np.float32), store_zmin=st["store_zmin"],
+                   first_search_mean=st["stats"].get("first_search_mean"))
+
+
+@dataclass
+class Accumulators:
+    """Pixel x band radiance sums (float64) and photon-point pair counts, on the device."""
+
+    pix: object
+    pairs: object
+
+    @classmethod
+    def zeros(cls, sc: "Pipeline") -> "Accumulators":
+        import pyopencl.array as cla
+        q = sc.dev.queue
+        return cls(cla.zeros(q, sc.npix * sc.vol.nb, np.float64), cla.zeros(q, sc.npix, np.uint64))
+
+    def clear(self) -> None:
+        self.pix.fill(0)
+        self.pairs.fill(0)
+
+    def add(self, other: "Accumulators") -> None:
+        """Accumulate: a closed chunk's sums into the total (in chunk order)."""
+        self.pix += other.pix
+        self.pairs += other.pairs
+
+    def host(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.pix.get(), self.pairs.get()
+
+
+@dataclass
+class PointState:
+    """Per sample point: R (the radius of the next pass; R0 with the global radius) and N."""
+
+    R: object
+    N: object
+    M: object                        # photons found in the last pass (statistics, tests)
+
+
+def device_needs(cfg: dict, vol: volume.Volume, eye_bytes: int, npix: int, photons: int | None = None) -> dict:
+    """Device bytes of a render of ``cfg`` (``photons`` stored per pass; None: the config's)."""
+    capacity = photonpass.capacity_for(int(render_settings(cfg).photons if photons is None else photons))
+    from ..config import bands_per_path
+    rec = 32 + 4 * (bands_per_path(cfg) - 1)                   # photon record bytes
+    return {"stored photons": capacity * rec, "sorted photons": capacity * (rec + 4),
+            "grid cells": 4 * (hashgrid.DEFAULT_MAX_CELLS + 1) * 2,
+            "sample points": eye_bytes,
+            "pixel accumulators": 2 * (npix * vol.nb * 8 + npix * 8), **vol.device_bytes()}
+
+
+@dataclass
+class Pipeline:
+    """One scene on one device: its buffers and kernels, and a method per stage of a pass."""
+
+    req: RenderRequest
+    dev: Device
+    vol: volume.Volume
+    vbuf: volume.VolumeBuffers
+    eye: eyepass.EyeData
+    pp: photonpass.PhotonPass
+    prg: object                      # kernels/gather.cl built for this scene (kernel_defines)
+    init_radius: Kernel
+    count_within: Kernel
+    hgtab: object                    # [NL*NB] float4: Volume.hg_table
+    layer_z: object                  # [NL] float2: each layer's lowest top and highest bottom
+    gbufs: hashgrid.GridBuffers
+    target: int                      # stored photons per pass
+    capacity: int
+    box: tuple                       # x0, y0, x1, y1, deepest sample point z, top z
+    gclass: int = 1                  # the beam gather's band classes (band_classes)
+    estimator: SphereGather | BeamGather | None = None   # the density estimate, made by build
+    timing: dict = field(default_factory=lambda: {k: 0.0 for k in STAGES})
+
+    @property
+    def cfg(self) -> dict:
+        """The scene's config (the request's; the run's values are in :attr:`rs`)."""
+        return self.req.scene
+
+    @property
+    def rs(self) -> RenderSettings:
+        """The [render] table with the run's values (RenderRequest.settings)."""
+        return self.req.settings
+
+    @property
+    def npix(self) -> int:
+        return self.eye.camera.width * self.eye.camera.height
+
+    @property
+    def npts(self) -> int:
+        return self.eye.npoints
+
+    @property
+    def global_radius(self) -> bool:
+        return self.rs.radius == "global"
+
+    @property
+    def beam(self) -> bool:
+        return self.rs.estimator == "beam"
+
+    @property
+    def dim(self) -> int:
+        """Dimension of the density estimate's kernel: the radius update's exponent."""
+        return self.estimator.dim
+
+    # building ---------------------------------------------------------------------------------
+    @classmethod
+    def build(cls, req: RenderRequest | dict, dev: Device) -> "Pipeline":
+        """Volume on the device, eye pass, photon and grid buffers, kernels, the estimator;
+        memory checked first (``req``: a request, or a config rendered with its own values)."""
+        req = req if isinstance(req, RenderRequest) else RenderRequest(req)
+        cfg, rc, cam = req.scene, req.settings, req.camera
+        t0 = time.perf_counter()
+        vol = volume.build(cfg, req.source)
+        vbuf = volume.upload_volume(dev, vol)
+        timing = {"volume": time.perf_counter() - t0}
+        nrays, target = cam.width * cam.height * cam.spp, int(rc.photons)
+        check_alloc(dev, device_needs(cfg, vol, (nrays + 1) * 8 + nrays * 8, cam.width * cam.height, target))
+        t0 = time.perf_counter()
+        eye = cls.eye_pass(req, dev, vol, vbuf)
+        timing["eye"] = time.perf_counter() - t0
+        check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height, target))
+        pp = cls.photon_source(req, dev, vol, vbuf, eye)
+        sc = cls(req=req, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, target=target,
+                 capacity=pp.capacity, gbufs=hashgrid.GridBuffers(dev), **cls._tables(req, dev, vol, eye, pp))
+        sc.estimator = BeamGather(sc) if rc.estimator == "beam" else SphereGather(sc)
+        sc.timing.update(timing)
+        return sc
+
+    @staticmethod
+    def eye_pass(req: RenderRequest, dev: Device, vol, vbuf) -> eyepass.EyeData:
+        """The eye pass: eye rays, sample points and path pieces (once per scene)."""
+        rc = req.settings
+        eye = eyepass.run(dev, vol, vbuf, req.scene, eyepass.scheme(rc.method, rc.spacing_um), rs=rc,
+                          cam=req.camera)
+        dev.queue.finish()
+        return eye
+
+    @staticmethod
+    def photon_source(req: RenderRequest, dev: Device, vol, vbuf, eye) -> photonpass.PhotonPass:
+        """The photon pass's device state: the light, the storage rule, the run's seed."""
+        cfg, rc = req.scene, req.settings
+        pp = photonpass.PhotonPass(dev, vol, cfg, capacity=photonpass.capacity_for(int(rc.photons)), vbuf=vbuf,
+                                   bands=Bands.from_config(cfg), seed=rc.seed)
+        pp.set_storage(rc.storage, eye.cone_deg, rc.store_scale, rc.store_min)
+        pp.set_emission(rc.emission)
+        return pp
+
+    @staticmethod
+    def _tables(req: RenderRequest, dev: Device, vol, eye, pp) -> dict:
+        """The gather program, the calibration's kernels and the tables every estimator reads."""
+        import pyopencl as cl
+        gclass = band_classes(vol.nb, pp.hero)
+        prg = dev.build("gather.cl", kernel_defines(vol, hero=pp.hero, estimator=req.settings.estimator,
+                                                    gclass=gclass))
+        ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
+        zdeep = eye.zmin if eye.npoints else vol.z_top
+        return dict(prg=prg, init_radius=Kernel(prg, "init_radius"), count_within=Kernel(prg, "count_within"),
+                    hgtab=cl.Buffer(dev.ctx, ro, hostbuf=vol.hg_table()),
+                    layer_z=cl.Buffer(dev.ctx, ro, hostbuf=np.ascontiguousarray(lz)), gclass=gclass,
+                    box=(vol.x0, vol.y0, vol.x0 + vol.nx * vol.dx, vol.y0 + vol.ny * vol.dy, zdeep, vol.z_top))
+
+    # the stages of a pass -----------------------------------------------------------------------
+    def photon_pass(self, p: int, tallies: photonpass.Tallies) -> tuple[dict, int]:
+        """Photon pass p: its counts and the photons stored (at most the capacity)."""
+        t0 = time.perf_counter()
+        info = self.pp.run_pass(p, self.target, tallies=tallies)
+        self.dev.queue.finish()
+        self.timing["photon"] += time.perf_counter() - t0
+        return info, min(info["stored"], self.capacity)
+
+    def grid(self, n: int, radii_median: float, rmax: float, flat: bool = False, key_pos=None,
+             hz: float | None = None, nclass: int = 1) -> hashgrid.Grid:
+        """Grid over the photons that sample points can reach (the sample points' box padded by
+        the largest radius), cells of half the median radius; with ``flat`` (the beam's passes)
+        cells ``hz`` deep (not deeper than wide)."""
+        x0, y0, x1, y1, zdeep, ztop = self.box
+        pad = rmax * 1.001 + 1.0
+        # the discs have no depth: pieces not near horizontal reach only their own depth (and the
+        # waves of a conforming layer); photons beyond the box still go to its edge cells
+        zpad = pad if not flat or self.eye.grazing else 1.0 + float(np.max(np.ptp(self.vol.iface[:, 1:3], 1)))
+        lo, hi = (x0 - pad, y0 - pad, zdeep - zpad), (x1 + pad, y1 + pad, ztop + zpad)
+        h = hashgrid.choose_cell_size([radii_median], lo, hi)
+        hz = min(hz, h) if flat and hz is not None else None
+        return hashgrid.build(self.dev, self.pp.pos_w, self.pp.dir_b, n, lo, hi, h, buffers=self.gbufs,
+                              extra=self.pp.extra, extra_stride=self.pp.hero - 1, hz=hz, key_pos=key_pos,
+                              nclass=nclass if flat else 1)
+
+    def pass_grid(self, n: int, cal: "Calibration", st: "PointState", p: int) -> tuple[PassGrid, float]:
+        """The grid stage: the pass's radii (R0 s(p) with the global radius, else the points'
+        own) size the estimator's grid.  Returns the grid and s(p)."""
+        t0 = time.perf_counter()
+        if self.global_radius:
+            scale = radius_scale(p, float(self.rs.alpha), self.dim)
+            med, rmax = float(np.median(cal.R0)) * scale, float(cal.R0.max()) * scale
+        else:
+            scale = 1.0
+            radii = st.R.get()[:self.npts]
+            med, rmax = float(np.median(radii)), float(radii.max())
+        pg = self.estimator.grid(n, med, rmax)
+        self.dev.queue.finish()
+        self.timing["grid"] += time.perf_counter() - t0
+        return pg, scale
+
+    def density_estimate(self, pg: PassGrid, st: "PointState", acc: "Accumulators", scale: float,
+                         pass_scale: float) -> None:
+        """The density estimate stage: the estimator's gather, accumulated into ``acc``."""
+        t0 = time.perf_counter()
+        extra = pg.grid.sextra.data if pg.grid.sextra is not None else self.pp.extra
+        self.estimator.estimate(pg, extra, st, acc, float(self.rs.alpha), scale, pass_scale)
+        self.dev.queue.finish()
+        self.timing["gather"] += time.perf_counter() - t0
+
+    def run_pass(self, cal: "Calibration", st: "PointState", p: int, acc: "Accumulators",
+                 tallies: photonpass.Tallies) -> dict:
+        """Photon pass p, grid, density estimate into ``acc``; returns the pass's counts."""
+        info, n = self.photon_pass(p, tallies)
+        if self.npts == 0:
+            return info
+        pg, scale = self.pass_grid(n, cal, st, p)
+        pass_scale = 1.0 / max(info["emitted"], 1) if self.global_radius else 1.0
+        self.density_estimate(pg, st, acc, scale, pass_scale)
+        info["radius_scale"] = scale
+        return info
+
+    def run_passes(self, cal: "Calibration", st: "PointState", passes, acc: "Accumulators",
+                   tallies: photonpass.Tallies) -> list[dict]:
+        """Passes ``passes`` added into ``acc`` (not cleared): the step of the in-process run (one
+        pass) and of a Dask chunk (its passes) alike.  Returns each pass's counts."""
+        return [self.run_pass(cal, st, p, acc, tallies) for p in passes]
+
+    def run_chunk(self, cal: "Calibration", st: "PointState", chunk: int, passes, acc: "Accumulators",
+                  start: np.ndarray | None = None) -> "ChunkResult":
+        """Passes of one chunk from zeroed accumulators, or from ``start`` (the sums of the chunk's
+        earlier passes that an in-process run's checkpoint holds); the sums come back to the host."""
+        acc.clear()
+        if start is not None:
+            acc.pix.set(np.ascontiguousarray(start, np.float64))
+        tallies = photonpass.Tallies(self.vol.nb, self.vol.nl)
+        before = dict(self.timing)
+        infos = self.run_passes(cal, st, passes, acc, tallies)
+        pix, pairs = acc.host()
+        return ChunkResult(chunk=chunk, passes=list(passes), pix=pix, pairs=pairs, tallies=tallies.counts,
+                           emitted=[i["emitted"] for i in infos],
+                           stored=sum(min(i["stored"], self.capacity) for i in infos),
+                           seconds={k: self.timing[k] - before.get(k, 0.0) for k in STAGES})
+
+    # calibration and point state ----------------------------------------------------------------
+    def point_state(self, cal: "Calibration") -> "PointState":
+        import pyopencl.array as cla
+        q = self.dev.queue
+        n = max(self.npts, 1)
+        R = cla.zeros(q, n, np.float32)
+        if self.npts:
+            R[:self.npts].set(np.ascontiguousarray(cal.R0, np.float32))
+        return PointState(R=R, N=cla.zeros(q, n, np.float32), M=cla.zeros(q, n, np.uint32))
+
+    def apply(self, cal: "Calibration") -> None:
+        """Apply the calibration to the photon pass (storage depth)."""
+        if cal.store_zmin is not None:
+            self.pp.p["store_zmin"] = cal.store_zmin
+
+    def calibrate(self) -> "Calibration":
+        """The paper's initial radius: the radius at which the first search finds K photons.
+
+        A photon pass of its own (index CAL_PASS) is stored; the radius is estimated per point
+        from the grid's cell counts (kernel ``init_radius``), then scaled by one global factor so
+        that exact counts on a subsample average K.  Photons deeper than any point's sphere can
+        reach are not stored afterwards: they could never be gathered.  The calibration pass
+        stores a quarter of a pass's photons and looks for K/4 of them (the same radius, in
+        expectation): with importance storage a pass is hundreds of thousands of paths."""
+        if self.npts == 0:
+            return Calibration(R0=np.zeros(0, np.float32), store_zmin=None, first_search_mean=None)
+        frac = CAL_FRACTION if self.target >= CAL_FRACTION_FROM else 1.0
+        n_cal = int(math.ceil(self.target * frac))
+        K = float(self.rs.initial_photons) * n_cal / self.target
+        info = self.pp.run_pass(CAL_PASS, n_cal, tallies=photonpass.Tallies(self.vol.nb, self.vol.nl))
+        n = min(info["stored"], self.capacity)
+        R, r_guess, rmax = self._first_radius(n, K)
+        mean_m = self._scale_radius(R, n, K)
+        R0 = R.get()
+        # the beam's disc has no depth extent: nothing below the deepest piece is ever gathered,
+        # but for the waves of the interfaces it measures depth along (layer-conforming depth)
+        iface = self.vol.iface
+        waves = float(np.max(iface[:, 2] - iface[:, 1])) if len(iface) else 0.0
+        reach = float(R0.max()) * 1.001 if (not self.beam or self.eye.grazing) else waves
+        return Calibration(R0=R0, store_zmin=self.box[4] - reach - 1.0,
+                           first_search_mean=mean_m / frac if mean_m > 0 else None)
+
+    def _first_radius(self, n: int, K: float):
+        """Per point, the radius holding K of the ``n`` calibration photons, from the grid's
+        cell counts (kernel init_radius), starting from the uniform-density guess."""
+        import pyopencl.array as cla
+        x0, y0, x1, y1, zdeep, ztop = self.box
+        vbox = (x1 - x0) * (y1 - y0) * (max(ztop - zdeep, 1.0) + 1.0)
+        r_guess = (3 * K * vbox / (4 * math.pi * max(n, 1))) ** (1 / 3)
+        r_guess = min(r_guess, 0.5 * max(x1 - x0, y1 - y0))
+        rmax = 4.0 * r_guess
+        R = cla.zeros(self.dev.queue, self.npts, np.float32)
+        grid = self.grid(n, r_guess, rmax)
+        self.init_radius(self.dev.queue, self.npts, gp=grid.params, cell_start=grid.cell_start,
+                         pt_pos=self.eye.pt_pos, pt_R=R, npts=self.npts, K=K, R0=r_guess, Rmax=rmax,
+                         iters=CAL_RADIUS_ITERS)
+        return R, r_guess, rmax
+
+    def _scale_radius(self, R, n: int, K: float) -> float:
+        """Scale R by one global factor (clamped per round) until exact counts on a subsample of
+        the points average K; returns the last mean count."""
+        import pyopencl.array as cla
+        q, npts = self.dev.queue, self.npts
+        stride = max(1, npts // CAL_SUBSAMPLE)
+        ns = (npts + stride - 1) // stride
+        cnt = cla.zeros(q, ns, np.uint32)
+        mean_m = 0.0
+        for r in range(CAL_ROUNDS):
+            radii = R.get()
+            grid = self.grid(n, float(np.median(radii)), float(radii.max()))
+            self.count_within(q, ns, gp=grid.params, cell_start=grid.cell_start, spos_w=grid.spos_w,
+                              sdir_b=grid.sdir_b, pt_pos=self.eye.pt_pos, pt_dir=self.eye.pt_dir, pt_R=R,
+                              layer_z=self.layer_z, npts=npts, stride=stride, out=cnt)
+            mean_m = float(cnt.get().mean())
+            if mean_m <= 0 or r == CAL_ROUNDS - 1:
+                break
+            R *= np.float32(min(max((K / mean_m) ** (1 / 3), CAL_CLAMP[0]), CAL_CLAMP[1]))
+        return mean_m
+
+
+def band_classes(nb: int, hero: int) -> int:
+    """The beam gather's band classes (GCLASS): the largest divisor of nb / hero up to 9, so a
+    work item holds nb / GCLASS bands (9 of 81) and the bands of a photon lie in one class."""
+    step = nb // max(hero, 1)
+    return max(d for d in range(1, 10) if step % d == 0)
+
+
+@dataclass
+class ChunkResult:
+    """A chunk of passes: its sums (host arrays, for a distributed reduction) and counts."""
+
+    chunk: int
+    passes: list
+    pix: np.ndarray
+    pairs: np.ndarray
+    tallies: list                    # [band][category] python ints
+    emitted: list                    # per pass
+    stored: int
+    seconds: dict
+
+
+def chunk_passes(chunk: int, k: int, n_passes: int) -> range:
+    """The passes of chunk ``chunk`` (``k`` passes each, the last one shorter)."""
+    return range(chunk * k, min((chunk + 1) * k, n_passes))

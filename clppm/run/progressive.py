@@ -1,0 +1,219 @@
+"""Progressive photon mapping in this process: the run that :func:`clppm.integrators.driver.drive`
+steps.
+
+The passes themselves are the stages of a :class:`clppm.integrators.ppm.Pipeline`.  State between
+passes stays on the device (sample-point R and N, the pixel x band accumulators of the closed chunks
+and of the open one); the host sees counters, the radii (to size the grid) and, at snapshots, the image.
+A checkpoint is the pass index plus that state: photon pass p draws its random numbers from
+(seed, p) alone, so a resumed render repeats the remaining passes bit for bit.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..output import checkpoint as ckpt
+from ..integrators import driver, photonpass, ppm
+from ..output import film, paths
+from ..scene.scene import warn_scene
+from ..compute.device import open_device
+from ..output.film import RenderResult
+from ..scene.light import Light
+from ..request import RenderRequest
+
+FIX_NOTE = "fixed point 2^32 per unit weight x phase; pixel sums in float64"
+
+
+def render(req: RenderRequest | dict, **kw) -> RenderResult:
+    """Render a request in this process; return the image and the run report.
+
+    ``req``: a :class:`clppm.request.RenderRequest`, or a config and
+    :meth:`RenderRequest.of`'s keywords.  Setup, then calibration (or a checkpoint's state),
+    then :func:`clppm.integrators.driver.drive` steps a :class:`PPMRun` pass by pass.  The budget's
+    ``on_snapshot(passes, wall s, result)`` every ``snapshot_every`` passes (True: stop);
+    ``on_pass(p, point state)`` after every pass.  See ``clppm render --help``."""
+    t_start = time.perf_counter()
+    req = req if isinstance(req, RenderRequest) else RenderRequest.of(req, **kw)
+    rs, cfg, out = req.settings, req.resolved(), req.outputs
+    paths.check_outputs(out=out.out, checkpoint=req.checkpoint)
+    if req.resume:
+        ckpt.load(req.resume)                   # fail fast on a missing or corrupt file
+        driver.check_resume_passes(req.resume, int(rs.passes), req.flag_or_key("passes"))
+        ckpt.check_matches(req.resume, config=req.config_identity())
+    warn_scene(cfg, req.source)
+    dev = req.dev or open_device(req.device)
+    if req.resume:
+        ckpt.check_matches(req.resume, device=dev.name)
+    cam = req.camera
+    driver.say(out.progress, f"building the volume and the eye pass ({cam.width}x{cam.height}, "
+                             f"method {rs.method}) on {dev.name}...")
+    sc = ppm.Pipeline.build(req, dev)
+    driver.say(out.progress, f"{sc.eye.npoints} sample points; " + (
+        f"resuming {os.path.basename(req.resume)}..." if req.resume else "calibrating the first photon search..."))
+    run = PPMRun.start(sc, run_identity(req, sc), req.resume, t_start, req.budget.on_pass)
+    cad = driver.Cadence.of(rs, out.out, req.checkpoint, snapshot_every=req.budget.snapshot_every,
+                            on_snapshot=req.budget.on_snapshot, stop_after=req.budget.stop_after,
+                            progress=out.progress)
+    return driver.drive(run, cad, t_start, resumed=bool(req.resume))
+
+
+@dataclass
+class PPMRun:
+    """A PPM render in progress: the scene, its calibration and point state, the reduced total,
+    the open chunk, and the counts.  A checkpoint is this, minus the device."""
+
+    sc: ppm.Pipeline
+    cal: ppm.Calibration
+    points: ppm.PointState
+    total: ppm.Accumulators           # sum of the closed chunks, added in chunk order
+    chunk: ppm.Accumulators           # the open chunk
+    tallies: photonpass.Tallies
+    meta: dict                        # what a checkpoint must match (run_identity)
+    t_start: float
+    on_pass: object = None
+    p: int = 0                        # passes done
+    emitted: list = field(default_factory=list)
+    stored: int = 0
+    resume_flags: str = "--resume"
+
+    @property
+    def passes_done(self) -> int:
+        return self.p
+
+    @property
+    def n_passes(self) -> int:
+        return int(self.sc.rs.passes)
+
+    @property
+    def device_name(self) -> str:
+        return self.sc.dev.name
+
+    @classmethod
+    def start(cls, sc: ppm.Pipeline, meta: dict, resume: str | None, t_start: float, on_pass=None) -> "PPMRun":
+        """Calibrated afresh, or from a checkpoint's state."""
+        st = ckpt.load(resume, meta) if resume else None
+        if st is None:
+            t0 = time.perf_counter()
+            cal = sc.calibrate()
+            sc.dev.queue.finish()
+            sc.timing["calibration"] = time.perf_counter() - t0
+        else:
+            cal = ppm.Calibration.from_checkpoint(st)
+        run = cls(sc=sc, cal=cal, points=sc.point_state(cal), total=ppm.Accumulators.zeros(sc),
+                  chunk=ppm.Accumulators.zeros(sc), tallies=photonpass.Tallies(sc.vol.nb, sc.vol.nl),
+                  meta=meta, t_start=t_start, on_pass=on_pass)
+        if st is not None:
+            run._restore(st)
+        sc.apply(cal)
+        return run
+
+    def _restore(self, st: dict) -> None:
+        sc = self.sc
+        self.p, self.emitted, self.stored = st["pass_index"], list(st["stats"]["emitted"]), st["stats"]["stored"]
+        if sc.npts:
+            self.points.R[:sc.npts].set(st["pt_R"].astype(np.float32))
+            self.points.N[:sc.npts].set(st["pt_N"].astype(np.float32))
+        self.total.pix.set(st["pix_acc"].reshape(-1))
+        self.chunk.pix.set(st["chunk_acc"].reshape(-1))
+        self.total.pairs.set(st["pix_pairs"])
+        self.tallies.counts = st["tallies"]
+        self.tallies.emitted = st["tallies_emitted"]
+        sc.timing.update({k: v for k, v in st["timing"].items() if k in ppm.STAGES + ("calibration",)})
+
+    def step(self) -> None:
+        """Pass p into the open chunk (:meth:`clppm.integrators.ppm.Pipeline.run_passes`, as a Dask
+        chunk runs it); the chunk closes every ``render.chunk_passes`` passes."""
+        p = self.p
+        info, = self.sc.run_passes(self.cal, self.points, [p], self.chunk, self.tallies)
+        self.emitted.append(info["emitted"])
+        self.stored += min(info["stored"], self.sc.capacity)
+        if self.on_pass is not None:
+            self.on_pass(p, {"pt_R": self.points.R, "pt_N": self.points.N, "pt_M": self.points.M,
+                             "emitted": info["emitted"], "radius_scale": info.get("radius_scale", 1.0)})
+        self.p = p + 1
+        if self.p % int(self.sc.rs.chunk_passes) == 0 or self.p == self.n_passes:
+            self.total.add(self.chunk)
+            self.chunk.clear()
+
+    def host_sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """The image's sums: the closed chunks plus the open one (which stays open)."""
+        pix, pairs = self.total.host()
+        cpix, cpairs = self.chunk.host()
+        return pix + cpix, pairs + cpairs
+
+    def save(self, path: str) -> None:
+        n, nb = self.sc.npts, self.sc.vol.nb
+        stats = {"emitted": self.emitted, "stored": self.stored,
+                 "first_search_mean": self.cal.first_search_mean}
+        state = dict(pass_index=self.p, emitted_total=sum(self.emitted), store_zmin=self.cal.store_zmin,
+                     tallies=self.tallies.counts, tallies_emitted=self.tallies.emitted, stats=stats,
+                     timing=self.sc.timing)
+        pix, pairs = self.total.host()
+        cpix, cpairs = self.chunk.host()
+        ckpt.save(path, self.meta, state, dict(pt_R=self.points.R.get()[:n], pt_N=self.points.N.get()[:n],
+                                               R0=self.cal.R0, pix_acc=pix.reshape(-1, nb),
+                                               chunk_acc=cpix.reshape(-1, nb), pix_pairs=pairs + cpairs))
+
+    def image(self, interrupted: bool) -> RenderResult:
+        """The image and run report of the passes done so far."""
+        sc = self.sc
+        pix, pairs = self.host_sums()
+        return finish(sc, pix, int(pairs.sum()), sum(self.emitted), self.p, sc.timing,
+                      {"stored": self.stored, "first_search_mean": self.cal.first_search_mean},
+                      self.t_start, interrupted)
+
+    def close(self) -> None:
+        pass
+
+
+def run_identity(req: RenderRequest, sc: ppm.Pipeline) -> dict:
+    """What a checkpoint of this PPM run must match to be resumed."""
+    eye = sc.eye
+    return req.checkpoint_identity(sc.dev.name, npoints=int(eye.npoints), npieces=int(eye.npieces),
+                                   nrays=int(eye.nrays))
+
+
+def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, passes_done: int,
+           timing: dict, stats: dict, t_start: float, interrupted: bool) -> RenderResult:
+    """Pixel x band sums -> spectral radiance (the film does the rest) and the run report."""
+    cfg, vol, eye, pp, rc = sc.cfg, sc.vol, sc.eye, sc.pp, sc.rs    # cfg: the scene's config
+    cam = eye.camera
+    bands = pp.bands
+    acc = pix.reshape(cam.height * cam.width, vol.nb)
+    P = cfg["light"]["power_w"] * pp.power_fraction
+    scale = P / max(passes_done if rc.radius == "global" else emitted_total, 1)
+    L = acc * (scale * 1e12 / bands.dl / cam.spp)
+    if rc.specular:
+        L = L + specular_radiance(cfg, eye, bands)
+    res = film.develop(L, cfg, cam, vol.wl, bands.spectrum)
+    per_layer = eye.per_layer(vol.nl)
+    res.report = {
+        **film.common_report(sc.req.resolved(), "ppm", sc.dev, passes_done, interrupted),
+        "method": rc.method, "scheme": eye.scheme.label(),
+        "photons_emitted": emitted_total, "photons_stored": stats["stored"],
+        "stored_per_pass": rc.photons, "store_zmin_um": None if pp.p["store_zmin"][0] < -1e37
+        else float(pp.p["store_zmin"][0]),
+        "sample_points": eye.npoints, "path_pieces": eye.npieces,
+        "eye_rays": eye.nrays, "eye_rays_hit": int(eye.ray_hit.sum()),
+        "sample_points_per_ray_per_layer": {n: float(v) for n, v in zip(vol.names, per_layer)},
+        "first_search_mean_photons": stats["first_search_mean"],
+        "gather_pairs": pairs,
+        "seconds": dict(timing, total=time.perf_counter() - t_start),
+        "seconds_per_pass": {k: timing.get(k, 0.0) / max(passes_done, 1) for k in ppm.STAGES},
+        **res.report,
+        "volume": vol.info, "accumulation": FIX_NOTE,
+        "units": film.UNITS,
+    }
+    return res
+
+
+def specular_radiance(cfg: dict, eye, bands) -> np.ndarray:
+    """(npix, NB) the light seen in the surface's mirror reflection (the eye pass's ray_spec)."""
+    cam = eye.camera
+    spec = eye.ray_spec.reshape(cam.height * cam.width, cam.spp).mean(1)
+    light = Light.from_config(cfg)
+    fac = light.irradiance_factor(light.power_w * bands.spectrum / bands.dl)
+    return spec[:, None] * fac[None, :]
