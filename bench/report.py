@@ -167,9 +167,16 @@ class Runner:
         return r.stdout
 
     def render(self, name: str, config: str, *args: str) -> dict:
-        """``clppm render`` to NAME.exr (replacing an earlier set); its run report."""
+        """``clppm render`` to NAME.exr (replacing an earlier set); its run report.  A render made
+        by the same command before (NAME.cmd.json) is kept, so that redoing a job's figure is cheap."""
         exr = self.path(f"{name}.exr")
-        self(self.ctx.clppm("render", config, "-o", exr, "--force", "-q", *args))
+        cmd = self.ctx.clppm("render", config, "-o", exr, "--force", "-q", *args)
+        done = self.path(f"{name}.cmd.json")
+        if _same_args(done, cmd) and os.path.isfile(self.path(f"{name}.json")):
+            self.commands.append(" ".join(["python", *cmd[1:]]) + "   (done before, kept)")
+        else:
+            self(cmd)
+            write_atomic(done, json.dumps(cmd[2:]))
         with open(self.path(f"{name}.json")) as f:
             return json.load(f)
 
@@ -202,7 +209,7 @@ def side_by_side(pngs: list[str], labels: list[str], path: str, cols: int | None
         ax.imshow(im, interpolation="nearest")
         ax.set_title(lab, fontsize=9)
     fig.tight_layout(pad=0.3)
-    fig.savefig(path)
+    fig.savefig(path, bbox_inches="tight", pad_inches=0.08)
     plt.close(fig)
 
 
@@ -297,19 +304,19 @@ def compare_run(ctx: Context, run: Runner) -> tuple[str, dict]:
     d = os.path.join(OUT, "compare")
     done = os.path.join(d, "compare.json")
     cmd = ctx.clppm("compare", relief_config(), "-o", d, "--cache", CACHE, "-q", *compare_args(ctx))
-    if not (os.path.isfile(done) and _same_args(d, cmd)):
+    if not (os.path.isfile(done) and _same_args(os.path.join(d, "args.json"), cmd)):
         run(cmd)
-        with open(os.path.join(d, "args.json"), "w") as f:
-            json.dump(cmd[2:], f)
+        write_atomic(os.path.join(d, "args.json"), json.dumps(cmd[2:]))
     else:
         run.commands.append(" ".join(["python", *cmd[1:]]) + "   (done before, kept)")
     with open(done) as f:
         return d, json.load(f)
 
 
-def _same_args(d: str, cmd: list[str]) -> bool:
+def _same_args(path: str, cmd: list[str]) -> bool:
+    """Whether ``path`` records the same command (its arguments after the interpreter)."""
     try:
-        with open(os.path.join(d, "args.json")) as f:
+        with open(path) as f:
             return json.load(f) == cmd[2:]
     except (OSError, json.JSONDecodeError):
         return False
