@@ -11,7 +11,7 @@ interrupted run resumes where it stopped (``--fresh`` starts over); pages and im
 whole (temp file, then rename).
 
     python bench/report.py --quick            # smaller sizes, fewer seeds (about 20 minutes on 2 cores)
-    python bench/report.py                    # the docs' sizes (about 40 minutes on 2 cores, references cached)
+    python bench/report.py                    # the docs' sizes (about 50 minutes on 2 cores, references cached)
     python bench/report.py --only readme,speed --device 1:0
     python bench/report.py --list
 """
@@ -296,7 +296,7 @@ def compare_args(ctx: Context) -> list[str]:
     """clppm compare on the relief forearm at 80x60 (quick: 6 s per run, paper mode for e only)."""
     if ctx.quick:
         return ["--budget", "6", "--paper-methods", "e", "--ref-paths", ref_paths(ctx), "--no-shift"]
-    return ["--budget", "60", "--ref-paths", ref_paths(ctx), "--no-shift"]
+    return ["--budget", "40", "--ref-paths", ref_paths(ctx), "--no-shift"]
 
 
 def compare_run(ctx: Context, run: Runner) -> tuple[str, dict]:
