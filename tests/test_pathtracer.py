@@ -449,3 +449,32 @@ def test_forearm_flat_is_forearm_made_flat():
     a["relief"]["kind"], a["papillae"]["amplitude_um"] = "flat", 0.0
     assert a == b
     pt.check_scene(b)
+
+
+# ----------------------------------------------------------------------------- bands without a sample
+def test_unsampled_bands_are_interpolated_in_wavelength():
+    """A band of a pixel with no sample takes the line between the pixel's nearest sampled bands
+    (the nearest beyond the ends); sampled bands keep their means."""
+    wl = np.array([400.0, 410.0, 420.0, 430.0, 440.0])
+    sums = np.array([[2.0, 0.0, 0.0, 8.0, 0.0], [0.0, 0.0, 3.0, 0.0, 0.0], [0.0] * 5])
+    counts = np.array([[1, 0, 0, 2, 0], [0, 0, 1, 0, 0], [0] * 5])
+    L = pt.radiance(sums, counts, np.ones(5), wl)
+    np.testing.assert_allclose(L, [[2.0, 2.667, 3.333, 4.0, 4.0], [3.0] * 5, [0.0] * 5], atol=1e-3)
+
+
+def test_fewer_paths_per_pixel_than_bands_reads_the_same(dev):
+    """Each path samples one band: 5 paths per pixel over 13 bands of a grey scene (the same
+    optics in every band) leave 8 bands of each pixel unsampled.  Their interpolation keeps
+    the image mean that of a run with every band sampled 4 times (writing 0 there read 5/13 of
+    it); allowed: 4 standard errors of the 5-path image."""
+    def grey(spp, passes, seed):
+        cfg = scene(LAYERED, fov=2.0, res=(32, 32), light=(1.5, 1.5, 3.0), lateral="open", size=3.0,
+                    spp=spp, passes=passes, seed=seed)
+        cfg["spectrum"].update(start_nm=500.0, stop_nm=560.0, step_nm=5.0)
+        return pt.render_pt(config.validate(cfg, "test"), dev=dev)
+    few = grey(5, 1, 3)
+    full = grey(13, 4, 4).spectral.mean()
+    assert few.report["bands_interpolated"] > 0.5
+    per_pixel = few.spectral.mean(2)
+    se = per_pixel.std(ddof=1) / math.sqrt(per_pixel.size)
+    assert abs(few.spectral.mean() - full) <= 4 * math.hypot(se, 0.02 * full), (few.spectral.mean(), full, se)

@@ -38,6 +38,7 @@ import numpy as np
 
 from .. import config as C
 from ..scene import volume
+from ..scene.bands import Bands
 from ..version import __version__
 from .metrics import accuracy, block_mask, block_mean, skin_mask_from_eye
 
@@ -126,7 +127,9 @@ def scene_config(cfg: dict, spec: RefSpec) -> dict:
     if spec.integrator == "pt":
         # at the full resolution (a work item per pixel: the device needs many), averaged over
         # the squares afterwards: the same as rendering each square as one jittered pixel
-        per_pixel = int(math.ceil(spec.paths / spec.block ** 2))
+        # at least one path per band in every pixel (a path samples one band): no band of a
+        # reference pixel is interpolated
+        per_pixel = max(int(math.ceil(spec.paths / spec.block ** 2)), Bands.from_config(cfg, hero=1).nb)
         c = resolved_config(cfg, resolution=spec.resolution, seed=spec.seeds[0])
         spp = int(min(256, per_pixel))
         c = C.override(c, "render", "pt_samples_per_pass", spp)
