@@ -51,7 +51,7 @@ import zlib
 
 GENERATED = {"api.md", "cli.md", "config.md", "architecture.md"}
 BLOCK = re.compile(r"<!-- report:([\w-]+) -->\n(.*?)<!-- /report:\1 -->", re.S)
-STAMP = re.compile(r"^\*Made by `python bench/report\.py --only [\w,-]+[^`]*` .+ on .+ with .+, "
+STAMP = re.compile(r"^\*Made by `python bench/report\.py --only [\w,-]+[^`]*`(?: \(quick[^)]*\))? on .+ with .+, "
                    r"clppm [0-9a-f]{7,}(\+dirty)?, \d{4}-\d\d-\d\d\.\*$", re.M)
 IMAGE = re.compile(r"!\[[^\]]*\]\(([^)\s]+)\)|<img [^>]*src=\"([^\"]+)\"")
 CODE = re.compile(r"`[^`]*`")
