@@ -166,19 +166,23 @@ class Runner:
             raise RuntimeError(f"exit {r.returncode}: {shown} (log: {os.path.relpath(self.path('log.txt'), ROOT)})")
         return r.stdout
 
-    def render(self, name: str, config: str, *args: str) -> dict:
-        """``clppm render`` to NAME.exr (replacing an earlier set); its run report.  A render made
-        by the same command before (NAME.cmd.json) is kept, so that redoing a job's figure is cheap."""
+    def render(self, name: str, config: str, *args: str) -> tuple[dict, float]:
+        """``clppm render`` to NAME.exr (replacing an earlier set); its run report and the
+        command's wall-clock seconds.  A render made by the same command before (NAME.cmd.json,
+        which records its seconds too) is kept, so that redoing a job's figure is cheap."""
         exr = self.path(f"{name}.exr")
         cmd = self.ctx.clppm("render", config, "-o", exr, "--force", "-q", *args)
         done = self.path(f"{name}.cmd.json")
-        if _same_args(done, cmd) and os.path.isfile(self.path(f"{name}.json")):
+        wall = _kept_wall(done, cmd) if os.path.isfile(self.path(f"{name}.json")) else None
+        if wall is not None:
             self.commands.append(" ".join(["python", *cmd[1:]]) + "   (done before, kept)")
         else:
+            t0 = time.perf_counter()
             self(cmd)
-            write_atomic(done, json.dumps(cmd[2:]))
+            wall = time.perf_counter() - t0
+            write_atomic(done, json.dumps({"args": cmd[2:], "wall_s": wall}))
         with open(self.path(f"{name}.json")) as f:
-            return json.load(f)
+            return json.load(f), wall
 
 
 def log(msg: str) -> None:
@@ -235,9 +239,7 @@ def readme_args(ctx: Context) -> list[str]:
 
 def job_readme(ctx: Context, run: Runner) -> Result:
     """The README's picture and its command's time: the default render of configs/forearm.toml."""
-    t0 = time.perf_counter()
-    rep = run.render("forearm", os.path.join(ROOT, "configs", "forearm.toml"), *readme_args(ctx))
-    wall = time.perf_counter() - t0
+    rep, wall = run.render("forearm", os.path.join(ROOT, "configs", "forearm.toml"), *readme_args(ctx))
     s = rep["seconds"]
     res = "x".join(str(v) for v in rep["config"]["camera"]["resolution"])
     size = f"{res}, {rep['passes_done']} passes" + (" (the quick report's size)" if ctx.quick else "")
@@ -311,6 +313,18 @@ def compare_run(ctx: Context, run: Runner) -> tuple[str, dict]:
         run.commands.append(" ".join(["python", *cmd[1:]]) + "   (done before, kept)")
     with open(done) as f:
         return d, json.load(f)
+
+
+def _kept_wall(path: str, cmd: list[str]) -> float | None:
+    """The wall-clock seconds of the render ``path`` records, if it records the same command."""
+    try:
+        with open(path) as f:
+            doc = json.load(f)
+    except (OSError, json.JSONDecodeError):
+        return None
+    if not isinstance(doc, dict) or doc.get("args") != cmd[2:] or not isinstance(doc.get("wall_s"), (int, float)):
+        return None
+    return float(doc["wall_s"])
 
 
 def _same_args(path: str, cmd: list[str]) -> bool:
