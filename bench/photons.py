@@ -417,12 +417,18 @@ def events_worker(spec: dict) -> dict:
 def run_worker(tree: Path, spec: dict) -> dict:
     import subprocess
     py = tree / ".venv" / "bin" / "python"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}    # each tree's python its own clppm
     r = subprocess.run([str(py), str(Path(__file__).resolve()), "--events-worker", json.dumps(spec)],
-                       capture_output=True, text=True, cwd=str(tree))
+                       capture_output=True, text=True, cwd=str(tree), env=env)
     lines = [l for l in r.stdout.splitlines() if l.startswith("{")]
     if r.returncode != 0 or not lines:
         raise RuntimeError(f"worker in {tree} failed: {r.stderr.strip().splitlines()[-3:]}")
-    return json.loads(lines[-1])
+    out = json.loads(lines[-1])
+    kdir = Path(out.pop("kernel_dir")).resolve()
+    if not kdir.is_relative_to(tree.resolve()):       # an editable install can map another tree's kernels
+        raise RuntimeError(f"worker in {tree} built the kernels of {kdir}: give that tree a python "
+                           f"that imports its own clppm and kernels")
+    return out
 
 
 def events_ab(base: Path | None, impls: list, rounds: int, photons: dict, out_path: Path) -> int:
@@ -482,8 +488,8 @@ def render_ab(base: Path | None, impls: list, rounds: int, extra: list, out_path
         for r in range(rounds):
             for k, tree in trees:
                 o = Path(tempfile.mkdtemp(prefix="clppm_ab_")) / "forearm.exr"
-                env = {**os.environ, "PYOPENCL_CTX": impl}
-                subprocess.run([str(tree / ".venv" / "bin" / "clppm"), "render", str(ROOT / "configs" / "forearm.toml"),
+                env = {**{k: v for k, v in os.environ.items() if k != "PYTHONPATH"}, "PYOPENCL_CTX": impl}
+                subprocess.run([str(tree / ".venv" / "bin" / "python"), "-m", "clppm.cli", "render", str(ROOT / "configs" / "forearm.toml"),
                                 "-o", str(o), "-q", *extra], check=True, env=env, cwd=str(tree))
                 rep = json.loads(o.with_suffix(".json").read_text())
                 sec = rep["seconds"]
@@ -521,7 +527,8 @@ def main(argv=None) -> int:
     if a.mcx_child:
         return mcx_child(*a.mcx_child)
     if a.events_worker:
-        print(json.dumps(events_worker(json.loads(a.events_worker))))
+        from clppm.compute.device import kernel_dir
+        print(json.dumps({**events_worker(json.loads(a.events_worker)), "kernel_dir": kernel_dir()}))
         return 0
     base = Path(a.base).resolve() if a.base else None
     impls = [x for x in a.impl.split(",") if x]

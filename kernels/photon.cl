@@ -37,10 +37,10 @@ enum { K_ENTERED = 0, K_MISSED, K_STEPS, K_COLLISIONS, K_STORED, K_IFACE, K_IFAC
        K_ZONE, K_WALL, K_DOMAIN, K_REENTER, K_TILE, K_NCOUNT };
 #ifdef PHOTON_COUNTERS
 typedef struct { uint k[K_NCOUNT]; } Counters;
-#define COUNT(c, k) ((c)->k[k]++)
+#define COUNT(c, i) ((c)->k[i]++)
 #else
 typedef struct { uint none; } Counters;
-#define COUNT(c, k)
+#define COUNT(c, i)
 #endif
 
 inline int sample_band(__global const float* cdf, float u) {

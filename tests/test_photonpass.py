@@ -51,10 +51,10 @@ def photons_in(row, nl):
     return w // W0 if w % W0 == 0 else None
 
 
-def slab_pass(dev, spec, seed=SEED, capacity=0):
+def slab_pass(dev, spec, seed=SEED, capacity=0, counters=False):
     cfg = config.slab_config(spec)
     vol = volume.build(cfg, "--slab")
-    return photonpass.PhotonPass(dev, vol, cfg, capacity=capacity, seed=seed)
+    return photonpass.PhotonPass(dev, vol, cfg, capacity=capacity, seed=seed, counters=counters)
 
 
 def traced_report(pp, n, batches=BATCHES):
@@ -270,6 +270,28 @@ def test_stored_photons(dev):
     r3 = pp2.run_pass(1, target)
     rec3 = _sorted_records(*_stored(pp2, r3["stored"]))
     assert rec3.shape != (r["stored"], 8) or not np.array_equal(rec3, _sorted_records(pos_w, dir_b))
+
+
+def test_event_counters_count_the_same_photons(dev):
+    """The counting build (PHOTON_COUNTERS, bench/photons.py --events) traces the same photons as
+    the plain one: the same integer tallies and stored events; and its counts agree with them:
+    entered + missed = emitted, stored = the photon map's count, and on the flat slab every loop
+    step is a collision or a boundary event but for at most one ending step per photon."""
+    spec = CASES["slab_n1.4"][0]
+    target, cap = 20_000, 40_000
+    plain = slab_pass(dev, spec, seed=5, capacity=cap)
+    counted = slab_pass(dev, spec, seed=5, capacity=cap, counters=True)
+    r0, r1 = plain.run_pass(0, target), counted.run_pass(0, target)
+    assert r0 == r1
+    assert plain.tallies.counts == counted.tallies.counts
+    np.testing.assert_array_equal(_sorted_records(*_stored(counted, r1["stored"])),
+                                  _sorted_records(*_stored(plain, r0["stored"])))
+    c = counted.counts()
+    assert c["entered"] + c["missed"] == r1["emitted"]
+    assert c["stored"] == r1["stored"]
+    boundary = sum(c[k] for k in ("interface", "zone", "wall", "domain", "tile"))
+    assert c["collisions"] > 0 and c["interface"] >= c["entered"]
+    assert 0 <= c["steps"] - c["collisions"] - boundary <= c["entered"], c
 
 
 # ----------------------------------------------------------------------------- the skin model
