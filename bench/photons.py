@@ -414,12 +414,17 @@ def events_worker(spec: dict) -> dict:
     return {"times": times, "emitted": emitted, "missed": missed}
 
 
+def tree_env(**extra: str) -> dict:
+    """The environment of a run in another tree: without this process's PYTHONPATH, so that each
+    tree's python imports its own clppm (and kernels)."""
+    return {**{k: v for k, v in os.environ.items() if k != "PYTHONPATH"}, **extra}
+
+
 def run_worker(tree: Path, spec: dict) -> dict:
     import subprocess
     py = tree / ".venv" / "bin" / "python"
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}    # each tree's python its own clppm
     r = subprocess.run([str(py), str(Path(__file__).resolve()), "--events-worker", json.dumps(spec)],
-                       capture_output=True, text=True, cwd=str(tree), env=env)
+                       capture_output=True, text=True, cwd=str(tree), env=tree_env())
     lines = [l for l in r.stdout.splitlines() if l.startswith("{")]
     if r.returncode != 0 or not lines:
         raise RuntimeError(f"worker in {tree} failed: {r.stderr.strip().splitlines()[-3:]}")
@@ -488,7 +493,7 @@ def render_ab(base: Path | None, impls: list, rounds: int, extra: list, out_path
         for r in range(rounds):
             for k, tree in trees:
                 o = Path(tempfile.mkdtemp(prefix="clppm_ab_")) / "forearm.exr"
-                env = {**{k: v for k, v in os.environ.items() if k != "PYTHONPATH"}, "PYOPENCL_CTX": impl}
+                env = tree_env(PYOPENCL_CTX=impl)
                 subprocess.run([str(tree / ".venv" / "bin" / "python"), "-m", "clppm.cli", "render", str(ROOT / "configs" / "forearm.toml"),
                                 "-o", str(o), "-q", *extra], check=True, env=env, cwd=str(tree))
                 rep = json.loads(o.with_suffix(".json").read_text())
