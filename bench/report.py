@@ -584,6 +584,28 @@ def job_samples(ctx: Context, run: Runner) -> Result:
 SCHEME = {"a": "4 µm", "b": "7 µm", "c": "14 µm", "d": "max", "e": "mean", "f": "min"}
 
 
+def job_surface(ctx: Context, run: Runner) -> Result:
+    """The smooth walk against the voxel staircase: the tilted plane, memory, photon-pass cost."""
+    photons = "30000" if ctx.quick else "100000"
+    run(ctx.script("bench/surface.py", "--photons", photons, "--json", run.path("surface.json")))
+    with open(run.path("surface.json")) as f:
+        doc = json.load(f)
+    rows = [[f"{r['slope']:g}", f"{r['incidence_deg']:g}°", f"{r['slab'][0]:.4f}",
+             f"{r['smooth'][0]:.4f} ({r['smooth'][2]:+.1f} SE)", f"{r['voxels'][0]:.4f} ({r['voxels'][2]:+.1f} SE)"]
+            for r in doc["tilted"]]
+    tilted = md_table(["slope", "incidence", "flat slab Rd", "smooth walk Rd", "voxel walk Rd"], rows)
+    f = doc["forearm"]
+    steps = ("steps", "collisions", "interface", "wall", "zone", "tile")
+    cost = md_table(["forearm", "voxel walk", "smooth walk"],
+                    [["photon pass, µs per emitted photon (median)", f"{f['voxels']['median_us']:.2f}",
+                      f"{f['smooth']['median_us']:.2f} ({f['smooth']['median_us'] / f['voxels']['median_us']:.2f}×)"],
+                     ["device memory of the volume", f"{f['voxels']['device_bytes'] / 1e6:.0f} MB",
+                      f"{f['smooth']['device_bytes'] / 1e6:.0f} MB"]]
+                    + [[f"loop steps per photon: {k}", f"{f['voxels']['per_photon'][k]:.1f}",
+                        f"{f['smooth']['per_photon'][k]:.1f}"] for k in steps])
+    return Result(blocks={"surface-tilted": tilted, "surface-cost": cost})
+
+
 JOBS = [
     Job("readme", "the README's picture and its first command's time; the render's time split", job_readme),
     Job("scenes", "forearm and cheek side by side", job_scenes),
@@ -596,6 +618,7 @@ JOBS = [
     Job("validation", "the photon pass against published slab values", job_validation),
     Job("noise", "one image's noise against time, default and paper mode", job_noise),
     Job("devices", "every device's throughput, chart and table", job_devices),
+    Job("surface", "the smooth walk against the voxel staircase: tilted plane, memory, photon-pass cost", job_surface),
 ]
 
 

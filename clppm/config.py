@@ -68,7 +68,10 @@ SCHEMA: dict[str, dict[str, F]] = {
         "lateral_voxel_um": F("float", 5.0, lo=0.05, hi=10000, doc="lateral voxel (column) size"),
         "lateral": F("choice", "open", choices=("open", "periodic", "infinite"),
                      doc="the model's sides: open (light leaves), periodic (wraps), infinite (flat layers only)"),
-        "quantize": F("bool", True, doc="snap interfaces to the voxel grid in z"),
+        "quantize": F("bool", True, doc="snap interfaces to the voxel grid in z (surface = \"voxels\")"),
+        "surface": F("choice", "voxels", choices=("voxels", "smooth"),
+                     doc="what light crosses: voxels (the paper's staircase of columns, refracting at the "
+                         "smooth normals) or smooth (the Catmull-Rom height fields themselves, exactly)"),
         "n_outside": F("float", 1.0, lo=1.0, hi=3.0, doc="refractive index above the skin"),
         "n_below": F("float", 1.0, lo=1.0, hi=3.0, doc="index below a finite bottom layer"),
     },

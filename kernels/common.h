@@ -3,6 +3,8 @@
  * Compile-time switches (-D):
  *   NB    number of wavelength bands          NL   number of layers
  *   FLAT  every interface is a plane (no per-column heights, no lateral stepping)
+ *   SMOOTH_SURFACE, NVAR  the walks cross the smooth surfaces themselves (smoothwalk.h), not the
+ *         voxel staircase; NVAR varying interfaces
  *
  * Units: micrometres, coefficients in um^-1, z axis up, the mean skin surface at z = 0.
  *
@@ -43,6 +45,9 @@
  * photon pass +35 % photons/s under PoCL; forcing more helpers inline measured no further gain. */
 #define HOT __attribute__((always_inline)) inline
 #define BIG 1e30f
+/* columns a side of a tile: the photon pass's tile mode and the smooth surfaces' walk
+ * (clppm.integrators.photonpass.TILE, clppm.scene.volume.TILE) */
+#define TILE 4
 
 /* Mirrors clppm/compute/structs.py PARAMS_DTYPE (checked by tests/test_structs.py): 4-byte fields
  * only, in this order. */
@@ -383,60 +388,6 @@ inline void domain_sides(float3 p, float3 d, __constant const Params* P, float* 
     }
 }
 
-/* Distance along t->dir to the next boundary of the constant region around t->pos and its kind. */
-inline float next_boundary(const Track* t, __constant const Params* P,
-                           __constant const float4* iface, __global const float* heights,
-                           int* ev) {
-    float best = BIG;
-    int e = EV_NONE;
-    const float3 d = t->dir;
-    const float z = t->pos.z;
-    const int L = t->L;
-#ifdef FLAT
-    if (d.z > 0.0f) { best = (IF_Z(L) - z) / d.z; e = EV_TOP; }
-    else if (d.z < 0.0f && L + 1 <= NL && IF_Z(L + 1) > -BIG) { best = (IF_Z(L + 1) - z) / d.z; e = EV_BOTTOM; }
-    if (P->lateral != 0) domain_sides(t->pos, d, P, &best, &e);
-#else
-    const float ztop_core = IF_ZMIN(L);           /* lowest point of the interface above */
-    const float zbot_core = IF_ZMAX(L + 1);       /* highest point of the interface below */
-    /* in the core unless on a core plane and moving out through it (then: column mode) */
-    const int in_core = (d.z > 0.0f ? z < ztop_core : z <= ztop_core) &&
-                        (d.z < 0.0f ? z > zbot_core : z >= zbot_core);
-    if (in_core) {
-        /* core mode: only two planes and the domain sides */
-        if (d.z > 0.0f) {
-            best = (ztop_core - z) / d.z;
-            e = (IF_VAR(L) < 0) ? EV_TOP : EV_ZONE;
-        } else if (d.z < 0.0f && zbot_core > -BIG) {
-            best = (zbot_core - z) / d.z;
-            e = (IF_VAR(L + 1) < 0) ? EV_BOTTOM : EV_ZONE;
-        }
-        domain_sides(t->pos, d, P, &best, &e);
-    } else {
-        /* column mode: this column's two interfaces and its four walls */
-        const int col = col_index(P, t->ix, t->iy);
-        if (d.z > 0.0f) {
-            best = (iface_z(iface, heights, P, L, col) - z) / d.z; e = EV_TOP;
-        } else if (d.z < 0.0f) {
-            float zb = iface_z(iface, heights, P, L + 1, col);
-            if (zb > -BIG) { best = (zb - z) / d.z; e = EV_BOTTOM; }
-        }
-        if (d.x != 0.0f) {
-            float w = P->x0 + P->dx * (float)(t->ix + (d.x > 0.0f ? 1 : 0));
-            float s = (w - t->pos.x) / d.x;
-            if (s < best) { best = s; e = EV_WALL_X; }
-        }
-        if (d.y != 0.0f) {
-            float w = P->y0 + P->dy * (float)(t->iy + (d.y > 0.0f ? 1 : 0));
-            float s = (w - t->pos.y) / d.y;
-            if (s < best) { best = s; e = EV_WALL_Y; }
-        }
-    }
-#endif
-    *ev = e;
-    return best > 0.0f ? best : 0.0f;
-}
-
 /* Column of a position (clamped into the grid). */
 inline void locate_column(Track* t, __constant const Params* P) {
 #ifndef FLAT
@@ -471,6 +422,69 @@ inline int cross_wall(Track* t, __constant const Params* P, int axis, int domain
         t->iy = niy;
     }
     return 0;
+}
+
+#if defined(SMOOTH_SURFACE) && !defined(FLAT)
+#include "smoothwalk.h"
+#endif
+
+/* Distance along t->dir to the next boundary of the constant region around t->pos and its kind.
+ * smax: the caller's free path (a collision comes first beyond it); the smooth surfaces' walk
+ * (smoothwalk.h) looks for crossings no further. */
+inline float next_boundary(const Track* t, __constant const Params* P,
+                           __constant const float4* iface, __global const float* heights,
+                           float smax, int* ev) {
+    float best = BIG;
+    int e = EV_NONE;
+    const float3 d = t->dir;
+    const float z = t->pos.z;
+    const int L = t->L;
+#ifdef FLAT
+    if (d.z > 0.0f) { best = (IF_Z(L) - z) / d.z; e = EV_TOP; }
+    else if (d.z < 0.0f && L + 1 <= NL && IF_Z(L + 1) > -BIG) { best = (IF_Z(L + 1) - z) / d.z; e = EV_BOTTOM; }
+    if (P->lateral != 0) domain_sides(t->pos, d, P, &best, &e);
+#else
+    const float ztop_core = IF_ZMIN(L);           /* lowest point of the interface above */
+    const float zbot_core = IF_ZMAX(L + 1);       /* highest point of the interface below */
+    /* in the core unless on a core plane and moving out through it (then: column mode) */
+    const int in_core = (d.z > 0.0f ? z < ztop_core : z <= ztop_core) &&
+                        (d.z < 0.0f ? z > zbot_core : z >= zbot_core);
+    if (in_core) {
+        /* core mode: only two planes and the domain sides */
+        if (d.z > 0.0f) {
+            best = (ztop_core - z) / d.z;
+            e = (IF_VAR(L) < 0) ? EV_TOP : EV_ZONE;
+        } else if (d.z < 0.0f && zbot_core > -BIG) {
+            best = (zbot_core - z) / d.z;
+            e = (IF_VAR(L + 1) < 0) ? EV_BOTTOM : EV_ZONE;
+        }
+        domain_sides(t->pos, d, P, &best, &e);
+    } else {
+#ifdef SMOOTH_SURFACE
+        return smooth_boundary(t, P, iface, heights, smax, ev);
+#endif
+        /* column mode: this column's two interfaces and its four walls */
+        const int col = col_index(P, t->ix, t->iy);
+        if (d.z > 0.0f) {
+            best = (iface_z(iface, heights, P, L, col) - z) / d.z; e = EV_TOP;
+        } else if (d.z < 0.0f) {
+            float zb = iface_z(iface, heights, P, L + 1, col);
+            if (zb > -BIG) { best = (zb - z) / d.z; e = EV_BOTTOM; }
+        }
+        if (d.x != 0.0f) {
+            float w = P->x0 + P->dx * (float)(t->ix + (d.x > 0.0f ? 1 : 0));
+            float s = (w - t->pos.x) / d.x;
+            if (s < best) { best = s; e = EV_WALL_X; }
+        }
+        if (d.y != 0.0f) {
+            float w = P->y0 + P->dy * (float)(t->iy + (d.y > 0.0f ? 1 : 0));
+            float s = (w - t->pos.y) / d.y;
+            if (s < best) { best = s; e = EV_WALL_Y; }
+        }
+    }
+#endif
+    *ev = e;
+    return best > 0.0f ? best : 0.0f;
 }
 
 /* First hit of a ray coming from above with the skin surface (the top of layer 0).
@@ -519,6 +533,9 @@ inline int hit_surface(Track* t, __constant const Params* P, __constant const fl
     return 1;
 #else
     if (IF_VAR(0) < 0) { t->L = 0; return 1; }
+#ifdef SMOOTH_SURFACE
+    return smooth_hit(t, P, iface, heights, geo_n);
+#endif
     /* 2-D walk over columns until the ray is below the column top */
     for (int guard = 0; guard < 4 * (P->nx + P->ny) + 8; ++guard) {
         if (d.z >= 0.0f && t->pos.z > P->z_top) return 0;     /* above all relief, going up */

@@ -304,12 +304,21 @@ HOT int layer_beyond(Track* t, int ev, int L, int* out, __constant const Params*
     int L2 = L;
     if (ev == EV_TOP || ev == EV_BOTTOM) {
         L2 = ev == EV_TOP ? L - 1 : L + 1;
+#ifndef SMOOTH_SURFACE
         t->pos.z = iface_z(iface, heights, P, ev == EV_TOP ? L : L + 1, col_index(P, t->ix, t->iy));
+#endif
     } else if (ev == EV_ZONE) {
         locate_column(t, P);
     } else {
         int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
         int donly = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
+#ifdef SMOOTH_SURFACE
+        /* a tile's wall or a side: the layers do not change across it */
+        if (!donly) { cross_cell(t, P, axis); return L; }
+        if (cross_wall(t, P, axis, 1)) { *out = 1; return L; }
+        locate_column(t, P);
+        return L;
+#endif
         if (cross_wall(t, P, axis, donly)) { *out = 1; return L; }
 #ifndef FLAT
         if (donly) locate_column(t, P);
@@ -339,8 +348,12 @@ HOT void eye_face(Face* out, const Track* t, int ev, int L, int L2, __constant c
                                                     : (float3)(0.0f, t->dir.y > 0.0f ? 1.0f : -1.0f, 0.0f));
     fc.n1 = layer_n[L];
     fc.n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
+#ifdef SMOOTH_SURFACE
+    /* the crossing is on the smooth surface itself: its normal is the face's */
+    fc.gn = face_normal(P, iface, smooth, L2 < L ? L : L + 1, L, L2, t->pos.x, t->pos.y, (float4)(fc.gn, 0.0f)).xyz;
+#endif
     float3 sn = fc.gn;
-#ifndef FLAT
+#if !defined(FLAT) && !defined(SMOOTH_SURFACE)
     if (fc.n1 != fc.n2)
         sn = face_normal(P, iface, smooth, L2 < L ? L : L + 1, L, L2, t->pos.x, t->pos.y, (float4)(fc.gn, 0.0f)).xyz;
 #endif
@@ -433,7 +446,7 @@ __kernel void eye_pass(VOLUME_ARGS,
     while (++guard < 1000000) {
         int ev;
         const int L = t.L;
-        float db = next_boundary(&t, P, iface, heights, &ev);
+        float db = next_boundary(&t, P, iface, heights, BIG, &ev);
         if (ev == EV_NONE) db = E->max_len;
         /* where the most transparent band falls below the threshold inside this region */
         float s_cut = threshold_cut(od, L, E, optics);

@@ -164,7 +164,6 @@ inline float store_probability(__constant const Params* P, float ce, int L, int 
  * column modes of common.h next_boundary).  Under the relief most of the skin's surface is a
  * plateau, so the depth band where layers vary somewhere is mostly flat over a tile: the column
  * walls crossed there were a third of all the photon's steps (bench/photons.py --events). */
-#define TILE 4
 enum { EV_TILE_X = 8, EV_TILE_Y, EV_TILE_Z };
 
 /* lowest and highest point of interface k over tile (tx, ty) */
@@ -179,8 +178,11 @@ HOT float2 tile_bound(__constant const Params* P, __constant const float4* iface
 /* Distance to the next boundary of the photon's constant region, by next_boundary (common.h)
  * in the core and where tile mode does not hold; in tile mode the tile's planes (*plane: the
  * one ahead), its inner walls and the domain's sides. */
-HOT float photon_boundary(const Track* t, VOLUME_ARGS, __global const float2* tile_z, int* ev,
+HOT float photon_boundary(const Track* t, VOLUME_ARGS, __global const float2* tile_z, float smax, int* ev,
                           float* plane) {
+#ifdef SMOOTH_SURFACE
+    return next_boundary(t, P, iface, heights, smax, ev);     /* tiles are the smooth walk's cells */
+#endif
     const float3 d = t->dir;
     const float z = t->pos.z;
     const int L = t->L;
@@ -190,7 +192,7 @@ HOT float photon_boundary(const Track* t, VOLUME_ARGS, __global const float2* ti
     const float top = in_core ? 0.0f : tile_bound(P, iface, tile_z, L, tx, ty).x;
     const float bot = in_core ? 0.0f : tile_bound(P, iface, tile_z, L + 1, tx, ty).y;
     const int in_tile = !in_core && (d.z > 0.0f ? z < top : z <= top) && (d.z < 0.0f ? z > bot : z >= bot);
-    if (!in_tile) return next_boundary(t, P, iface, heights, ev);
+    if (!in_tile) return next_boundary(t, P, iface, heights, smax, ev);
     float best = BIG;
     int e = EV_NONE;
     if (d.z > 0.0f) { best = (top - z) / d.z; e = EV_TILE_Z; *plane = top; }
@@ -481,16 +483,23 @@ HOT int cross_interface(int up, Track* t, long* W, Fates* f, VOLUME_ARGS, __glob
                         Rng* rng, Counters* cnt) {
     COUNT(cnt, K_IFACE);
     const int L2 = up ? t->L - 1 : t->L + 1;
-    t->pos.z = iface_z(iface, heights, P, up ? t->L : t->L + 1, col_index(P, t->ix, t->iy));
+    const int k = up ? t->L : t->L + 1;
     const float n1 = layer_n[t->L];
     const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
-    const float4 gn2 = (float4)(0.0f, 0.0f, up ? 1.0f : -1.0f, 0.0f);
+    float4 gn2 = (float4)(0.0f, 0.0f, up ? 1.0f : -1.0f, 0.0f);
 #ifndef FLAT
-    if (n1 != n2 && IF_VAR(up ? t->L : t->L + 1) >= 0) COUNT(cnt, K_IFACE_SMOOTH);
+    if (n1 != n2 && IF_VAR(k) >= 0) COUNT(cnt, K_IFACE_SMOOTH);
 #endif
     float4 d = (float4)(t->dir, 0.0f);
-    const int through = cross_face(&d, gn2, up ? t->L : t->L + 1, t->L, L2, t->pos.x, t->pos.y, n1, n2,
+#ifdef SMOOTH_SURFACE
+    /* at the crossing on the smooth surface itself: its normal is the face's */
+    gn2 = face_normal(P, iface, smooth, k, t->L, L2, t->pos.x, t->pos.y, gn2);
+    const int through = fresnel_cross(&d, gn2, gn2, n1, n2, rng_u01(rng));
+#else
+    t->pos.z = iface_z(iface, heights, P, k, col_index(P, t->ix, t->iy));
+    const int through = cross_face(&d, gn2, k, t->L, L2, t->pos.x, t->pos.y, n1, n2,
                                    P, iface, smooth, rng_u01(rng));
+#endif
     t->dir = d.xyz;
     return through && enter_layer(t, L2, W, f, VOLUME_PASS, smooth, rng, cnt);
 }
@@ -504,6 +513,13 @@ HOT void cross_lateral(int ev, Track* t, long* W, Fates* f, VOLUME_ARGS, __globa
     const int domain_only = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
 #ifdef PHOTON_COUNTERS
     if (domain_only) COUNT(cnt, K_DOMAIN); else COUNT(cnt, K_WALL);
+#endif
+#ifdef SMOOTH_SURFACE
+    /* a tile's wall or a side: the layers do not change across it */
+    if (!domain_only) { cross_cell(t, P, axis); return; }
+    if (cross_wall(t, P, axis, 1)) { f->lost += *W; *W = 0; return; }
+    locate_column(t, P);
+    return;
 #endif
 #ifndef FLAT
     const int oix = t->ix, oiy = t->iy;
@@ -594,13 +610,13 @@ __kernel void photon_pass(VOLUME_ARGS,
         const float4 op = optics[t.L * NB + b];     /* mua/mut, g, 1/(2g), mut in um^-1 */
         const float mut = op.w;
         int ev;
+        const float s = mut > 0.0f ? tau / mut : BIG;
 #ifdef FLAT
-        const float db = next_boundary(&t, P, iface, heights, &ev);
+        const float db = next_boundary(&t, P, iface, heights, s, &ev);
 #else
         float plane = 0.0f;
-        const float db = photon_boundary(&t, VOLUME_PASS, tile_z, &ev, &plane);
+        const float db = photon_boundary(&t, VOLUME_PASS, tile_z, s, &ev, &plane);
 #endif
-        const float s = mut > 0.0f ? tau / mut : BIG;
         if (s < db) {
             collide(P, op, s, &t, &sw, &W, b, &f, &tau, &rng, &srng, store_imp, band_spi, optics, logmu,
                     map, &cnt);

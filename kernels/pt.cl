@@ -50,13 +50,18 @@
 #include "camera.h"
 
 #ifdef PT_FP64
-typedef double real;
 #define REL_TOL 1e-15
 #else
-typedef float real;
 #define REL_TOL 1e-7f
 #endif
+#ifndef CLPPM_REAL              /* (smooth builds: common.h has included surface.h) */
+#ifdef PT_FP64
+typedef double real;
+#else
+typedef float real;
+#endif
 #define CLPPM_REAL              /* surface.h: real is defined */
+#endif
 
 /* Mirrors clppm/integrators/pathtracer.py PT_DTYPE: 4-byte fields only, in this order. */
 typedef struct {
@@ -462,11 +467,23 @@ inline int pt_boundary(Track* t, int ev, float* beta, Rng* rng, VOLUME_ARGS,
         const int up = ev == EV_TOP;
         L2 = up ? L - 1 : L + 1;
         k = up ? L : L + 1;
-        t->pos.z = iface_z(iface, heights, P, k, col_index(P, t->ix, t->iy));
         gn = (float3)(0.0f, 0.0f, up ? 1.0f : -1.0f);
+#ifdef SMOOTH_SURFACE
+        /* the crossing is on the smooth surface itself: its normal is the face's */
+        gn = face_normal(P, iface, smooth, k, L, L2, t->pos.x, t->pos.y, (float4)(gn, 0.0f)).xyz;
+#else
+        t->pos.z = iface_z(iface, heights, P, k, col_index(P, t->ix, t->iy));
+#endif
     } else {
         const int axis = (ev == EV_WALL_X || ev == EV_DOMAIN_X) ? 0 : 1;
         const int donly = (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y);
+#ifdef SMOOTH_SURFACE
+        /* a tile's wall or a side: the layers do not change across it */
+        if (!donly) { cross_cell(t, P, axis); return 1; }
+        if (cross_wall(t, P, axis, 1)) return 0;
+        locate_column(t, P);
+        return 1;
+#endif
         if (cross_wall(t, P, axis, donly)) return 0;
         if (donly) locate_column(t, P);
         L2 = layer_at(iface, heights, P, col_index(P, t->ix, t->iy), t->pos.z, L);
@@ -478,7 +495,11 @@ inline int pt_boundary(Track* t, int ev, float* beta, Rng* rng, VOLUME_ARGS,
     const float n1 = layer_n[L];
     const float n2 = L2 < 0 ? P->n_above : (L2 >= NL ? P->n_below : layer_n[L2]);
     if (n1 != n2) {
+#ifdef SMOOTH_SURFACE
+        const float4 sn = (float4)(gn, 0.0f);
+#else
         const float4 sn = face_normal(P, iface, smooth, k, L, L2, t->pos.x, t->pos.y, (float4)(gn, 0.0f));
+#endif
         float4 d = (float4)(t->dir, 0.0f);
         const int through = fresnel_cross(&d, (float4)(gn, 0.0f), sn, n1, n2, rng_u01(rng));
         t->dir = d.xyz;
@@ -700,8 +721,8 @@ HOT void pt_walk(Track* t, float beta, int b, float3 lpos, int nimg, Rng* rng, R
         const float4 op = optics[t->L * NB + b];  /* mua/mut, g, 1/(2g), mut */
         const float mut = op.w;
         int ev;
-        const float db = next_boundary(t, P, iface, heights, &ev);
         const float sfl = mut > 0.0f ? tau / mut : BIG;
+        const float db = next_boundary(t, P, iface, heights, sfl, &ev);
         if (sfl < db) {
             /* ---- scattering vertex */
             t->pos += sfl * t->dir;

@@ -5,7 +5,8 @@
  * x0 + (i + 1/2) dx, y0 + (j + 1/2) dy: C1, its second derivatives piecewise linear.  Flat
  * interfaces are their plane.  Beyond the grid the edge samples repeat (open, infinite sides) or
  * wrap (periodic).  The passes walk the voxel staircase (positions: column tops at the snapped
- * heights, vertical walls) but take the normal of a crossing from here, at the crossing point:
+ * heights, vertical walls), or with SMOOTH_SURFACE these surfaces themselves (smoothwalk.h), and
+ * take the normal of a crossing from here, at the crossing point:
  * the path tracer's walk and its manifold connection (pt.cl, mnee.h), the photon pass
  * (photon.cl) and the eye pass (eye.cl).
  *
@@ -64,8 +65,10 @@ inline int hf_index(int i, int n, int periodic) {
     return clamp(i, 0, n - 1);
 }
 
-inline void hf_eval(__constant const Params* P, __constant const float4* iface,
-                    __global const float* smooth, int k, real x, real y, HF* o) {
+/* h and its derivatives up to `order` (1: h, hx, hy; 2: the second ones too; a constant at
+ * every call, so the compiler drops the rest) */
+inline void hf_eval_n(__constant const Params* P, __constant const float4* iface,
+                      __global const float* smooth, int k, real x, real y, HF* o, const int order) {
     o->hx = o->hy = o->hxx = o->hxy = o->hyy = 0;
     const int v = IF_VAR(k);
     if (v < 0) { o->h = (real)IF_Z(k); return; }
@@ -88,7 +91,7 @@ inline void hf_eval(__constant const Params* P, __constant const float4* iface,
         const real s0 = row[i0], s1 = row[i1], s2 = row[i2], s3 = row[i3]; \
         out[0] = a0 * s0 + a1 * s1 + a2 * s2 + a3 * s3; \
         out[1] = b0 * s0 + b1 * s1 + b2 * s2 + b3 * s3; \
-        out[2] = c0 * s0 + c1 * s1 + c2 * s2 + c3 * s3; }
+        out[2] = order > 1 ? c0 * s0 + c1 * s1 + c2 * s2 + c3 * s3 : (real)0; }
     CR_ROW(0, r0) CR_ROW(1, r1) CR_ROW(2, r2) CR_ROW(3, r3)
 #undef CR_ROW
     CR_W(fy, fy2, fy3, a0, a1, a2, a3)
@@ -97,10 +100,16 @@ inline void hf_eval(__constant const Params* P, __constant const float4* iface,
     const real idx = 1 / (real)P->dx, idy = 1 / (real)P->dy;
     o->h = a0 * r0[0] + a1 * r1[0] + a2 * r2[0] + a3 * r3[0];
     o->hx = (a0 * r0[1] + a1 * r1[1] + a2 * r2[1] + a3 * r3[1]) * idx;
-    o->hxx = (a0 * r0[2] + a1 * r1[2] + a2 * r2[2] + a3 * r3[2]) * idx * idx;
     o->hy = (b0 * r0[0] + b1 * r1[0] + b2 * r2[0] + b3 * r3[0]) * idy;
+    if (order < 2) return;
+    o->hxx = (a0 * r0[2] + a1 * r1[2] + a2 * r2[2] + a3 * r3[2]) * idx * idx;
     o->hxy = (b0 * r0[1] + b1 * r1[1] + b2 * r2[1] + b3 * r3[1]) * idx * idy;
     o->hyy = (c0 * r0[0] + c1 * r1[0] + c2 * r2[0] + c3 * r3[0]) * idy * idy;
+}
+
+inline void hf_eval(__constant const Params* P, __constant const float4* iface,
+                    __global const float* smooth, int k, real x, real y, HF* o) {
+    hf_eval_n(P, iface, smooth, k, x, y, o, 2);
 }
 
 /* Upward unit normal of the height field (and the unnormalised (-hx, -hy, 1)'s length) */
@@ -114,7 +123,7 @@ inline real4 hf_normal(const HF* f, real* len) {
 inline float4 smooth_normal(__constant const Params* P, __constant const float4* iface,
                             __global const float* smooth, int k, float x, float y) {
     HF f;
-    hf_eval(P, iface, smooth, k, x, y, &f);
+    hf_eval_n(P, iface, smooth, k, x, y, &f, 1);
     real len;
     const real4 n = hf_normal(&f, &len);
     return (float4)((float)n.x, (float)n.y, (float)n.z, 0.0f);

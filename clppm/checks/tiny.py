@@ -2,7 +2,8 @@
 
 Photon pass, grid build (counting sort with pyopencl's scan, and the radix-sort variant), eye
 pass, calibration (initial radius, neighbour counts), both gathers (the point estimators' and the
-beam's), the grid's query kernels, the path tracer and the reflectance tallies.  Used by
+beam's), the grid's query kernels, the path tracer, the reflectance tallies, and the photon and
+eye passes' walk on the smooth surfaces.  Used by
 ``clppm devices --kernels`` (every kernel's limits and the local size clppm launched it with),
 ``tests/oclgrind/run.sh`` (memory and race checks) and ``bench/devices.py``.
 """
@@ -19,7 +20,8 @@ from .. import config
 
 FAMILIES = ("render: photon pass, grid build, eye pass, calibration, gather",
             "render: the beam estimator's gather", "path tracer", "reflectance tallies",
-            "grid queries (radix build, gather_grid, gather_bruteforce)")
+            "grid queries (radix build, gather_grid, gather_bruteforce)",
+            "render on the smooth surfaces (model.surface = smooth: photon and eye passes)")
 
 #: clppm's kernels the families above launch (each through clppm.compute.device.local_size)
 KERNELS = ("photon_pass", "grid_count", "grid_scatter", "grid_permute", "grid_keys",
@@ -75,6 +77,8 @@ def run_all(dev, photons: int = 2000, resolution=(8, 6), families=None) -> dict:
     timed(FAMILIES[3], lambda: reflectance.spectral_reflectance(
         cfg, photons=max(200, photons // 10), batches=2, bands=(500.0, 540.0, 40.0), dev=dev))
     timed(FAMILIES[4], lambda: grid_queries(dev, hashgrid))
+    timed(FAMILIES[5], lambda: progressive.render(config.override(
+        copy.deepcopy(cfg), "model", "surface", "smooth"), dev=dev))
     return out
 
 

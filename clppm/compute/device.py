@@ -381,7 +381,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
                    photon_counters: bool = False) -> dict:
     """Every ``-D`` switch of clppm's kernels, assembled in this one place (as MCX-CL does).
 
-    From the volume: NB bands, NL layers, FLAT (no relief or papillae: the flat code paths);
+    From the volume: NB bands, NL layers, FLAT (no relief or papillae: the flat code paths),
+    SMOOTH_SURFACE and NVAR (model.surface = "smooth": the walk on the smooth surfaces, smoothwalk.h);
     ``nb`` alone (no volume): the photon grid's kernels (hashgrid.cl).  HERO_C: bands a photon
     path carries, when more than one (spectral.h).  FAST_MATH: the compiler's relaxed math,
     when CLPPM_FAST_MATH=1.  A pass's own: ESTIMATOR (gather.cl: sphere, clip, layer, beam),
@@ -393,6 +394,9 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     if vol is None:
         return {"NB": int(nb)} if nb is not None else {}
     d = {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
+    if not vol.flat and vol.surface == "smooth":
+        d["SMOOTH_SURFACE"] = 1                  # kernels/smoothwalk.h
+        d["NVAR"] = int(vol.heights.shape[0])
     if hero > 1:
         d["HERO_C"] = int(hero)
     if estimator is not None:

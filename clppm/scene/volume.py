@@ -50,6 +50,12 @@ class Volume:
     # the samples of the smooth surfaces (kernels/surface.h) every pass refracts at and the path
     # tracer's manifold connection solves on (docs/relief.md); None where nothing varies
     smooth: np.ndarray | None = None
+    # model.surface: "voxels" (the passes walk the staircase of columns) or "smooth" (they cross
+    # the smooth surfaces themselves: kernels/smoothwalk.h; heights is then smooth)
+    surface: str = "voxels"
+    # (nvar, nty, ntx, 4) float32, surface = "smooth": per tile of TILE x TILE columns the lowest and
+    # highest point and a curvature bound of each smooth surface (smooth_tile_bounds)
+    tiles: np.ndarray | None = None
 
     @property
     def nl(self) -> int:
@@ -90,7 +96,15 @@ class Volume:
         t = np.stack([1 + g * g, 2 * g, (1 - g * g) / (4 * math.pi), np.zeros_like(g)], -1)
         return np.ascontiguousarray(t.reshape(-1, 4), np.float32)
 
+    @property
+    def smooth_walk(self) -> bool:
+        """The passes cross the smooth surfaces themselves (model.surface = "smooth", relief)."""
+        return self.surface == "smooth" and not self.flat
+
     def device_bytes(self) -> dict[str, int]:
+        if self.smooth_walk:          # one buffer: the samples, then the tiles' bounds
+            return {"smooth surfaces": int(self.smooth.nbytes) + int(self.tiles.nbytes),
+                    "layer optics": int(self.optics_table().nbytes), "interfaces": int(self.iface.nbytes)}
         return {
             "interface heights": int(self.heights.nbytes),
             "smooth surfaces": int(self.smooth.nbytes) if self.smooth is not None else 0,
@@ -349,6 +363,102 @@ def _interfaces(layers: list, depth: np.ndarray, s, w, dz: float, quantize: bool
     return z, zs
 
 
+#: columns a side of a tile (kernels/common.h TILE)
+TILE = 4
+
+# Catmull-Rom: sample a's weight w_a(f) = sum_j CR[a, j] f^j (kernels/surface.h CR_W)
+_CR = 0.5 * np.array([[0, -1, 2, -1], [2, 0, -5, 3], [0, 1, 4, -3], [0, 0, -1, 1]], float)
+
+
+def _bernstein(deg: int) -> np.ndarray:
+    """T with monomial coefficients c -> Bernstein coefficients T @ c (degree deg)."""
+    T = np.zeros((deg + 1, deg + 1))
+    for i in range(deg + 1):
+        for j in range(i + 1):
+            T[i, j] = math.comb(i, j) / math.comb(deg, j)
+    return T
+
+
+def _weights_bernstein(order: int) -> np.ndarray:
+    """(4, 4 - order): the order-th derivative of each sample's weight, in the Bernstein basis of
+    degree 3 - order: Q[a, i] with w_a^(order)(f) = sum_i Q[a, i] B_i(f)."""
+    c = _CR.copy()
+    for _ in range(order):
+        c = c[:, 1:] * np.arange(1, c.shape[1])          # d/df of the monomials
+    return c @ _bernstein(3 - order).T
+
+
+def _patch_coeffs(S: np.ndarray, ox: int, oy: int, periodic: bool) -> np.ndarray:
+    """Bernstein coefficients of d^ox/dfx^ox d^oy/dfy^oy h over every patch (grid units): S is
+    (ny, nx); patch (p, q), p = -1 .. nx - 1, lies between the column centres p and p + 1 in x
+    (q likewise in y) and uses samples p - 1 .. p + 2, repeated (open) or wrapped (periodic)
+    beyond the grid as surface.h hf_index does.  Returns (4 - oy, 4 - ox, ny + 1, nx + 1)."""
+    pad = np.pad(S.astype(np.float64), 2, mode="wrap" if periodic else "edge")
+    ny, nx = S.shape
+    Qx, Qy = _weights_bernstein(ox), _weights_bernstein(oy)
+    # x first: R[i][r, p + 1] = sum_a Qx[a, i] pad[r, p + 1 + a] (sample s at pad index s + 2)
+    R = [sum(Qx[a, i] * pad[:, a:a + nx + 1] for a in range(4)) for i in range(Qx.shape[1])]
+    return np.array([[sum(Qy[b, l] * R[i][b:b + ny + 1] for b in range(4))
+                      for i in range(Qx.shape[1])] for l in range(Qy.shape[1])])
+
+
+def _tile_reduce(a: np.ndarray, fn) -> np.ndarray:
+    """Per tile, fn (np.maximum / np.minimum) over the patches its columns touch: column c lies
+    in patches c - 1 and c, so tile t in patches TILE t - 1 .. TILE t + TILE - 1 (index + 1 in a,
+    whose last axes are the (ny + 1, nx + 1) patches)."""
+    def axis(a, ax):
+        n = a.shape[ax] - 1
+        nt = -(-n // TILE)
+        a = np.moveaxis(a, ax, 0)
+        a = np.concatenate([a, np.repeat(a[-1:], TILE * nt + 1 - a.shape[0], 0)]) if a.shape[0] < TILE * nt + 1 else a
+        block = fn.reduce(a[:TILE * nt].reshape((nt, TILE) + a.shape[1:]), axis=1)
+        return np.moveaxis(fn(block, a[TILE:TILE * nt + 1:TILE]), 0, ax)
+    return axis(axis(a, a.ndim - 1), a.ndim - 2)
+
+
+def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> np.ndarray:
+    """(nty, ntx, 4) float32 for one smooth surface (samples S, (ny, nx)): per tile of TILE x TILE
+    columns its lowest and highest point, K >= max |h_xx|, |h_yy| plus max |h_xy| (per um), and
+    G >= max |grad h|,
+    from the Bernstein coefficients of every Catmull-Rom patch it touches (a polynomial lies
+    within the convex hull of its Bernstein coefficients), rounded outwards to float32: what
+    kernels/smoothwalk.h's march needs to never pass a crossing."""
+    def block(j0):                                              # tile rows in blocks (memory)
+        j1 = min(S.shape[0], j0 + 64 * TILE)
+        lo_r, hi_r = max(0, j0 - 2), min(S.shape[0], j1 + 2)    # the rows these patches use
+        sub = S[lo_r:hi_r] if not periodic or (lo_r == 0 and hi_r == S.shape[0]) else None
+        if sub is None:                                         # periodic: wrap whole rows in
+            idx = np.arange(j0 - 2, j1 + 2) % S.shape[0]
+            sub, cut = S[idx], 2
+        else:
+            cut = j0 - lo_r
+        def coeffs(ox, oy):
+            c = _patch_coeffs(sub, ox, oy, periodic)
+            # patches q = j0 - 1 .. j1 - 1 of the full grid are rows cut .. cut + j1 - j0 here
+            return c[..., cut:cut + (j1 - j0) + 1, :]
+        h = coeffs(0, 0)
+        lo = h.min(axis=(0, 1)); hi = h.max(axis=(0, 1))
+        kxx = np.abs(coeffs(2, 0)).max(axis=(0, 1)) / (dx * dx)
+        kyy = np.abs(coeffs(0, 2)).max(axis=(0, 1)) / (dy * dy)
+        kxy = np.abs(coeffs(1, 1)).max(axis=(0, 1)) / (dx * dy)
+        k = np.maximum(kxx, kyy) + kxy
+        g2 = (np.abs(coeffs(1, 0)).max(axis=(0, 1)) / dx) ** 2 + (np.abs(coeffs(0, 1)).max(axis=(0, 1)) / dy) ** 2
+        return np.stack([_tile_reduce(lo, np.minimum), _tile_reduce(hi, np.maximum), _tile_reduce(k, np.maximum),
+                         _tile_reduce(g2, np.maximum)], -1)
+
+    # blocks are independent and numpy releases the GIL on them: one thread per core
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 8))) as ex:
+        t = np.concatenate(list(ex.map(block, range(0, S.shape[0], 64 * TILE))), 0)
+    # outwards to float32, with room for the kernels' float32 evaluation where a device has no fp64
+    res = np.zeros(t.shape[:2] + (4,), np.float32)
+    res[..., 3] = np.nextafter((np.sqrt(t[..., 3]) * (1 + 1e-5) + 1e-9).astype(np.float32), np.float32(np.inf))
+    res[..., 0] = np.nextafter((t[..., 0] - 1e-4 - 1e-6 * np.abs(t[..., 0])).astype(np.float32), np.float32(-np.inf))
+    res[..., 1] = np.nextafter((t[..., 1] + 1e-4 + 1e-6 * np.abs(t[..., 1])).astype(np.float32), np.float32(np.inf))
+    res[..., 2] = np.nextafter((t[..., 2] * (1 + 1e-5) + 1e-9).astype(np.float32), np.float32(np.inf))
+    return res
+
+
 def _pack(z: list, zs: list, nx: int, ny: int):
     """The interfaces as the kernels read them: per interface (height, lo, hi, row of
     ``heights``; row -1 where flat), the varying ones' heights and smooth heights (float32)."""
@@ -378,18 +488,28 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
     dz = m["voxel_um"]
     nx, ny, dx, dy = _columns(m, varying, source)
     s, w = _surface(cfg, nx, ny, dx, dy, source)
-    z, zs = _interfaces(layers, depth, s, w, dz, m["quantize"])
+    smooth = m["surface"] == "smooth"
+    z, zs = _interfaces(layers, depth, s, w, dz, m["quantize"] and not smooth)
     absent = absent_layers(z)
     for k in absent:                               # no sliver of a layer that is not there
         z[k + 1], zs[k + 1] = z[k], zs[k]
     n = optical_indices([L["n"] for L in layers], absent, m["n_below"])
     iface, heights, svar = _pack(z, zs, nx, ny)
+    tiles = None
+    if smooth and svar:
+        periodic = m["lateral"] == "periodic"
+        tiles = np.stack([smooth_tile_bounds(a, dx, dy, periodic) for a in svar])
+        for k in range(len(z)):                  # the layer cores: clear of every patch
+            v = int(iface[k, 3])
+            if v >= 0:
+                iface[k, 1], iface[k, 2] = tiles[v, ..., 0].min(), tiles[v, ..., 1].max()
     vol = Volume(wl=wl, names=[L["name"] for L in layers], n=n,
                  thickness=thickness, mua=mua * 1e-4, mus=mus * 1e-4, g=g,
                  iface=iface, heights=np.ascontiguousarray(heights, np.float32),
                  x0=0.0, y0=0.0, dx=dx, dy=dy, nx=nx, ny=ny,
                  dz=dz, lateral=m["lateral"], n_above=m["n_outside"], n_below=m["n_below"],
-                 smooth=np.ascontiguousarray(np.stack(svar), np.float32) if svar else None)
+                 smooth=np.ascontiguousarray(np.stack(svar), np.float32) if svar else None,
+                 surface=m["surface"], tiles=tiles)
     vol.info = {"columns": [nx, ny], "varying_interfaces": len(svar),
                 "absent_layers": [layers[k]["name"] for k in absent],
                 "device_bytes": sum(vol.device_bytes().values())}
@@ -439,6 +559,11 @@ def upload_volume(dev, vol: Volume) -> VolumeBuffers:
         return cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
     iface = vol.iface.copy()
     iface[:, 0] = np.where(np.abs(iface[:, 0]) >= 1e29, -1e30, iface[:, 0])
+    if vol.smooth_walk:
+        # one buffer for both: the smooth surfaces' samples, then the tiles' bounds (smoothwalk.h)
+        packed = buf(np.concatenate([vol.smooth.ravel(), vol.tiles.ravel()]).astype(np.float32))
+        return VolumeBuffers(iface=buf(iface.astype(np.float32)), layer_n=buf(vol.n.astype(np.float32)),
+                             optics=buf(vol.optics_table()), heights=packed, smooth=packed)
     return VolumeBuffers(iface=buf(iface.astype(np.float32)),
                          layer_n=buf(vol.n.astype(np.float32)),
                          optics=buf(vol.optics_table()),
