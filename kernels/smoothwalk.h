@@ -4,7 +4,7 @@
  * alone: there is no staircase, so no lateral step changes a layer (docs/relief.md, section 1).
  *
  * `heights` holds the NVAR varying interfaces' samples (surface.h's `smooth`, the same buffer)
- * followed by, per interface and tile of TILE x TILE columns, (lowest, highest, K, G): bounds of
+ * followed by, per interface and tile of SMOOTH_CELL x SMOOTH_CELL columns, (lowest, highest, K, G): bounds of
  * the Catmull-Rom patches over the tile from their Bernstein coefficients (the convex hull of
  * the Bezier net; clppm/scene/volume.py smooth_tile_bounds), K bounding max(|h_xx|, |h_yy|) +
  * |h_xy|, so that |d^2 h / ds^2| <= K |d_xy|^2 along any ray, and G bounding |grad h|: a ray
@@ -18,8 +18,8 @@
 
 #include "surface.h"
 
-#ifndef NVAR
-#error "SMOOTH_SURFACE builds need NVAR (the number of varying interfaces)"
+#if !defined(NVAR) || !defined(SMOOTH_CELL)
+#error "SMOOTH_SURFACE builds need NVAR (varying interfaces) and SMOOTH_CELL (columns a side of a cell)"
 #endif
 
 /* a march's steps before it hands back a safe point (EV_ZONE) and the walk calls again */
@@ -30,7 +30,7 @@
 
 /* (lowest, highest, K, 0) of varying interface v over tile (tx, ty) */
 HOT float4 smooth_tile(__constant const Params* P, __global const float* heights, int v, int tx, int ty) {
-    const int ntx = (P->nx + TILE - 1) / TILE, nty = (P->ny + TILE - 1) / TILE;
+    const int ntx = (P->nx + SMOOTH_CELL - 1) / SMOOTH_CELL, nty = (P->ny + SMOOTH_CELL - 1) / SMOOTH_CELL;
     return vload4(((size_t)v * (size_t)nty + (size_t)ty) * (size_t)ntx + (size_t)tx,
                   heights + (size_t)NVAR * (size_t)P->nx * (size_t)P->ny);
 }
@@ -101,15 +101,15 @@ HOT float smooth_march(__constant const Params* P, __global const float* heights
 
 /* the current tile's inner walls ahead (at the domain's edge domain_sides decides) */
 HOT void tile_walls(const Track* t, __constant const Params* P, float* best, int* e) {
-    const int tx = t->ix / TILE, ty = t->iy / TILE;
-    const int ntx = (P->nx + TILE - 1) / TILE, nty = (P->ny + TILE - 1) / TILE;
+    const int tx = t->ix / SMOOTH_CELL, ty = t->iy / SMOOTH_CELL;
+    const int ntx = (P->nx + SMOOTH_CELL - 1) / SMOOTH_CELL, nty = (P->ny + SMOOTH_CELL - 1) / SMOOTH_CELL;
     const float3 d = t->dir;
     if (d.x > 0.0f ? tx + 1 < ntx : (d.x < 0.0f && tx > 0)) {
-        const float s = (P->x0 + P->dx * (float)((tx + (d.x > 0.0f)) * TILE) - t->pos.x) / d.x;
+        const float s = (P->x0 + P->dx * (float)((tx + (d.x > 0.0f)) * SMOOTH_CELL) - t->pos.x) / d.x;
         if (s < *best) { *best = s; *e = EV_WALL_X; }
     }
     if (d.y > 0.0f ? ty + 1 < nty : (d.y < 0.0f && ty > 0)) {
-        const float s = (P->y0 + P->dy * (float)((ty + (d.y > 0.0f)) * TILE) - t->pos.y) / d.y;
+        const float s = (P->y0 + P->dy * (float)((ty + (d.y > 0.0f)) * SMOOTH_CELL) - t->pos.y) / d.y;
         if (s < *best) { *best = s; *e = EV_WALL_Y; }
     }
 }
@@ -118,13 +118,13 @@ HOT void tile_walls(const Track* t, __constant const Params* P, float* best, int
  * column of the tile beyond (the walk needs the tile, not the column). */
 inline void cross_cell(Track* t, __constant const Params* P, int axis) {
     if (axis == 0) {
-        const int tx = t->ix / TILE, up = t->dir.x > 0.0f;
-        t->pos.x = P->x0 + P->dx * (float)((tx + up) * TILE);
-        t->ix = up ? (tx + 1) * TILE : tx * TILE - 1;
+        const int tx = t->ix / SMOOTH_CELL, up = t->dir.x > 0.0f;
+        t->pos.x = P->x0 + P->dx * (float)((tx + up) * SMOOTH_CELL);
+        t->ix = up ? (tx + 1) * SMOOTH_CELL : tx * SMOOTH_CELL - 1;
     } else {
-        const int ty = t->iy / TILE, up = t->dir.y > 0.0f;
-        t->pos.y = P->y0 + P->dy * (float)((ty + up) * TILE);
-        t->iy = up ? (ty + 1) * TILE : ty * TILE - 1;
+        const int ty = t->iy / SMOOTH_CELL, up = t->dir.y > 0.0f;
+        t->pos.y = P->y0 + P->dy * (float)((ty + up) * SMOOTH_CELL);
+        t->iy = up ? (ty + 1) * SMOOTH_CELL : ty * SMOOTH_CELL - 1;
     }
 }
 
@@ -145,7 +145,7 @@ HOT void smooth_face(const Track* t, int j, __constant const Params* P, __consta
         return;
     }
     const float lim = fmin(*best, smax);
-    const float4 b = smooth_tile(P, heights, v, t->ix / TILE, t->iy / TILE);
+    const float4 b = smooth_tile(P, heights, v, t->ix / SMOOTH_CELL, t->iy / SMOOTH_CELL);
     const float z1 = p.z + fmin(lim, 1e6f) * d.z;
     if (j == 0 ? fmax(p.z, z1) < b.x : fmin(p.z, z1) > b.y) return;     /* clear of the tile's patches */
     if ((j == 0 ? d.z < 0.0f : d.z > 0.0f) && d.z * d.z * (1.0f + b.w * b.w) >= b.w * b.w)
@@ -186,7 +186,7 @@ inline int smooth_hit(Track* t, __constant const Params* P, __constant const flo
         tile_walls(t, P, &best, &e);
         domain_sides(t->pos, d, P, &best, &e);
         const float lim = d.z > 0.0f ? fmin(best, (P->z_top - t->pos.z) / d.z) : best;
-        const float4 b = smooth_tile(P, heights, IF_VAR(0), t->ix / TILE, t->iy / TILE);
+        const float4 b = smooth_tile(P, heights, IF_VAR(0), t->ix / SMOOTH_CELL, t->iy / SMOOTH_CELL);
         if (fmin(t->pos.z, t->pos.z + fmin(lim, 1e6f) * d.z) <= b.y) {
             int hit;
             const float s0 = t->pos.z > b.y ? (b.y - t->pos.z) / d.z : 0.0f;

@@ -73,12 +73,12 @@ def test_tile_bounds_hold_every_patch_point():
         assert t.shape == (75, 6, 4)
         X, Y = np.meshgrid(np.linspace(0, 23 * 5.0, 400, endpoint=False) + 0.013,
                            np.linspace(0, 300 * 4.0, 1500, endpoint=False) + 0.011)
-        tx, ty = (X // 5.0).astype(int) // volume.TILE, (Y // 4.0).astype(int) // volume.TILE
+        tx, ty = (X // 5.0).astype(int) // volume.CELL, (Y // 4.0).astype(int) // volume.CELL
         H = surface_h(S, X, Y, 5.0, 4.0, periodic)
         assert (H >= t[ty, tx, 0]).all() and (H <= t[ty, tx, 1]).all()
         Hxx = surface_h(S, X, Y, 5.0, 4.0, periodic, dxx=True)
         assert (np.abs(Hxx) <= t[ty, tx, 2]).all()
-        assert np.median(t[..., 1] - t[..., 0]) < 4 * np.median(np.abs(np.diff(S, axis=1))) * volume.TILE + 10
+        assert np.median(t[..., 1] - t[..., 0]) < 4 * np.median(np.abs(np.diff(S, axis=1))) * volume.CELL + 10
     plane = (0.3 * (np.arange(40) + 0.5) * 5.0)[None, :].repeat(12, 0).astype(np.float32)
     assert volume.smooth_tile_bounds(plane, 5.0, 5.0, False)[1:-1, 1:-1, 2].max() < 1e-5
 

@@ -53,7 +53,7 @@ class Volume:
     # model.surface: "voxels" (the passes walk the staircase of columns) or "smooth" (they cross
     # the smooth surfaces themselves: kernels/smoothwalk.h; heights is then smooth)
     surface: str = "voxels"
-    # (nvar, nty, ntx, 4) float32, surface = "smooth": per tile of TILE x TILE columns the lowest and
+    # (nvar, nty, ntx, 4) float32, surface = "smooth": per cell of CELL x CELL columns the lowest and
     # highest point and a curvature bound of each smooth surface (smooth_tile_bounds)
     tiles: np.ndarray | None = None
 
@@ -363,8 +363,8 @@ def _interfaces(layers: list, depth: np.ndarray, s, w, dz: float, quantize: bool
     return z, zs
 
 
-#: columns a side of a tile (kernels/common.h TILE)
-TILE = 4
+#: columns a side of the smooth walk's cells (kernels/smoothwalk.h SMOOTH_CELL, set by kernel_defines)
+CELL = 4
 
 # Catmull-Rom: sample a's weight w_a(f) = sum_j CR[a, j] f^j (kernels/surface.h CR_W)
 _CR = 0.5 * np.array([[0, -1, 2, -1], [2, 0, -5, 3], [0, 1, 4, -3], [0, 0, -1, 1]], float)
@@ -404,27 +404,27 @@ def _patch_coeffs(S: np.ndarray, ox: int, oy: int, periodic: bool) -> np.ndarray
 
 def _tile_reduce(a: np.ndarray, fn) -> np.ndarray:
     """Per tile, fn (np.maximum / np.minimum) over the patches its columns touch: column c lies
-    in patches c - 1 and c, so tile t in patches TILE t - 1 .. TILE t + TILE - 1 (index + 1 in a,
+    in patches c - 1 and c, so tile t in patches CELL t - 1 .. CELL t + CELL - 1 (index + 1 in a,
     whose last axes are the (ny + 1, nx + 1) patches)."""
     def axis(a, ax):
         n = a.shape[ax] - 1
-        nt = -(-n // TILE)
+        nt = -(-n // CELL)
         a = np.moveaxis(a, ax, 0)
-        a = np.concatenate([a, np.repeat(a[-1:], TILE * nt + 1 - a.shape[0], 0)]) if a.shape[0] < TILE * nt + 1 else a
-        block = fn.reduce(a[:TILE * nt].reshape((nt, TILE) + a.shape[1:]), axis=1)
-        return np.moveaxis(fn(block, a[TILE:TILE * nt + 1:TILE]), 0, ax)
+        a = np.concatenate([a, np.repeat(a[-1:], CELL * nt + 1 - a.shape[0], 0)]) if a.shape[0] < CELL * nt + 1 else a
+        block = fn.reduce(a[:CELL * nt].reshape((nt, CELL) + a.shape[1:]), axis=1)
+        return np.moveaxis(fn(block, a[CELL:CELL * nt + 1:CELL]), 0, ax)
     return axis(axis(a, a.ndim - 1), a.ndim - 2)
 
 
 def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> np.ndarray:
-    """(nty, ntx, 4) float32 for one smooth surface (samples S, (ny, nx)): per tile of TILE x TILE
+    """(nty, ntx, 4) float32 for one smooth surface (samples S, (ny, nx)): per tile of CELL x CELL
     columns its lowest and highest point, K >= max |h_xx|, |h_yy| plus max |h_xy| (per um), and
     G >= max |grad h|,
     from the Bernstein coefficients of every Catmull-Rom patch it touches (a polynomial lies
     within the convex hull of its Bernstein coefficients), rounded outwards to float32: what
     kernels/smoothwalk.h's march needs to never pass a crossing."""
     def block(j0):                                              # tile rows in blocks (memory)
-        j1 = min(S.shape[0], j0 + 64 * TILE)
+        j1 = min(S.shape[0], j0 + 64 * CELL)
         lo_r, hi_r = max(0, j0 - 2), min(S.shape[0], j1 + 2)    # the rows these patches use
         sub = S[lo_r:hi_r] if not periodic or (lo_r == 0 and hi_r == S.shape[0]) else None
         if sub is None:                                         # periodic: wrap whole rows in
@@ -449,7 +449,7 @@ def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> n
     # blocks are independent and numpy releases the GIL on them: one thread per core
     from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 8))) as ex:
-        t = np.concatenate(list(ex.map(block, range(0, S.shape[0], 64 * TILE))), 0)
+        t = np.concatenate(list(ex.map(block, range(0, S.shape[0], 64 * CELL))), 0)
     # outwards to float32, with room for the kernels' float32 evaluation where a device has no fp64
     res = np.zeros(t.shape[:2] + (4,), np.float32)
     res[..., 3] = np.nextafter((np.sqrt(t[..., 3]) * (1 + 1e-5) + 1e-9).astype(np.float32), np.float32(np.inf))
