@@ -397,8 +397,7 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     if not vol.flat and vol.surface == "smooth":
         d["SMOOTH_SURFACE"] = 1                  # kernels/smoothwalk.h
         d["NVAR"] = int(vol.heights.shape[0])
-        from ..scene.volume import CELL
-        d["SMOOTH_CELL"] = CELL
+        d["SMOOTH_CELL"] = int(vol.cell)
     if hero > 1:
         d["HERO_C"] = int(hero)
     if estimator is not None:

@@ -22,6 +22,9 @@ from ..compute.structs import LATERAL
 from ..config import ConfigError, wavelengths
 
 BIG = 1e30
+#: columns a side of the smooth walk's cells (kernels/smoothwalk.h SMOOTH_CELL, from Volume.cell by
+#: kernel_defines): 4 measured fastest of 2, 4 and 8 on the forearm
+CELL = 4
 
 
 @dataclass
@@ -56,6 +59,7 @@ class Volume:
     # (nvar, nty, ntx, 4) float32, surface = "smooth": per cell of CELL x CELL columns the lowest and
     # highest point and a curvature bound of each smooth surface (smooth_tile_bounds)
     tiles: np.ndarray | None = None
+    cell: int = CELL
 
     @property
     def nl(self) -> int:
@@ -363,8 +367,6 @@ def _interfaces(layers: list, depth: np.ndarray, s, w, dz: float, quantize: bool
     return z, zs
 
 
-#: columns a side of the smooth walk's cells (kernels/smoothwalk.h SMOOTH_CELL, set by kernel_defines)
-CELL = 4
 
 # Catmull-Rom: sample a's weight w_a(f) = sum_j CR[a, j] f^j (kernels/surface.h CR_W)
 _CR = 0.5 * np.array([[0, -1, 2, -1], [2, 0, -5, 3], [0, 1, 4, -3], [0, 0, -1, 1]], float)
