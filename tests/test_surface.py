@@ -54,6 +54,24 @@ def frame():
     return np.array([-SLOPE * c, 0.0, c]), np.array([c, 0.0, SLOPE * c])
 
 
+def turbid_angles(dev, cfg):
+    """The eye pass on a tilted-plane scene with its camera looking straight down: each turbid
+    sample point's angle (degrees) from the analytic direction back to the eye of the central
+    ray refracted by Snell's law at the plane's normal (1.0 -> 1.5), and that direction."""
+    vol = volume.build(cfg)
+    ed = eyepass.run(dev, vol, volume.upload_volume(dev, vol), cfg)
+    dirs = ed.pt_dir.get()[:ed.npoints]
+    turbid = dirs["w"] == 1
+    assert turbid.sum() > 200
+    to_eye = np.stack([dirs["x"], dirs["y"], dirs["z"]], -1)[turbid].astype(float)
+    nrm, _ = frame()
+    d = np.array([0.0, 0.0, -1.0])
+    ci = -d @ nrm
+    eta = 1.0 / 1.5
+    t = eta * d + (eta * ci - math.sqrt(1 - eta * eta * (1 - ci * ci))) * nrm
+    return np.degrees(np.arccos(np.clip(to_eye @ -t / np.linalg.norm(to_eye, axis=1), -1, 1))), t
+
+
 def test_tilted_plane_energy_split_is_the_rotated_slabs(dev, tmp_path):
     """A pencil beam at 60 degrees from the tilted plane's normal (uphill) against the flat slab
     under the beam at 60 degrees: diffuse reflectance and the turbid layer's absorption agree
@@ -82,18 +100,6 @@ def test_eye_rays_refract_at_the_tilted_plane(dev, tmp_path):
     and refract into the turbid half-space by Snell's law at the plane's normal: every sample
     point in the turbid layer looks back along the analytic direction within 0.3 degrees (at
     the column tops' +z normal the rays would not bend at all: 2.8 degrees off)."""
-    cfg = tilted_scene(tmp_path, True, (0.0, 0.0, -1.0), camera=True)
-    vol = volume.build(cfg)
-    ed = eyepass.run(dev, vol, volume.upload_volume(dev, vol), cfg)
-    dirs = ed.pt_dir.get()[:ed.npoints]
-    turbid = dirs["w"] == 1
-    assert turbid.sum() > 200
-    to_eye = np.stack([dirs["x"], dirs["y"], dirs["z"]], -1)[turbid].astype(float)
-    nrm, _ = frame()
-    d = np.array([0.0, 0.0, -1.0])
-    ci = -d @ nrm
-    eta = 1.0 / 1.5
-    t = eta * d + (eta * ci - math.sqrt(1 - eta * eta * (1 - ci * ci))) * nrm
-    ang = np.degrees(np.arccos(np.clip(to_eye @ -t / np.linalg.norm(to_eye, axis=1), -1, 1)))
+    ang, t = turbid_angles(dev, tilted_scene(tmp_path, True, (0.0, 0.0, -1.0), camera=True))
     assert np.degrees(np.arccos(-t[2])) > 2.5                # the plane does bend them
     assert ang.max() < 0.3, np.percentile(ang, [50, 99, 100])
