@@ -109,6 +109,32 @@ HOT void beam_frame(BeamPiece* pc, float4 pslab_k) {
     pc->tb_r = pslab_k.xy;
 }
 
+#ifdef SMOOTH_SURFACE
+/* On the smooth surfaces a slanted piece's ends lie at fractional depths phi0, phi1 of the layer
+ * at their own (x, y), which its midpoint's slab (tb_mid) places a little off: a piece entering
+ * where the top is lower than at its midpoint would miss the photons just under the top, and
+ * nothing would make up for them.  The frame (top, top - T) that puts both ends at their own
+ * phi, T = (z0 - z1) / (phi1 - phi0), makes the pieces of one crossing of the layer tile its
+ * photons' phi exactly (any T > 0 is the piece's own frame: a steep furrow wall gives a small
+ * one).  The midpoint's slab where the ends' phi are too close to fix T (a short piece), phi
+ * does not grow along the piece's way down (a ray that the surface falls away from faster), or
+ * the layer is unbounded below. */
+HOT float2 beam_piece_ends(__constant const Params* P, __constant const float4* iface,
+                           __global const float* heights, const BeamPiece* pc, float2 tb_mid) {
+    if (!(tb_mid.y > -1e29f)) return tb_mid;
+    const float3 e = pc->s0 + pc->len * pc->d;
+    const float2 t0 = layer_slab(P, iface, heights, pc->s0, pc->Lk);
+    const float2 t1 = layer_slab(P, iface, heights, e, pc->Lk);
+    const float phi0 = (t0.x - pc->s0.z) / fmax(t0.x - t0.y, 1e-3f);
+    const float phi1 = (t1.x - e.z) / fmax(t1.x - t1.y, 1e-3f);
+    const float Tm = tb_mid.x - tb_mid.y;
+    const float T = (pc->s0.z - e.z) / (phi1 - phi0);
+    if (!(fabs(phi1 - phi0) > 1e-3f && T > 0.1f * Tm && T < 10.0f * Tm)) return tb_mid;
+    const float top = pc->s0.z + phi0 * T;
+    return (float2)(top, top - T);
+}
+#endif
+
 /* The piece's layer-conforming depth (kernel piece_slabs, once per scene: it needs no R):
  * whether it measures depth in its layer's own coordinates (a vertical piece where either of
  * its layer's interfaces varies), and the layer's top and bottom at the ray's column; as
@@ -123,6 +149,9 @@ HOT float4 beam_piece_slab(__constant const Params* P, __constant const float4* 
     if (vert && (IF_VAR(Lk) >= 0 || (Lk + 1 <= NL && IF_VAR(Lk + 1) >= 0))) {
         conform = 1;
         tb_r = layer_slab(P, iface, heights, pc->s0 + 0.5f * pc->len * pc->d, Lk);
+#ifdef SMOOTH_SURFACE
+        tb_r = beam_piece_ends(P, iface, heights, pc, tb_r);
+#endif
     }
 #endif
     return (float4)(tb_r.x, tb_r.y, (float)conform, 0.0f);

@@ -336,19 +336,6 @@ inline float iface_z(__constant const float4* iface, __global const float* heigh
 #endif
 }
 
-/* Top and bottom of layer L in the column of position p (the bottom is -BIG when unbounded). */
-inline float2 layer_slab(__constant const Params* P, __constant const float4* iface,
-                         __global const float* heights, float3 p, int L) {
-#ifdef FLAT
-    return (float2)(IF_Z(L), IF_Z(L + 1));
-#else
-    int ix = clamp((int)floor((p.x - P->x0) / P->dx), 0, P->nx - 1);
-    int iy = clamp((int)floor((p.y - P->y0) / P->dy), 0, P->ny - 1);
-    int col = col_index(P, ix, iy);
-    return (float2)(iface_z(iface, heights, P, L, col), iface_z(iface, heights, P, L + 1, col));
-#endif
-}
-
 /* Layer containing height z in column col: -1 above the surface, NL below the bottom.
  * Starts from a guess and walks, since neighbouring columns differ by little. */
 inline int layer_at(__constant const float4* iface, __global const float* heights,
@@ -427,6 +414,25 @@ inline int cross_wall(Track* t, __constant const Params* P, int axis, int domain
 #if defined(SMOOTH_SURFACE) && !defined(FLAT)
 #include "smoothwalk.h"
 #endif
+
+/* Top and bottom of layer L at position p (the bottom is -BIG when unbounded): on the smooth
+ * surfaces at p itself when the walks cross them (a point lies between them exactly), else in
+ * p's column (the staircase's slab, which holds every point of the layer there).  Always inlined:
+ * Intel's CPU compiler miscompiles the float3 argument of a call it keeps (surface.h). */
+HOT float2 layer_slab(__constant const Params* P, __constant const float4* iface,
+                      __global const float* heights, float3 p, int L) {
+#if defined(FLAT)
+    return (float2)(IF_Z(L), IF_Z(L + 1));
+#elif defined(SMOOTH_SURFACE)
+    return (float2)(smooth_z(P, iface, heights, L, p.x, p.y), smooth_z(P, iface, heights, L + 1, p.x, p.y));
+#else
+    int ix = clamp((int)floor((p.x - P->x0) / P->dx), 0, P->nx - 1);
+    int iy = clamp((int)floor((p.y - P->y0) / P->dy), 0, P->ny - 1);
+    int col = col_index(P, ix, iy);
+    return (float2)(iface_z(iface, heights, P, L, col), iface_z(iface, heights, P, L + 1, col));
+#endif
+}
+
 
 /* Distance along t->dir to the next boundary of the constant region around t->pos and its kind.
  * smax: the caller's free path (a collision comes first beyond it); the smooth surfaces' walk

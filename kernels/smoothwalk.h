@@ -173,6 +173,17 @@ HOT float smooth_boundary(const Track* t, __constant const Params* P, __constant
     return best > 0.0f ? best : 0.0f;
 }
 
+/* The height of interface k (varying or not) at (x, y) on its smooth surface: the layers' top
+ * and bottom where the gather measures depth in a layer's own coordinates (layer_slab). */
+HOT float smooth_z(__constant const Params* P, __constant const float4* iface,
+                   __global const float* heights, int k, float x, float y) {
+    const int v = IF_VAR(k);
+    if (v < 0) return IF_Z(k);
+    const real gx = ((real)x - (real)P->x0) / (real)P->dx - (real)0.5;
+    const real gy = ((real)y - (real)P->y0) / (real)P->dy - (real)0.5;
+    return (float)hf_grid1(P, heights, v, gx, gy).x;
+}
+
 /* hit_surface's walk from the plane of the highest surface point down to the first hit of the
  * surface: tile by tile, interface 0 marched from above.  On a hit, *geo_n is the surface's
  * normal there (the face is the surface itself). */

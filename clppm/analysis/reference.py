@@ -151,7 +151,7 @@ def reference_key(cfg: dict, spec: RefSpec) -> str:
     kernels = None
     if spec.integrator == "pt":           # the path tracer reads none of PPM's settings or kernels
         c["render"] = {k: c["render"][k] for k in ("specular", "roughness", "pt_samples_per_pass")}
-        kernels = ("pt.cl", "common.h") if C.is_flat(cfg) else ("pt.cl", "common.h", "mnee.h", "surface.h")
+        kernels = ("pt.cl", "common.h") if C.is_flat(cfg) else ("pt.cl", "common.h", "mnee.h", "surface.h", "smoothwalk.h")
     blob = json.dumps({"config": c, "spec": spec.as_dict(), "clppm": __version__,
                        "kernels": kernel_hash(kernels)}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
