@@ -69,9 +69,10 @@ SCHEMA: dict[str, dict[str, F]] = {
         "lateral": F("choice", "open", choices=("open", "periodic", "infinite"),
                      doc="the model's sides: open (light leaves), periodic (wraps), infinite (flat layers only)"),
         "quantize": F("bool", True, doc="snap interfaces to the voxel grid in z (surface = \"voxels\")"),
-        "surface": F("choice", "voxels", choices=("voxels", "smooth"),
-                     doc="what light crosses: voxels (the paper's staircase of columns, refracting at the "
-                         "smooth normals) or smooth (the Catmull-Rom height fields themselves, exactly)"),
+        "surface": F("choice", "smooth", choices=("smooth", "voxels"),
+                     doc="what light crosses: smooth (the Catmull-Rom height fields themselves, exactly; "
+                         "the default) or voxels (the paper's staircase of columns, refracting at the "
+                         "smooth normals; paper mode)"),
         "n_outside": F("float", 1.0, lo=1.0, hi=3.0, doc="refractive index above the skin"),
         "n_below": F("float", 1.0, lo=1.0, hi=3.0, doc="index below a finite bottom layer"),
     },
@@ -542,12 +543,17 @@ def override(cfg: dict, section: str, key: str, value: Any, source: str = "comma
 #: sphere estimator, the per-point progressive radius (Kamatani & Kawai; Hachisuka et al. 2008)
 PAPER_MODE = {"storage": "all", "estimator": "sphere", "radius": "ppm", "bands_per_path": 1,
               "band_sampling": "power", "emission": "random"}
+#: the paper's model: light walks the 5 um voxels (the interfaces' staircase)
+PAPER_MODEL = {"surface": "voxels"}
 
 
 def paper_mode(cfg: dict, source: str = "--paper") -> dict:
-    """``cfg`` with the paper's photon storage, estimator and radius (:data:`PAPER_MODE`)."""
+    """``cfg`` with the paper's photon storage, estimator and radius (:data:`PAPER_MODE`) on the
+    paper's voxel model (:data:`PAPER_MODEL`)."""
     for k, v in PAPER_MODE.items():
         cfg = override(cfg, "render", k, v, source)
+    for k, v in PAPER_MODEL.items():
+        cfg = override(cfg, "model", k, v, source)
     return cfg
 
 

@@ -3,8 +3,8 @@
  * surface.h itself, refracts there at its normal, and knows its layer from the smooth surfaces
  * alone: there is no staircase, so no lateral step changes a layer (docs/relief.md, section 1).
  *
- * `heights` holds the NVAR varying interfaces' samples (surface.h's `smooth`, the same buffer)
- * followed by, per interface and tile of SMOOTH_CELL x SMOOTH_CELL columns, (lowest, highest, K, G): bounds of
+ * `heights` holds the NVAR rows of samples (surface.h's `smooth`, the same buffer; interface k
+ * is row IF_VAR(k) plus IF_Z(k)) followed by, per row and tile of SMOOTH_CELL x SMOOTH_CELL columns, (lowest, highest, K, G): bounds of
  * the Catmull-Rom patches over the tile from their Bernstein coefficients (the convex hull of
  * the Bezier net; clppm/scene/volume.py smooth_tile_bounds), K bounding max(|h_xx|, |h_yy|) +
  * |h_xy|, so that |d^2 h / ds^2| <= K |d_xy|^2 along any ray, and G bounding |grad h|: a ray
@@ -28,15 +28,19 @@
  * skin depths are good to about 2e-5 um) */
 #define SMOOTH_TOL ((real)1e-5)
 
-/* (lowest, highest, K, 0) of varying interface v over tile (tx, ty) */
-HOT float4 smooth_tile(__constant const Params* P, __global const float* heights, int v, int tx, int ty) {
+/* (lowest, highest, K, G) of varying interface k over tile (tx, ty): its row's bounds, shifted
+ * by the interface's offset IF_Z(k) (rows are shared by interfaces a constant apart) */
+HOT float4 smooth_tile(__constant const Params* P, __constant const float4* iface,
+                       __global const float* heights, int k, int tx, int ty) {
     const int ntx = (P->nx + SMOOTH_CELL - 1) / SMOOTH_CELL, nty = (P->ny + SMOOTH_CELL - 1) / SMOOTH_CELL;
-    return vload4(((size_t)v * (size_t)nty + (size_t)ty) * (size_t)ntx + (size_t)tx,
-                  heights + (size_t)NVAR * (size_t)P->nx * (size_t)P->ny);
+    const float4 b = vload4(((size_t)IF_VAR(k) * (size_t)nty + (size_t)ty) * (size_t)ntx + (size_t)tx,
+                            heights + (size_t)NVAR * (size_t)P->nx * (size_t)P->ny);
+    return (float4)(b.x + IF_Z(k), b.y + IF_Z(k), b.z, b.w);
 }
 
-/* h, h_x, h_y of varying interface v at grid coordinates (gx, gy) (x / dx - 1/2: surface.h's
- * hf_eval_n, its divisions done by the caller once per march): (h, g_x, g_y) in grid units */
+/* h, h_x, h_y of row v at grid coordinates (gx, gy) (x / dx - 1/2: surface.h's hf_eval_n, its
+ * divisions done by the caller once per march): (h, g_x, g_y) in grid units, h without the
+ * interface's offset */
 HOT real4 hf_grid1(__constant const Params* P, __global const float* heights, int v, real gx, real gy) {
     const int ix = (int)gx - (gx < 0), iy = (int)gy - (gy < 0);      /* floor */
     const real fx = gx - (real)ix, fy = gy - (real)iy;
@@ -62,17 +66,17 @@ HOT real4 hf_grid1(__constant const Params* P, __global const float* heights, in
                    b0 * h0 + b1 * h1 + b2 * h2 + b3 * h3, 0);
 }
 
-/* The first s in [s0, smax) (none before s0) where the ray p + s d leaves its side of the varying interface k
- * (sg = 1: the ray is below it, z < h; -1: above it).  g = sg (h - z) is the height inside;
+/* The first s in [s0, smax) (none before s0) where the ray p + s d leaves its side of the varying
+ * interface with row v and offset c (sg = 1: the ray is below it, z < h; -1: above it).  g = sg (h - z) is the height inside;
  * along the ray g(s + t) >= g + g' t - Kd t^2 / 2 (Kd = K |d_xy|^2), so stepping to the first
  * zero of that bound never passes a root: from the left it is Newton's step made safe, and it
  * converges quadratically on a crossing.  A point on the surface (g ~ 0, just crossed or
  * reflected, moving inside: g' > 0) steps on to 2 g'/Kd.  Returns s with *hit = 1 at a crossing,
  * BIG when there is none before smax, or, out of steps (a grazing ray), the last safe s with
  * *hit = 0. */
-HOT float smooth_march(__constant const Params* P, __global const float* heights, int v, float3 p,
+HOT float smooth_march(__constant const Params* P, __global const float* heights, int v, real c, float3 p,
                        float3 d, float s0, float smax, float4 b, real sg, int* hit) {
-    const real ddx = d.x, ddy = d.y, ddz = d.z, pz = p.z;
+    const real ddx = d.x, ddy = d.y, ddz = d.z, pz = (real)p.z - c;
     const real dxy2 = ddx * ddx + ddy * ddy;
     const real Kd = (real)b.z * dxy2;
     /* the steepest descent of g along the ray (G bounds |grad h|): g(s + t) >= g - gmax t too */
@@ -145,7 +149,7 @@ HOT void smooth_face(const Track* t, int j, __constant const Params* P, __consta
         return;
     }
     const float lim = fmin(*best, smax);
-    const float4 b = smooth_tile(P, heights, v, t->ix / SMOOTH_CELL, t->iy / SMOOTH_CELL);
+    const float4 b = smooth_tile(P, iface, heights, k, t->ix / SMOOTH_CELL, t->iy / SMOOTH_CELL);
     const float z1 = p.z + fmin(lim, 1e6f) * d.z;
     if (j == 0 ? fmax(p.z, z1) < b.x : fmin(p.z, z1) > b.y) return;     /* clear of the tile's patches */
     if ((j == 0 ? d.z < 0.0f : d.z > 0.0f) && d.z * d.z * (1.0f + b.w * b.w) >= b.w * b.w)
@@ -153,7 +157,7 @@ HOT void smooth_face(const Track* t, int j, __constant const Params* P, __consta
     /* no crossing before the ray enters the tile's height range */
     const float s0 = j == 0 ? (p.z < b.x ? (b.x - p.z) / d.z : 0.0f) : (p.z > b.y ? (b.y - p.z) / d.z : 0.0f);
     int hit;
-    const float s = smooth_march(P, heights, v, p, d, s0, lim, b, j == 0 ? (real)1 : (real)-1, &hit);
+    const float s = smooth_march(P, heights, v, (real)IF_Z(k), p, d, s0, lim, b, j == 0 ? (real)1 : (real)-1, &hit);
     if (s < *best) { *best = s; *e = hit ? (j ? EV_BOTTOM : EV_TOP) : EV_ZONE; }
 }
 
@@ -181,7 +185,7 @@ HOT float smooth_z(__constant const Params* P, __constant const float4* iface,
     if (v < 0) return IF_Z(k);
     const real gx = ((real)x - (real)P->x0) / (real)P->dx - (real)0.5;
     const real gy = ((real)y - (real)P->y0) / (real)P->dy - (real)0.5;
-    return (float)hf_grid1(P, heights, v, gx, gy).x;
+    return (float)((real)IF_Z(k) + hf_grid1(P, heights, v, gx, gy).x);
 }
 
 /* hit_surface's walk from the plane of the highest surface point down to the first hit of the
@@ -197,11 +201,11 @@ inline int smooth_hit(Track* t, __constant const Params* P, __constant const flo
         tile_walls(t, P, &best, &e);
         domain_sides(t->pos, d, P, &best, &e);
         const float lim = d.z > 0.0f ? fmin(best, (P->z_top - t->pos.z) / d.z) : best;
-        const float4 b = smooth_tile(P, heights, IF_VAR(0), t->ix / SMOOTH_CELL, t->iy / SMOOTH_CELL);
+        const float4 b = smooth_tile(P, iface, heights, 0, t->ix / SMOOTH_CELL, t->iy / SMOOTH_CELL);
         if (fmin(t->pos.z, t->pos.z + fmin(lim, 1e6f) * d.z) <= b.y) {
             int hit;
             const float s0 = t->pos.z > b.y ? (b.y - t->pos.z) / d.z : 0.0f;
-            const float s = smooth_march(P, heights, IF_VAR(0), t->pos, d, s0, lim, b, (real)-1, &hit);
+            const float s = smooth_march(P, heights, IF_VAR(0), (real)IF_Z(0), t->pos, d, s0, lim, b, (real)-1, &hit);
             if (s < BIG) {
                 t->pos += s * d;
                 if (!hit) continue;

@@ -98,7 +98,8 @@ inline void hf_eval_n(__constant const Params* P, __constant const float4* iface
     CR_D(fy, fy2, b0, b1, b2, b3)
     CR_S(fy, c0, c1, c2, c3)
     const real idx = 1 / (real)P->dx, idy = 1 / (real)P->dy;
-    o->h = a0 * r0[0] + a1 * r1[0] + a2 * r2[0] + a3 * r3[0];
+    /* the row's height plus the interface's offset (0 unless rows are shared: smoothwalk.h) */
+    o->h = (a0 * r0[0] + a1 * r1[0] + a2 * r2[0] + a3 * r3[0]) + (real)IF_Z(k);
     o->hx = (a0 * r0[1] + a1 * r1[1] + a2 * r2[1] + a3 * r3[1]) * idx;
     o->hy = (b0 * r0[0] + b1 * r1[0] + b2 * r2[0] + b3 * r3[0]) * idy;
     if (order < 2) return;

@@ -104,6 +104,9 @@ def test_render_is_byte_identical_to_the_stored_hash(stored, case, tmp_path):
     spec, hashes = stored
     if case.startswith("dask"):
         pytest.importorskip("distributed")
+    if case not in hashes:
+        pytest.skip(f"{case}: no stored hash on this device (its images changed on purpose since "
+                    f"its set was stored: python tests/test_identity.py --store there)")
     runs = cases(str(tmp_path), spec)[case]
     assert render_case(runs, spec) == hashes[case], (
         f"{case}: the image's bytes changed (rendered with clppm render {' '.join(runs[-1])})")

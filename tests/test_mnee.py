@@ -82,7 +82,7 @@ class Surfaces:
             r = np.clip(iy - 1 + j, 0, v.ny - 1)
             p = [H[r, np.clip(ix - 1 + i, 0, v.nx - 1)] for i in range(4)]
             rows.append(self._hermite(p, fx))
-        return self._hermite(rows, fy)
+        return self._hermite(rows, fy) + self.z[k]          # the row's offset (shared rows)
 
     def normal(self, k, x, y, e=1e-4):
         hx = (self.h(k, x + e, y) - self.h(k, x - e, y)) / (2 * e)

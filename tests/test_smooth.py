@@ -54,7 +54,7 @@ def layer_of(vol, x, y, z):
     h = []
     for k in range(vol.nl + 1):
         v = int(vol.iface[k, 3])
-        h.append(surface_h(vol.smooth[v], x, y, vol.dx, vol.dy, vol.lateral == "periodic") if v >= 0
+        h.append(surface_h(vol.smooth[v], x, y, vol.dx, vol.dy, vol.lateral == "periodic") + float(vol.iface[k, 0]) if v >= 0
                  else np.full(np.shape(x), float(vol.iface[k, 0]) if abs(vol.iface[k, 0]) < 1e29 else -1e30))
     L = np.full(np.shape(x), -1)
     for k in range(vol.nl + 1):

@@ -123,9 +123,11 @@ def test_transparent_semi_infinite_bottom(dev, method):
 
 @pytest.mark.parametrize("quantize", [True, False])
 def test_layer_thinner_than_voxel(dev, quantize):
-    """A 2 um basal layer (n 1.45) under 5 um voxels: snapped to zero thickness, or kept."""
+    """A 2 um basal layer (n 1.45) under 5 um voxels: snapped to zero thickness (the voxel
+    model), or kept (the smooth walk)."""
     def edit(raw):
         raw["model"]["quantize"] = quantize
+        raw["model"]["surface"] = "voxels" if quantize else "smooth"
         raw["layer"][2]["thickness_um"] = 2.0
         raw["layer"][2]["n"] = 1.45
     cfg = scene(edit)

@@ -62,7 +62,8 @@ def relief_heights(cfg: dict, res: tuple, vol) -> np.ndarray | None:
         return None
     cam = camera.from_config(cfg["camera"] | {"resolution": list(res)})
     w, h = res
-    hs = vol.smooth[int(vol.iface[0, 3])]
+    S, c = vol.smooth_samples(0)
+    hs = S.astype(np.float64) + c
     sub = (np.arange(4) + 0.5) / 4
     hgt = np.zeros((h, w))
     for py in range(h):

@@ -267,7 +267,8 @@ class PhotonPass:
         self.truncated = False
         self.store_imp = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=storage_importance(vol))
         self.tile_z = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                                hostbuf=np.zeros(2, np.float32) if vol.flat else tile_bounds(vol))
+                                hostbuf=np.zeros(2, np.float32) if vol.flat or vol.smooth_walk
+                                else tile_bounds(vol))    # the smooth walk has its own cells
         if self.counters:
             self.counter_host = np.zeros(len(COUNTERS), np.int64)
             self.counter_buf = cl.Buffer(dev.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=self.counter_host)

@@ -36,7 +36,7 @@ class Volume:
     mua: np.ndarray                 # (NL, NB) um^-1
     mus: np.ndarray                 # (NL, NB) um^-1
     g: np.ndarray                   # (NL, NB)
-    iface: np.ndarray               # (NL+1, 4) float32: z if flat, zmin, zmax, var index (-1 flat)
+    iface: np.ndarray               # (NL+1, 4) float32: z if flat (else the row's offset), zmin, zmax, row (-1 flat)
     heights: np.ndarray             # (nvar, ny, nx) float32 heights of the varying interfaces
     x0: float = 0.0
     y0: float = 0.0
@@ -51,7 +51,8 @@ class Volume:
     info: dict = field(default_factory=dict)
     # (nvar, ny, nx) float32: the varying interfaces' heights before snapping to the voxel grid,
     # the samples of the smooth surfaces (kernels/surface.h) every pass refracts at and the path
-    # tracer's manifold connection solves on (docs/relief.md); None where nothing varies
+    # tracer's manifold connection solves on (docs/relief.md); None where nothing varies.  On the
+    # smooth walk interfaces that differ by a constant share a row (smooth_samples)
     smooth: np.ndarray | None = None
     # model.surface: "voxels" (the passes walk the staircase of columns) or "smooth" (they cross
     # the smooth surfaces themselves: kernels/smoothwalk.h; heights is then smooth)
@@ -104,6 +105,15 @@ class Volume:
     def smooth_walk(self) -> bool:
         """The passes cross the smooth surfaces themselves (model.surface = "smooth", relief)."""
         return self.surface == "smooth" and not self.flat
+
+    def smooth_samples(self, k: int) -> tuple[np.ndarray, float]:
+        """Interface k's smooth surface as the kernels evaluate it (surface.h): the Catmull-Rom
+        samples (ny, nx) of its row and the height added to them (rows are shared on the smooth
+        walk: _pack)."""
+        v = int(self.iface[k, 3])
+        if v < 0 or self.smooth is None:
+            raise ValueError(f"interface {k} is flat")
+        return self.smooth[v], float(self.iface[k, 0])
 
     def device_bytes(self) -> dict[str, int]:
         if self.smooth_walk:          # one buffer: the samples, then the tiles' bounds
@@ -461,20 +471,34 @@ def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> n
     return res
 
 
-def _pack(z: list, zs: list, nx: int, ny: int):
+def _pack(z: list, zs: list, nx: int, ny: int, share: bool = False):
     """The interfaces as the kernels read them: per interface (height, lo, hi, row of
-    ``heights``; row -1 where flat), the varying ones' heights and smooth heights (float32)."""
+    ``heights``; row -1 where flat), the rows' heights and smooth heights (float32).
+
+    share (the smooth walk): interfaces whose smooth heights differ by a constant share one row,
+    the constant being the interface's height field ``iface[k, 0]`` (kernels/surface.h adds it):
+    the forearm's five varying interfaces are the relief and the relief plus the papillae, each
+    shifted.  Otherwise every varying interface has its own row and ``iface[k, 0]`` is 0."""
     iface = np.zeros((len(z), 4), np.float32)
-    var, svar = [], []
+    var, svar, shapes = [], [], []
     for k in range(len(z)):
         lo, hi = float(np.min(z[k])), float(np.max(z[k]))
-        if hi - lo > 1e-6:
-            iface[k] = (np.nan, lo, hi, len(var))
+        if hi - lo <= 1e-6:
+            iface[k] = (hi, hi, hi, -1)
+            continue
+        row, c = -1, 0.0
+        if share:
+            for j, sj in enumerate(shapes):
+                d = zs[k] - sj
+                if float(np.ptp(d)) <= 1e-7:
+                    row, c = j, float(np.float32(d.flat[0]))
+                    break
+        if row < 0:
+            row = len(var)
+            shapes.append(np.broadcast_to(zs[k], (ny, nx)))
             var.append(np.broadcast_to(z[k], (ny, nx)).astype(np.float32))
             svar.append(np.broadcast_to(zs[k], (ny, nx)).astype(np.float32))
-        else:
-            iface[k] = (hi, hi, hi, -1)
-    iface[:, 0] = np.where(np.isnan(iface[:, 0]), 0.0, iface[:, 0])
+        iface[k] = (c, lo, hi, row)
     heights = np.stack(var) if var else np.zeros((1, 1, 1), np.float32)
     return iface, heights, svar
 
@@ -496,15 +520,17 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
     for k in absent:                               # no sliver of a layer that is not there
         z[k + 1], zs[k + 1] = z[k], zs[k]
     n = optical_indices([L["n"] for L in layers], absent, m["n_below"])
-    iface, heights, svar = _pack(z, zs, nx, ny)
+    iface, heights, svar = _pack(z, zs, nx, ny, share=smooth)
     tiles = None
     if smooth and svar:
         periodic = m["lateral"] == "periodic"
         tiles = np.stack([smooth_tile_bounds(a, dx, dy, periodic) for a in svar])
         for k in range(len(z)):                  # the layer cores: clear of every patch
-            v = int(iface[k, 3])
+            v, c = int(iface[k, 3]), float(iface[k, 0])
             if v >= 0:
-                iface[k, 1], iface[k, 2] = tiles[v, ..., 0].min(), tiles[v, ..., 1].max()
+                lo, hi = float(tiles[v, ..., 0].min()) + c, float(tiles[v, ..., 1].max()) + c
+                iface[k, 1] = np.nextafter(np.float32(lo), np.float32(-np.inf))
+                iface[k, 2] = np.nextafter(np.float32(hi), np.float32(np.inf))
     vol = Volume(wl=wl, names=[L["name"] for L in layers], n=n,
                  thickness=thickness, mua=mua * 1e-4, mus=mus * 1e-4, g=g,
                  iface=iface, heights=np.ascontiguousarray(heights, np.float32),
@@ -512,7 +538,7 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
                  dz=dz, lateral=m["lateral"], n_above=m["n_outside"], n_below=m["n_below"],
                  smooth=np.ascontiguousarray(np.stack(svar), np.float32) if svar else None,
                  surface=m["surface"], tiles=tiles)
-    vol.info = {"columns": [nx, ny], "varying_interfaces": len(svar),
+    vol.info = {"columns": [nx, ny], "varying_interfaces": int(np.sum(iface[:, 3] >= 0)), "surface_rows": len(svar),
                 "absent_layers": [layers[k]["name"] for k in absent],
                 "device_bytes": sum(vol.device_bytes().values())}
     return vol
