@@ -179,7 +179,10 @@ def compare_markdown(config_name: str, device_name: str, pl: _Plan, spec: RefSpe
     md = [f"# clppm compare: {config_name}", "",
           f"Device {device_name}; {res_[0]}x{res_[1]} pixels, budget {pl.budget:g} render seconds per run (eye + "
           "calibration + photon + grid + gather, or the path tracer's trace time; volume build and snapshots "
-          "excluded).  Errors are over the skin's 10x10-pixel squares (bias, and the noise left at that scale).", "",
+          "excluded).  Errors are over the skin's 10x10-pixel squares (bias, and the noise left at that scale).  "
+          "Paper mode here is the paper's estimator (config.PAPER_MODE) on the scene's own surface, the "
+          "reference's, so that the rows differ by estimator only (`clppm render --paper` also walks the "
+          "paper's voxels).", "",
           f"Reference `{ref.key}`: {ref_what}.", "",
           "## Speed and accuracy (last snapshot; equal-time columns interpolated log-log)", "",
           results_markdown(runs, summ, ref), "", "![error against time](compare.png)", "",
