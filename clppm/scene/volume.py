@@ -37,7 +37,7 @@ class Volume:
     mus: np.ndarray                 # (NL, NB) um^-1
     g: np.ndarray                   # (NL, NB)
     iface: np.ndarray               # (NL+1, 4) float32: z if flat (else the row's offset), zmin, zmax, row (-1 flat)
-    heights: np.ndarray             # (nvar, ny, nx) float32 heights of the varying interfaces
+    heights: np.ndarray             # (rows, ny, nx) float32 heights the walks step on (iface[k, 3]'s row)
     x0: float = 0.0
     y0: float = 0.0
     dx: float = 5.0
