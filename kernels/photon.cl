@@ -175,13 +175,89 @@ HOT float2 tile_bound(__constant const Params* P, __constant const float4* iface
     return tile_z[((size_t)v * nty + ty) * ntx + tx];
 }
 
+#ifdef SMOOTH_SURFACE
+/* The photon pass's walk on the smooth surfaces outside the layer core: smoothwalk.h's
+ * (smooth_boundary: the tile's walls, the domain's sides, the layer's top and bottom by
+ * smooth_march, the same crossings), except that a flight goes on from tile to tile within one
+ * call, up to PHOTON_TILES tiles: a free flight across tiles is one step of the photon's loop,
+ * not one per tile wall (the walls were an eighth of the forearm's steps).  *tile is the tile the
+ * step ends in (at its boundary, or at the collision within it). */
+#define PHOTON_TILES 8
+
+/* smoothwalk.h smooth_face for the part s >= s_start of the ray that lies in tile (tx, ty) */
+HOT void photon_face(float3 p, float3 d, int k, int j, int tx, int ty, float s_start,
+                     __constant const Params* P, __constant const float4* iface, __global const float* heights,
+                     float smax, float* best, int* e) {
+    const int v = IF_VAR(k);
+    if (v < 0) {
+        const float z = IF_Z(k);
+        if (j == 0 ? d.z > 0.0f : (d.z < 0.0f && z > -BIG)) {
+            const float s = (z - p.z) / d.z;
+            if (s < *best) { *best = s; *e = j ? EV_BOTTOM : EV_TOP; }
+        }
+        return;
+    }
+    const float lim = fmin(*best, smax);
+    const float4 b = smooth_tile(P, iface, heights, k, tx, ty);
+    const float zs = p.z + s_start * d.z, z1 = p.z + fmin(lim, 1e6f) * d.z;
+    if (j == 0 ? fmax(zs, z1) < b.x : fmin(zs, z1) > b.y) return;     /* clear of the tile's patches */
+    if ((j == 0 ? d.z < 0.0f : d.z > 0.0f) && d.z * d.z * (1.0f + b.w * b.w) >= b.w * b.w)
+        return;                                                       /* away, steeper than the surface */
+    const float s0 = j == 0 ? (zs < b.x ? (b.x - p.z) / d.z : s_start) : (zs > b.y ? (b.y - p.z) / d.z : s_start);
+    int hit;
+    const float s = smooth_march(P, heights, v, (real)IF_Z(k), p, d, s0, lim, b, j == 0 ? (real)1 : (real)-1, &hit);
+    if (s < *best) { *best = s; *e = hit ? (j ? EV_BOTTOM : EV_TOP) : EV_ZONE; }
+}
+
+HOT float photon_smooth_boundary(const Track* t, __constant const Params* P, __constant const float4* iface,
+                                 __global const float* heights, float smax, int* ev, int2* tile) {
+    const float3 p = t->pos, d = t->dir;
+    const int ntx = (P->nx + SMOOTH_CELL - 1) / SMOOTH_CELL, nty = (P->ny + SMOOTH_CELL - 1) / SMOOTH_CELL;
+    const int first = d.z < 0.0f;          /* the face the ray moves toward first */
+    int tx = t->ix / SMOOTH_CELL, ty = t->iy / SMOOTH_CELL;
+    float s_start = 0.0f;
+    for (int i = 0;; ++i) {
+        float best = BIG;
+        int e = EV_NONE;
+        if (d.x > 0.0f ? tx + 1 < ntx : (d.x < 0.0f && tx > 0)) {
+            const float s = (P->x0 + P->dx * (float)((tx + (d.x > 0.0f)) * SMOOTH_CELL) - p.x) / d.x;
+            if (s < best) { best = s; e = EV_WALL_X; }
+        }
+        if (d.y > 0.0f ? ty + 1 < nty : (d.y < 0.0f && ty > 0)) {
+            const float s = (P->y0 + P->dy * (float)((ty + (d.y > 0.0f)) * SMOOTH_CELL) - p.y) / d.y;
+            if (s < best) { best = s; e = EV_WALL_Y; }
+        }
+        domain_sides(p, d, P, &best, &e);
+        photon_face(p, d, t->L + first, first, tx, ty, s_start, P, iface, heights, smax, &best, &e);
+        photon_face(p, d, t->L + 1 - first, 1 - first, tx, ty, s_start, P, iface, heights, smax, &best, &e);
+        if ((e != EV_WALL_X && e != EV_WALL_Y) || best >= smax || i + 1 == PHOTON_TILES) {
+            *ev = e;
+            *tile = (int2)(tx, ty);
+            return best > 0.0f ? best : 0.0f;
+        }
+        s_start = best;                    /* on into the next tile */
+        if (e == EV_WALL_X) tx += d.x > 0.0f ? 1 : -1; else ty += d.y > 0.0f ? 1 : -1;
+    }
+}
+#endif
+
 /* Distance to the next boundary of the photon's constant region, by next_boundary (common.h)
  * in the core and where tile mode does not hold; in tile mode the tile's planes (*plane: the
- * one ahead), its inner walls and the domain's sides. */
+ * one ahead), its inner walls and the domain's sides.  On the smooth walk outside the core,
+ * photon_smooth_boundary, and *tile the tile the step ends in (else x < 0). */
 HOT float photon_boundary(const Track* t, VOLUME_ARGS, __global const float2* tile_z, float smax, int* ev,
-                          float* plane) {
+                          float* plane, int2* tile) {
+    *tile = (int2)(-1, -1);
 #ifdef SMOOTH_SURFACE
-    return next_boundary(t, P, iface, heights, smax, ev);     /* tiles are the smooth walk's cells */
+    {
+        const float z = t->pos.z, dz = t->dir.z;
+        const int in_core = (dz > 0.0f ? z < IF_ZMIN(t->L) : z <= IF_ZMIN(t->L)) &&
+                            (dz < 0.0f ? z > IF_ZMAX(t->L + 1) : z >= IF_ZMAX(t->L + 1));
+#ifndef PHOTON_PLAIN_WALK          /* tests: the walk of the other passes, smoothwalk.h's */
+        if (!in_core) return photon_smooth_boundary(t, P, iface, heights, smax, ev, tile);
+#endif
+        return next_boundary(t, P, iface, heights, smax, ev);
+    }
 #endif
     const float3 d = t->dir;
     const float z = t->pos.z;
@@ -424,10 +500,10 @@ HOT void store_event(__constant const Params* P, const Track* t, Spectral* sw, l
 /* A new direction from the layer's Henyey-Greenstein phase function, then Russian roulette
  * below rr_threshold (survivors multiplied by rr_m, the gain and loss tallied). */
 HOT void scatter_photon(__constant const Params* P, float4 op, Track* t, Spectral* sw, long* W, Fates* f,
-                        __global const float4* optics, Rng* rng) {
+                        __global const float* logmu, Rng* rng) {
     float ct = hg_sample_cos_t(op.y, op.z, rng_u01(rng));
     t->dir = scatter_dir(t->dir, ct, rng_u01(rng));
-    sw_scatter(sw, optics, t->L, op.y, ct);
+    sw_scatter(sw, logmu, t->L, ct);
     if (*W >= (long)(P->rr_threshold * W0F)) return;
     if (rng_u01(rng) * P->rr_m <= 1.0f) {
         long g2 = *W * (long)(P->rr_m) - *W;
@@ -457,7 +533,7 @@ HOT void collide(__constant const Params* P, float4 op, float s, Track* t, Spect
     if (*W > 0 && op.x < 1.0f) {
         if (P->capacity > 0u && t->pos.z > P->store_zmin)
             store_event(P, t, sw, *W, b, srng, store_imp, band_spi, optics, logmu, map, cnt);
-        scatter_photon(P, op, t, sw, W, f, optics, rng);
+        scatter_photon(P, op, t, sw, W, f, logmu, rng);
     } else if (*W > 0) {
         /* pure absorber reached here only when mus = 0 and mua > 0: all absorbed */
         f->absorbed[t->L] += *W; *W = 0;
@@ -615,7 +691,11 @@ __kernel void photon_pass(VOLUME_ARGS,
         const float db = next_boundary(&t, P, iface, heights, s, &ev);
 #else
         float plane = 0.0f;
-        const float db = photon_boundary(&t, VOLUME_PASS, tile_z, s, &ev, &plane);
+        int2 tile;
+        const float db = photon_boundary(&t, VOLUME_PASS, tile_z, s, &ev, &plane, &tile);
+#ifdef SMOOTH_SURFACE
+        if (tile.x >= 0) { t.ix = tile.x * SMOOTH_CELL; t.iy = tile.y * SMOOTH_CELL; }
+#endif
 #endif
         if (s < db) {
             collide(P, op, s, &t, &sw, &W, b, &f, &tau, &rng, &srng, store_imp, band_spi, optics, logmu,

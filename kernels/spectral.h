@@ -23,9 +23,10 @@
  * the balance heuristic then gives the event to the band with the largest s pi-weighted pdf:
  * bounded weights (F_j <= s A_j / pi(b_j)), never worse than one band per path in variance
  * beyond a constant; the benefit is largest for the short paths near the surface.  rho is kept
- * as exp(lr) hr: the free-flight and collision factors as a log (a multiply-add per band and
- * segment, no exponential on the hot path), the phase-function factors as a product
- * renormalised at every scattering (only ratios enter F).
+ * as exp(lr) hq^(-3/2): the free-flight and collision factors as a log (a multiply-add per band
+ * and segment, no exponential on the hot path), the phase-function factors as a product of
+ * linear functions of the scattering cosine (sw_scatter: a multiply-add and a multiply per band,
+ * no root or division), folded into the log when it strays far from 1.
  */
 #ifndef CLPPM_SPECTRAL_H
 #define CLPPM_SPECTRAL_H
@@ -42,7 +43,7 @@ typedef struct {
     int h;
 #if HERO_C > 1
     float lr[HERO_C];   /* log of the flight part of rho, up to the pending part below */
-    float hr[HERO_C];   /* the phase-function part of rho, renormalised by its largest entry */
+    float hq[HERO_C];   /* the phase-function part of rho is hq^(-3/2) (sw_scatter), hq[0] = 1 */
     float la[HERO_C];   /* log of the albedo product, up to the pending collisions */
     float scale;        /* the band-independent factors of the albedo products (Fresnel, roulette) */
     float amax;         /* an upper bound of the largest albedo product (sw_amax) */
@@ -63,7 +64,7 @@ inline int sw_band(int h, int j) {
 inline void sw_init(Spectral* w, int h) {
     w->h = h;
 #if HERO_C > 1
-    for (int j = 0; j < HERO_C; ++j) { w->lr[j] = 0.0f; w->hr[j] = 1.0f; w->la[j] = 0.0f; }
+    for (int j = 0; j < HERO_C; ++j) { w->lr[j] = 0.0f; w->hq[j] = 1.0f; w->la[j] = 0.0f; }
     w->scale = 1.0f; w->amax = 1.0f;
     w->pL = 0; w->pn = 0; w->pl = 0.0f;
 #endif
@@ -71,10 +72,11 @@ inline void sw_init(Spectral* w, int h) {
 
 /* The band table (photonpass.py band_table): [NL*NB] log mu_t, [NL*NB] log albedo (1 - mu_a/mu_t,
  * at least e^-10000: none without scattering), [NL*HERO_STEP] the largest albedo over the bands a path of each hero class
- * h mod HERO_STEP carries. */
+ * h mod HERO_STEP carries, [NL*NB] pairs (A, B) = (1 + g^2, 2 g) (1 - g^2)^(-2/3) (sw_scatter). */
 #define TAB_LOGMU(L, b) tab[(L) * NB + (b)]
 #define TAB_LOGALB(L, b) tab[NL * NB + (L) * NB + (b)]
 #define TAB_MAXALB(L, h) tab[2 * NL * NB + (L) * HERO_STEP + (h) % HERO_STEP]
+#define TAB_HG(L, b) vload2((L) * NB + (b), tab + 2 * NL * NB + NL * HERO_STEP)
 
 /* Lazy per-band work.  Within one layer the per-band factors of a flight and of a collision are
  * constants, so a path keeps only its length and its collisions in the current layer (two
@@ -123,23 +125,38 @@ inline void sw_collide(Spectral* w, __global const float* tab, int L) {
 #endif
 }
 
-/* a scattering in layer L by cos_t (sampled with the hero's g): phase-function ratios,
- * HG(g_j)/HG(g_h) = (1-g_j^2)/(1-g_h^2) (a_h/a_j)^(3/2), a = 1 + g^2 - 2 g cos */
-inline void sw_scatter(Spectral* w, __global const float4* optics, int L, float g_h, float cos_t) {
+/* The phase-function part of rho.  HG(g, c) = (1 - g^2) / (4 pi a^(3/2)), a = 1 + g^2 - 2 g c, so
+ * the ratio of band j to the hero h at a scattering by c is
+ *
+ *     HG(g_j, c) / HG(g_h, c) = [(A_j - B_j c) / (A_h - B_h c)]^(-3/2),
+ *     (A, B) = (1 + g^2, 2 g) (1 - g^2)^(-2/3)   (the band table's TAB_HG, per layer and band),
+ *
+ * and the product over the path's scatterings is hq_j^(-3/2) with hq_j the product of the
+ * bracketed ratios: one multiply-add and one multiply per band and scattering.  hq_j leaves
+ * [2^-40, 2^40] only after many scatterings; then it is folded into lr_j as -3/2 ln hq_j and
+ * restarts at 1 (one factor is at most ((1 + |g|) / (1 - |g|))^2 (1 - g^2)^(-2/3), far from
+ * float's range for any g of skin), so no band's factor overflows or underflows. */
+inline void sw_fold_hq(Spectral* w, int j) {
 #if HERO_C > 1
-    const float ah = 1.0f + g_h * g_h - 2.0f * g_h * cos_t;
-    const float nh = 1.0f / (1.0f - g_h * g_h);
-    float mx = w->hr[0];
+    w->lr[j] -= 1.5f * log(w->hq[j]);
+    w->hq[j] = 1.0f;
+#endif
+}
+
+/* a scattering in layer L by cos_t (sampled with the hero's g) */
+inline void sw_scatter(Spectral* w, __global const float* tab, int L, float cos_t) {
+#if HERO_C > 1
+    const float2 abh = TAB_HG(L, w->h);
+    const float inv = 1.0f / (abh.x - abh.y * cos_t);
+    float lo = 1.0f, hi = 1.0f;
     for (int j = 1; j < HERO_C; ++j) {
-        const float g = optics[L * NB + sw_band(w->h, j)].y;
-        const float r = ah / (1.0f + g * g - 2.0f * g * cos_t);
-        w->hr[j] *= (1.0f - g * g) * nh * r * sqrt(r);
-        mx = fmax(mx, w->hr[j]);
+        const float2 ab = TAB_HG(L, sw_band(w->h, j));
+        w->hq[j] *= (ab.x - ab.y * cos_t) * inv;
+        lo = fmin(lo, w->hq[j]);
+        hi = fmax(hi, w->hq[j]);
     }
-    if (mx > 0.0f && isfinite(mx)) {
-        const float inv = 1.0f / mx;
-        for (int j = 0; j < HERO_C; ++j) w->hr[j] *= inv;
-    }
+    if (lo < 0x1p-40f || hi > 0x1p40f)
+        for (int j = 1; j < HERO_C; ++j) sw_fold_hq(w, j);
 #endif
 }
 
@@ -176,7 +193,9 @@ inline void sw_weights(const Spectral* w, float a_h, __global const float2* band
     float rho[HERO_C];
     float den = 0.0f;
     for (int j = 0; j < HERO_C; ++j) {
-        rho[j] = w->hr[j] * exp_neg(lm - lr[j]);
+        /* hq^(-3/2) lies within 2^-60 .. 2^60 (sw_scatter), so rho neither overflows nor, for the
+         * band of the largest lr, underflows */
+        rho[j] = exp_neg(lm - lr[j]) / (w->hq[j] * sqrt(w->hq[j]));
         den += band_spi[sw_band(w->h, j)].y * rho[j];
     }
     const float inv = den > 0.0f ? w->scale / den : 0.0f;

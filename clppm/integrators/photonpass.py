@@ -107,7 +107,8 @@ def tile_bounds(vol: Volume, tile: int = TILE) -> np.ndarray:
 
 def band_table(vol: Volume, hero: int) -> np.ndarray:
     """float32 (spectral.h): per layer and band log mu_t, then log albedo (at least -1e4: 0 for mu_s = 0), then per
-    layer and hero class (h mod NB/hero) the largest albedo over the bands such a path carries."""
+    layer and hero class (h mod NB/hero) the largest albedo over the bands such a path carries, then per layer and
+    band the phase-function pair (1 + g^2, 2 g) (1 - g^2)^(-2/3) of sw_scatter."""
     with np.errstate(divide="ignore", invalid="ignore"):
         logmu = np.log(np.maximum(vol.mut, 1e-30))
         alb = np.where(vol.mut > 0, 1.0 - vol.mua / np.where(vol.mut > 0, vol.mut, 1.0), 0.0)
@@ -116,8 +117,11 @@ def band_table(vol: Volume, hero: int) -> np.ndarray:
     alb32 = 1.0 - vol.optics_table().reshape(vol.nl, vol.nb, 4)[:, :, 0].astype(np.float64)
     step = vol.nb // hero
     maxalb = np.max(np.maximum(alb, alb32).reshape(vol.nl, hero, step), axis=1)
-    return np.ascontiguousarray(np.concatenate([logmu.ravel(), logalb.ravel(), maxalb.ravel() * (1 + 1e-6)]),
-                                np.float32)
+    g = np.clip(vol.optics_table().reshape(vol.nl, vol.nb, 4)[:, :, 1].astype(np.float64), -0.999999, 0.999999)
+    c = (1.0 - g * g) ** (-2.0 / 3.0)
+    hg = np.stack([(1.0 + g * g) * c, 2.0 * g * c], axis=-1)
+    return np.ascontiguousarray(np.concatenate([logmu.ravel(), logalb.ravel(), maxalb.ravel() * (1 + 1e-6),
+                                                hg.ravel()]), np.float32)
 
 
 def persistent_items(dev: Device) -> int:
@@ -209,11 +213,12 @@ class PhotonPass:
 
     def __init__(self, dev: Device, vol: Volume, cfg: dict, capacity: int = 0,
                  vbuf: VolumeBuffers | None = None, seed: int | None = None, bands: Bands | None = None,
-                 light: Light | None = None, counters: bool = False):
+                 light: Light | None = None, counters: bool = False, plain_walk: bool = False):
         """``bands``: the spectral sampling (default: one band per path, the hero drawn from the
         light's spectrum).  The tallies follow the hero band alone, so it does not change them.
         ``light``: the config's light (default: read from ``cfg``).  ``counters``: build with
-        the event counters (photon.cl PHOTON_COUNTERS; read them with :meth:`counts`)."""
+        the event counters (photon.cl PHOTON_COUNTERS; read them with :meth:`counts`).  ``plain_walk``
+        (tests): on the smooth surfaces, the other passes' walk (photon.cl PHOTON_PLAIN_WALK)."""
         import pyopencl as cl
         self.dev, self.vol, self.cfg = dev, vol, cfg
         self.bands = bands or Bands.from_config(cfg, hero=1, sampling="power")
@@ -221,7 +226,8 @@ class PhotonPass:
         self.counters = bool(counters)
         self.items = persistent_items(dev)
         self.prg = dev.build("photon.cl", kernel_defines(vol, hero=self.hero, pt_fp64=surface_fp64(dev, vol),
-                                                         photon_counters=self.counters))
+                                                         photon_counters=self.counters,
+                                                         photon_plain_walk=plain_walk))
         self.kernel = Kernel(self.prg, "photon_pass")
         self.vbuf = vbuf or upload_volume(dev, vol)
         self.spectrum = self.bands.spectrum
