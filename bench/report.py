@@ -169,18 +169,19 @@ class Runner:
     def render(self, name: str, config: str, *args: str) -> tuple[dict, float]:
         """``clppm render`` to NAME.exr (replacing an earlier set); its run report and the
         command's wall-clock seconds.  A render made by the same command before (NAME.cmd.json,
-        which records its seconds too) is kept, so that redoing a job's figure is cheap."""
+        which records its seconds and the commit too) is kept, so that redoing a job's figure is
+        cheap; a render of other code is made again."""
         exr = self.path(f"{name}.exr")
         cmd = self.ctx.clppm("render", config, "-o", exr, "--force", "-q", *args)
         done = self.path(f"{name}.cmd.json")
-        wall = _kept_wall(done, cmd) if os.path.isfile(self.path(f"{name}.json")) else None
+        wall = _kept_wall(done, cmd, self.ctx.commit) if os.path.isfile(self.path(f"{name}.json")) else None
         if wall is not None:
             self.commands.append(" ".join(["python", *cmd[1:]]) + "   (done before, kept)")
         else:
             t0 = time.perf_counter()
             self(cmd)
             wall = time.perf_counter() - t0
-            write_atomic(done, json.dumps({"args": cmd[2:], "wall_s": wall}))
+            write_atomic(done, json.dumps({"args": cmd[2:], "wall_s": wall, "commit": self.ctx.commit}))
         with open(self.path(f"{name}.json")) as f:
             return json.load(f), wall
 
@@ -306,32 +307,35 @@ def compare_run(ctx: Context, run: Runner) -> tuple[str, dict]:
     d = os.path.join(OUT, "compare")
     done = os.path.join(d, "compare.json")
     cmd = ctx.clppm("compare", relief_config(), "-o", d, "--cache", CACHE, "-q", *compare_args(ctx))
-    if not (os.path.isfile(done) and _same_args(os.path.join(d, "args.json"), cmd)):
+    if not (os.path.isfile(done) and _same_args(os.path.join(d, "args.json"), cmd, ctx.commit)):
         run(cmd)
-        write_atomic(os.path.join(d, "args.json"), json.dumps(cmd[2:]))
+        write_atomic(os.path.join(d, "args.json"), json.dumps({"args": cmd[2:], "commit": ctx.commit}))
     else:
         run.commands.append(" ".join(["python", *cmd[1:]]) + "   (done before, kept)")
     with open(done) as f:
         return d, json.load(f)
 
 
-def _kept_wall(path: str, cmd: list[str]) -> float | None:
-    """The wall-clock seconds of the render ``path`` records, if it records the same command."""
+def _kept_wall(path: str, cmd: list[str], commit: str) -> float | None:
+    """The wall-clock seconds of the render ``path`` records, if it records the same command
+    run by the same commit."""
     try:
         with open(path) as f:
             doc = json.load(f)
     except (OSError, json.JSONDecodeError):
         return None
-    if not isinstance(doc, dict) or doc.get("args") != cmd[2:] or not isinstance(doc.get("wall_s"), (int, float)):
+    if (not isinstance(doc, dict) or doc.get("args") != cmd[2:] or doc.get("commit") != commit
+            or not isinstance(doc.get("wall_s"), (int, float))):
         return None
     return float(doc["wall_s"])
 
 
-def _same_args(path: str, cmd: list[str]) -> bool:
-    """Whether ``path`` records the same command (its arguments after the interpreter)."""
+def _same_args(path: str, cmd: list[str], commit: str) -> bool:
+    """Whether ``path`` records the same command (its arguments after the interpreter) run by
+    the same commit."""
     try:
         with open(path) as f:
-            return json.load(f) == cmd[2:]
+            return json.load(f) == {"args": cmd[2:], "commit": commit}
     except (OSError, json.JSONDecodeError):
         return False
 
