@@ -32,7 +32,7 @@ forearm, the relief forearm; the renderer's bands per path, importance storage a
 this tree against another (``--base DIR``: a checkout with its own ``.venv``, e.g. a git worktree
 of the commit before), each timed in its own process, alternating A B A B (``--rounds``): photons
 emitted and entered (reaching the model) per second, median and best, and from a build with the
-event counters (photon.cl PHOTON_COUNTERS, this tree only) per entered photon: loop steps
+event counters (photon.cl PHOTON_COUNTERS, each tree's own) per entered photon: loop steps
 (events), collisions, stored events, crossings by kind; events/s, cycles per event (the clock
 from /proc/cpuinfo times the compute units), and lane utilisation: sum of loop steps over
 (width x the longest) in groups of 8 and 16 neighbouring work items, what a SIMD compiler that
@@ -445,7 +445,10 @@ def events_ab(base: Path | None, impls: list, rounds: int, photons: dict, out_pa
     for impl in impls:
         for scene, name in EVENT_SCENES.items():
             n = photons[scene]
-            cnt = run_worker(ROOT, {"impl": impl, "scene": name, "stored": n, "counters": True})["counters"]
+            # each tree's own counts (a tree without the counting build: this tree's)
+            cnts = {k: run_worker(tree, {"impl": impl, "scene": name, "stored": n, "counters": True})["counters"]
+                    for k, tree in trees}
+            cnts = {k: c if c is not None else cnts["A"] for k, c in cnts.items()}
             times = {k: [] for k, _ in trees}
             meta = {}
             for r in range(rounds):                          # A B A B
@@ -455,6 +458,7 @@ def events_ab(base: Path | None, impls: list, rounds: int, photons: dict, out_pa
                         times[k].append((dt, e, e * (1 - m)))
             rows = {}
             for k, _ in trees:
+                cnt = cnts[k]
                 em = np.array([e / dt for dt, e, _ in times[k]])
                 en = np.array([e / dt for dt, _, e in times[k]])
                 missed = 1 - sum(x[2] for x in times[k]) / sum(x[1] for x in times[k])
@@ -473,11 +477,12 @@ def events_ab(base: Path | None, impls: list, rounds: int, photons: dict, out_pa
             if "B" in rows:
                 print(f"{'':19s} A/B entered photons/s (median): {rows['A']['entered_per_s'] / rows['B']['entered_per_s']:.2f}x, "
                       f"seconds per pass B/A {rows['B']['seconds_per_pass'] / rows['A']['seconds_per_pass']:.2f}x")
-            e = max(cnt["entered"], 1)
-            print("  per entered photon: " + ", ".join(f"{k} {v / e:.2f}" for k, v in cnt.items()
-                                                       if isinstance(v, int) and k not in ("entered",)))
+            for k, _ in trees:
+                e = max(cnts[k]["entered"], 1)
+                print(f"  {k} per entered photon: " + ", ".join(f"{c} {v / e:.2f}" for c, v in cnts[k].items()
+                                                              if isinstance(v, int) and c not in ("entered",)))
+                rows[k]["counters"] = cnts[k]
             res["rows"] += list(rows.values())
-            res["rows"][-1]["counters"] = cnt
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(res, indent=1, default=str))
     print(f"wrote {out_path}")
