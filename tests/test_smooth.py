@@ -83,6 +83,24 @@ def test_tile_bounds_hold_every_patch_point():
     assert volume.smooth_tile_bounds(plane, 5.0, 5.0, False)[1:-1, 1:-1, 2].max() < 1e-5
 
 
+def test_tile_bounds_are_the_bounds_of_every_patch_coefficient():
+    """smooth_tile_bounds takes its bounds row block by row block, one coefficient at a time:
+    the same numbers, bit for bit, as the extremes of _patch_coeffs over the whole grid at once
+    (open and periodic, a block boundary inside, grids not a whole number of tiles)."""
+    rng = np.random.default_rng(4)
+    for periodic in (False, True):
+        S = rng.normal(size=(301, 45)) * 7.0
+        dx, dy = 5.0, 4.0
+        c = {o: volume._patch_coeffs(S, *o, periodic) for o in ((0, 0), (2, 0), (0, 2), (1, 1), (1, 0), (0, 1))}
+        amax = {o: np.abs(v).max(axis=(0, 1)) for o, v in c.items()}
+        k = np.maximum(amax[2, 0] / (dx * dx), amax[0, 2] / (dy * dy)) + amax[1, 1] / (dx * dy)
+        g2 = (amax[1, 0] / dx) ** 2 + (amax[0, 1] / dy) ** 2
+        t = np.stack([volume._tile_reduce(c[0, 0].min(axis=(0, 1)), np.minimum),
+                      volume._tile_reduce(c[0, 0].max(axis=(0, 1)), np.maximum),
+                      volume._tile_reduce(k, np.maximum), volume._tile_reduce(g2, np.maximum)], -1)
+        np.testing.assert_array_equal(volume.smooth_tile_bounds(S, dx, dy, periodic), volume._outwards(t))
+
+
 # ----------------------------------------------------------------------------- the tilted plane
 def _tilted(tmp_path, slope, tilted, d):
     ts.SLOPE = slope

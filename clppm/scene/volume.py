@@ -362,7 +362,7 @@ def _interfaces(layers: list, depth: np.ndarray, s, w, dz: float, quantize: bool
         z.append(np.float64(base + 0.0) if shape is None else base + shape)
     zs = [z[0]]
     for k in range(1, nl + 1):
-        zs.append(np.minimum(z[k], zs[k - 1]))
+        zs.append(_below(z[k], zs[k - 1]))
     if quantize:
         for k in range(nl + 1):
             if np.ndim(z[k]):
@@ -373,8 +373,16 @@ def _interfaces(layers: list, depth: np.ndarray, s, w, dz: float, quantize: bool
             elif abs(z[k]) < BIG / 2:
                 z[k] = np.round(z[k] / dz) * dz
     for k in range(1, nl + 1):                     # layers never overlap
-        z[k] = np.minimum(z[k], z[k - 1])
+        z[k] = _below(z[k], z[k - 1])
     return z, zs
+
+
+def _below(a, b):
+    """np.minimum(a, b), kept a scalar where a is a scalar below every point of b (a flat
+    interface under a varying one: the same heights, not a full array of one value)."""
+    if np.ndim(a) == 0 and np.ndim(b) and a <= np.min(b):
+        return a
+    return np.minimum(a, b)
 
 
 
@@ -400,6 +408,26 @@ def _weights_bernstein(order: int) -> np.ndarray:
     return c @ _bernstein(3 - order).T
 
 
+def _wsum(weights, arrays) -> np.ndarray:
+    """sum_a weights[a] arrays[a] in that order, skipping zero weights (half of the Catmull-Rom
+    samples' Bernstein weights): the same numbers as the full sum up to the sign of a zero."""
+    out = None
+    for w, a in zip(weights, arrays):
+        if w != 0:
+            if out is None:
+                out = w * a
+            else:
+                out += w * a
+    return out
+
+
+def _x_pass(pad: np.ndarray, nx: int, ox: int) -> list:
+    """The x half of :func:`_patch_coeffs`: per Bernstein index i of d^ox/dfx^ox, the (rows,
+    nx + 1) array R[i][r, p + 1] = sum_a Qx[a, i] pad[r, p + 1 + a] (sample s at pad index s + 2)."""
+    Qx = _weights_bernstein(ox)
+    return [_wsum(Qx[:, i], [pad[:, a:a + nx + 1] for a in range(4)]) for i in range(Qx.shape[1])]
+
+
 def _patch_coeffs(S: np.ndarray, ox: int, oy: int, periodic: bool) -> np.ndarray:
     """Bernstein coefficients of d^ox/dfx^ox d^oy/dfy^oy h over every patch (grid units): S is
     (ny, nx); patch (p, q), p = -1 .. nx - 1, lies between the column centres p and p + 1 in x
@@ -408,10 +436,9 @@ def _patch_coeffs(S: np.ndarray, ox: int, oy: int, periodic: bool) -> np.ndarray
     pad = np.pad(S.astype(np.float64), 2, mode="wrap" if periodic else "edge")
     ny, nx = S.shape
     Qx, Qy = _weights_bernstein(ox), _weights_bernstein(oy)
-    # x first: R[i][r, p + 1] = sum_a Qx[a, i] pad[r, p + 1 + a] (sample s at pad index s + 2)
     R = [sum(Qx[a, i] * pad[:, a:a + nx + 1] for a in range(4)) for i in range(Qx.shape[1])]
-    return np.array([[sum(Qy[b, l] * R[i][b:b + ny + 1] for b in range(4))
-                      for i in range(Qx.shape[1])] for l in range(Qy.shape[1])])
+    return np.array([[sum(Qy[b, l] * r[b:b + ny + 1] for b in range(4)) for r in R]
+                     for l in range(Qy.shape[1])])
 
 
 def _tile_reduce(a: np.ndarray, fn) -> np.ndarray:
@@ -444,17 +471,28 @@ def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> n
             sub, cut = S[idx], 2
         else:
             cut = j0 - lo_r
-        def coeffs(ox, oy):
-            c = _patch_coeffs(sub, ox, oy, periodic)
-            # patches q = j0 - 1 .. j1 - 1 of the full grid are rows cut .. cut + j1 - j0 here
-            return c[..., cut:cut + (j1 - j0) + 1, :]
-        h = coeffs(0, 0)
-        lo = h.min(axis=(0, 1)); hi = h.max(axis=(0, 1))
-        kxx = np.abs(coeffs(2, 0)).max(axis=(0, 1)) / (dx * dx)
-        kyy = np.abs(coeffs(0, 2)).max(axis=(0, 1)) / (dy * dy)
-        kxy = np.abs(coeffs(1, 1)).max(axis=(0, 1)) / (dx * dy)
+        # patches q = j0 - 1 .. j1 - 1 of the full grid are rows cut .. cut + j1 - j0 of sub's
+        pad = np.pad(sub.astype(np.float64), 2, mode="wrap" if periodic else "edge")
+        m = j1 - j0 + 1
+        R = {ox: _x_pass(pad, sub.shape[1], ox) for ox in (0, 1, 2)}   # shared by the orders
+
+        def bound(ox, oy, fn, absolute=True):
+            """fn over the coefficients of d^ox d^oy h (of their magnitudes if absolute), one
+            coefficient at a time: _patch_coeffs's values (up to the sign of a zero, which no
+            bound below keeps) without holding them all."""
+            Qy, acc = _weights_bernstein(oy), None
+            for l in range(Qy.shape[1]):
+                for r in R[ox]:
+                    c = _wsum(Qy[:, l], [r[cut + b:cut + b + m] for b in range(4)])
+                    c = np.abs(c) if absolute else c
+                    acc = c if acc is None else fn(acc, c, out=acc)
+            return acc
+        lo, hi = bound(0, 0, np.minimum, False), bound(0, 0, np.maximum, False)
+        kxx = bound(2, 0, np.maximum) / (dx * dx)
+        kyy = bound(0, 2, np.maximum) / (dy * dy)
+        kxy = bound(1, 1, np.maximum) / (dx * dy)
         k = np.maximum(kxx, kyy) + kxy
-        g2 = (np.abs(coeffs(1, 0)).max(axis=(0, 1)) / dx) ** 2 + (np.abs(coeffs(0, 1)).max(axis=(0, 1)) / dy) ** 2
+        g2 = (bound(1, 0, np.maximum) / dx) ** 2 + (bound(0, 1, np.maximum) / dy) ** 2
         return np.stack([_tile_reduce(lo, np.minimum), _tile_reduce(hi, np.maximum), _tile_reduce(k, np.maximum),
                          _tile_reduce(g2, np.maximum)], -1)
 
@@ -462,7 +500,12 @@ def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> n
     from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 8))) as ex:
         t = np.concatenate(list(ex.map(block, range(0, S.shape[0], 64 * CELL))), 0)
-    # outwards to float32, with room for the kernels' float32 evaluation where a device has no fp64
+    return _outwards(t)
+
+
+def _outwards(t: np.ndarray) -> np.ndarray:
+    """Tile bounds (lo, hi, K, G^2) in float64 to the float32 (lo, hi, K, G) the kernels read,
+    rounded outwards with room for the kernels' float32 evaluation where a device has no fp64."""
     res = np.zeros(t.shape[:2] + (4,), np.float32)
     res[..., 3] = np.nextafter((np.sqrt(t[..., 3]) * (1 + 1e-5) + 1e-9).astype(np.float32), np.float32(np.inf))
     res[..., 0] = np.nextafter((t[..., 0] - 1e-4 - 1e-6 * np.abs(t[..., 0])).astype(np.float32), np.float32(-np.inf))
