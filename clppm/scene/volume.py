@@ -274,8 +274,8 @@ def memoised():
     """While active, :func:`build` keeps every volume it builds, one per geometry (yields that
     memo; nested uses share the outermost one, which is dropped when it ends).
 
-    Building the forearm volume (2000 x 2000 columns, generated relief) takes 5-10 s on the
-    host and does not depend on the method, the camera or the photon counts; a compare or
+    Building the forearm volume (2000 x 2000 columns, generated relief) takes 1.5-2 s on 2
+    cores of the host and does not depend on the method, the camera or the photon counts; a compare or
     benchmark run renders the same volume a dozen times.  The stage timings of the renders
     exclude it anyway (it is ``seconds['volume']``).
     """
