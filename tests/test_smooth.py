@@ -83,15 +83,28 @@ def test_tile_bounds_hold_every_patch_point():
     assert volume.smooth_tile_bounds(plane, 5.0, 5.0, False)[1:-1, 1:-1, 2].max() < 1e-5
 
 
+def patch_coeffs(S: np.ndarray, ox: int, oy: int, periodic: bool) -> np.ndarray:
+    """Bernstein coefficients of d^ox/dfx^ox d^oy/dfy^oy h over every patch (grid units): S is
+    (ny, nx); patch (p, q), p = -1 .. nx - 1, lies between the column centres p and p + 1 in x
+    (q likewise in y) and uses samples p - 1 .. p + 2, repeated (open) or wrapped (periodic)
+    beyond the grid as surface.h hf_index does.  Returns (4 - oy, 4 - ox, ny + 1, nx + 1)."""
+    pad = np.pad(S.astype(np.float64), 2, mode="wrap" if periodic else "edge")
+    ny, nx = S.shape
+    Qx, Qy = volume._weights_bernstein(ox), volume._weights_bernstein(oy)
+    R = [sum(Qx[a, i] * pad[:, a:a + nx + 1] for a in range(4)) for i in range(Qx.shape[1])]
+    return np.array([[sum(Qy[b, l] * r[b:b + ny + 1] for b in range(4)) for r in R]
+                     for l in range(Qy.shape[1])])
+
+
 def test_tile_bounds_are_the_bounds_of_every_patch_coefficient():
     """smooth_tile_bounds takes its bounds row block by row block, one coefficient at a time:
-    the same numbers, bit for bit, as the extremes of _patch_coeffs over the whole grid at once
+    the same numbers, bit for bit, as the extremes of patch_coeffs over the whole grid at once
     (open and periodic, a block boundary inside, grids not a whole number of tiles)."""
     rng = np.random.default_rng(4)
     for periodic in (False, True):
         S = rng.normal(size=(301, 45)) * 7.0
         dx, dy = 5.0, 4.0
-        c = {o: volume._patch_coeffs(S, *o, periodic) for o in ((0, 0), (2, 0), (0, 2), (1, 1), (1, 0), (0, 1))}
+        c = {o: patch_coeffs(S, *o, periodic) for o in ((0, 0), (2, 0), (0, 2), (1, 1), (1, 0), (0, 1))}
         amax = {o: np.abs(v).max(axis=(0, 1)) for o, v in c.items()}
         k = np.maximum(amax[2, 0] / (dx * dx), amax[0, 2] / (dy * dy)) + amax[1, 1] / (dx * dy)
         g2 = (amax[1, 0] / dx) ** 2 + (amax[0, 1] / dy) ** 2

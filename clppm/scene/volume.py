@@ -422,23 +422,13 @@ def _wsum(weights, arrays) -> np.ndarray:
 
 
 def _x_pass(pad: np.ndarray, nx: int, ox: int) -> list:
-    """The x half of :func:`_patch_coeffs`: per Bernstein index i of d^ox/dfx^ox, the (rows,
-    nx + 1) array R[i][r, p + 1] = sum_a Qx[a, i] pad[r, p + 1 + a] (sample s at pad index s + 2)."""
+    """The x half of the patches' Bernstein coefficients: per index i of d^ox/dfx^ox, the (rows,
+    nx + 1) array R[i][r, p + 1] = sum_a Qx[a, i] pad[r, p + 1 + a] (sample s at pad index s + 2;
+    patch p, p = -1 .. nx - 1, lies between the column centres p and p + 1 and uses samples
+    p - 1 .. p + 2, repeated (open) or wrapped (periodic) beyond the grid as surface.h hf_index
+    does)."""
     Qx = _weights_bernstein(ox)
     return [_wsum(Qx[:, i], [pad[:, a:a + nx + 1] for a in range(4)]) for i in range(Qx.shape[1])]
-
-
-def _patch_coeffs(S: np.ndarray, ox: int, oy: int, periodic: bool) -> np.ndarray:
-    """Bernstein coefficients of d^ox/dfx^ox d^oy/dfy^oy h over every patch (grid units): S is
-    (ny, nx); patch (p, q), p = -1 .. nx - 1, lies between the column centres p and p + 1 in x
-    (q likewise in y) and uses samples p - 1 .. p + 2, repeated (open) or wrapped (periodic)
-    beyond the grid as surface.h hf_index does.  Returns (4 - oy, 4 - ox, ny + 1, nx + 1)."""
-    pad = np.pad(S.astype(np.float64), 2, mode="wrap" if periodic else "edge")
-    ny, nx = S.shape
-    Qx, Qy = _weights_bernstein(ox), _weights_bernstein(oy)
-    R = [sum(Qx[a, i] * pad[:, a:a + nx + 1] for a in range(4)) for i in range(Qx.shape[1])]
-    return np.array([[sum(Qy[b, l] * r[b:b + ny + 1] for b in range(4)) for r in R]
-                     for l in range(Qy.shape[1])])
 
 
 def _tile_reduce(a: np.ndarray, fn) -> np.ndarray:
@@ -477,9 +467,10 @@ def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> n
         R = {ox: _x_pass(pad, sub.shape[1], ox) for ox in (0, 1, 2)}   # shared by the orders
 
         def bound(ox, oy, fn, absolute=True):
-            """fn over the coefficients of d^ox d^oy h (of their magnitudes if absolute), one
-            coefficient at a time: _patch_coeffs's values (up to the sign of a zero, which no
-            bound below keeps) without holding them all."""
+            """fn over the Bernstein coefficients of d^ox/dfx^ox d^oy/dfy^oy h on the block's
+            patches (of their magnitudes if absolute), one coefficient at a time: the extremes
+            without holding every coefficient (tests/test_smooth.py checks them, bit for bit,
+            against all coefficients at once)."""
             Qy, acc = _weights_bernstein(oy), None
             for l in range(Qy.shape[1]):
                 for r in R[ox]:
