@@ -101,8 +101,8 @@ def test_classify_names_signal_stage_and_hang():
 def test_a_broken_named_device_is_refused_with_one_line(dev, env, tmp_path, fault, says):
     spec = device_spec(dev.device)
     if "crash" in fault and not dev.device.type & cl.device_type.CPU:
-        # a GPU does not raise SIGSEGV: the launch fails (NVIDIA: an illegal address, reported
-        # as an OpenCL error at the launch's wait), and the child exits with it
+        # a GPU raises no signal for the write to address 0; what its driver reports instead
+        # varies, so only the stage the refusal names is checked
         says = says.split(") ", 1)[1]
     e = {**env, "CLPPM_FAULT": fault}
     r = _clppm(["devices", "--device", spec, "--check"], e, tmp_path)
