@@ -79,7 +79,7 @@ typedef struct {
     int max_vertices;           /* safety bound per path (counted as cut) */
     float nee_od;               /* NEE roulette: optical depth straight up beyond which ... */
     float nee_q_floor;          /* ... the connection is made with probability exp(nee_od - od) */
-    int mnee_trials;            /* relief: random trials of manifold sampling per connection */
+    float mnee_trials;          /* relief: random trials of manifold sampling per connection, on average */
 } PtParams;
 
 #define MAXE (4 * NL + 8)       /* chain events; a longer chain (R^4 smaller) counts as blocked */
@@ -375,6 +375,15 @@ inline int sms_trial(const Chain* ch, real4 v, int Ls, real u0x, real u0y, real4
     return ok;
 }
 
+/* How many random trials a connection makes: the whole part of the mean t, and one more with
+ * the probability of its fraction (a draw only when t is not whole), so E[n] = t.  A trial costs
+ * a Newton solve and rarely finds a solution the flat seed missed, so a mean below 1 trades a
+ * little of that rare light's noise for most of the connection's time. */
+inline int sms_count(float t, Rng* rng) {
+    const float w = floor(t);
+    return (int)w + ((t > w && rng_u01(rng) < t - w) ? 1 : 0);
+}
+
 inline int same_solution(real ax, real ay, real bx, real by) {
     return fabs(ax - bx) + fabs(ay - by) < MN_SAME;
 }
@@ -399,14 +408,15 @@ inline int sms_recurrence(const Chain* ch, real4 v, int Ls, real u0x, real u0y, 
 /* Every light path through the chain, by specular manifold sampling (Zeltner, Georgiev & Jakob
  * 2020, unbiased variant), each with its own phase function value for the path direction wdir.
  * The flat-seeded solution x0 (Newton, continuation: mnee_solve) is added as it is.  The others
- * by ntrials random trials (sms_trial): a trial that finds a solution x other than x0 adds f(x)
- * times the number of further trials until x recurs, an estimate of 1/p(x); so the expected sum
- * is that of f over every solution other than x0 that a trial can reach (any: the seeds have full
- * support), whatever their number.  Where the flat-seeded solve fails, MN_SMS_NOFLAT trials
- * instead (the number is fixed by the vertex, so the estimate stays unbiased).  Bias only from
- * the cap (counted: ss->clamped). */
+ * by random trials (sms_trial), trials of them on average (sms_count): a trial that finds a
+ * solution x other than x0 adds f(x) times the number of further trials until x recurs, an
+ * estimate of 1/p(x), over the mean number of trials; so the expected sum is that of f over every
+ * solution other than x0 that a trial can reach (any: the seeds have full support), whatever
+ * their number.  Where the flat-seeded solve fails, at least MN_SMS_NOFLAT trials instead (the
+ * number is fixed by the vertex, so the estimate stays unbiased).  Bias only from the cap
+ * (counted: ss->clamped). */
 inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift, int b,
-                              float g, float4 wdir, int ntrials, Rng* rng,
+                              float g, float4 wdir, float trials, Rng* rng,
                               __constant const Params* P, __constant const float4* iface,
                               __constant const float* layer_n, __global const float4* optics,
                               __global const float* smooth, MneeStat* st, SmsStat* ss, int* nsol) {
@@ -423,7 +433,14 @@ inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 sh
         if (f > 0.0f) c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz));
     }
     int ns = have0;
-    if (!have0 && ntrials > 0) ntrials = max(ntrials, MN_SMS_NOFLAT);
+    int ntrials = 0;
+    float per = trials;
+    if (have0) {
+        ntrials = sms_count(trials, rng);
+    } else if (trials > 0.0f) {
+        ntrials = max((int)ceil(trials), MN_SMS_NOFLAT);
+        per = (float)ntrials;
+    }
     for (int j = 0; j < ntrials; ++j) {
         real ax, ay;
         ss->trials++;
@@ -433,7 +450,7 @@ inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 sh
         const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
         if (!(f > 0.0f)) continue;
         const int n = sms_recurrence(ch, v, Ls, u0x, u0y, l, rng, ax, ay, P, iface, layer_n, smooth, st, ss);
-        c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz)) * (float)n / (float)ntrials;
+        c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz)) * (float)n / per;
     }
     ss->found += ns > 0;
     *nsol = ns;
@@ -874,7 +891,7 @@ __kernel void t_connect(VOLUME_ARGS, __constant const float* chain, const float4
 __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const float* smooth,
                      const float4 light, const int mode, const uint n, __global const float4* verts,
                      __global real* out, __global real* pts, const int use_seeds,
-                     __global const real* seeds, const int mnee_trials, const uint salt) {
+                     __global const real* seeds, const float mnee_trials, const uint salt) {
     const uint i = (uint)get_global_id(0);
     if (i >= n) return;
     __global real* o = out + (size_t)i * 20;

@@ -329,6 +329,32 @@ def test_solutions_sum_to_the_brute_force_irradiance(dev):
             assert se < 0.05 * total and r["factor"][i] < 0.7 * total, (se, r["factor"][i], total)
 
 
+def test_a_fractional_mean_of_random_trials_stays_unbiased(dev):
+    """The random trials' number is drawn per connection with mean t (sms_count: the whole part,
+    one more with the probability of the fraction), and a solution they find is weighted by 1/t.
+    At t = 0.4, under the same focusing junction: at the vertex with one solution the trials made
+    average 0.4 (every sample still exact), and at the vertex with three the mean of the samples
+    equals the sum over the solutions of a dense seed search within its standard error (weighted
+    by 1 instead of 1/t it would fall short by most of the other paths' share)."""
+    vol = volume.build(scene(FOCUS, papillae=6.0, period=40.0))
+    verts = np.array([[230.0, 260.0, -180.0, 1], [190.0, 310.0, -150.0, 1]])
+    r = testing.mnee_probe(dev, vol, LIGHT, verts, 0)
+    sols = _solutions(dev, vol, verts, r)
+    assert [len(q) for q in sols] == [3, 1]
+    t, n = 0.4, 8000
+    one = testing.mnee_probe(dev, vol, LIGHT, np.repeat(verts[1:2], n, 0), 0, trials=t, salt=3)
+    total1 = sum(q[1] for q in sols[1])
+    np.testing.assert_allclose(one["all_factor"], total1, rtol=1e-4)
+    made = one["trials"]
+    assert set(np.unique(made)) == {0.0, 1.0}
+    assert abs(made.mean() - t) <= 4 * math.sqrt(t * (1 - t) / n), made.mean()
+    sms = testing.mnee_probe(dev, vol, LIGHT, np.repeat(verts[0:1], n, 0), 0, trials=t, salt=3)["all_factor"]
+    total = sum(q[1] for q in sols[0])
+    se = sms.std() / math.sqrt(n)
+    assert abs(sms.mean() - total) <= 4 * se + 1e-4 * total, (sms.mean(), se, total)
+    assert se < 0.05 * total and r["factor"][0] < 0.7 * total, (se, r["factor"][0], total)
+
+
 # ----------------------------------------------------------------------------- renders
 def test_render_at_vanishing_amplitude_matches_the_flat_path_tracer(dev):
     """A junction of amplitude 1e-3 um (a relief build: column tracking, smooth normals, MNEE)

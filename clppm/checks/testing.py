@@ -156,7 +156,7 @@ def connect_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, 
 
 
 def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mode: int = 0,
-               seeds: np.ndarray | None = None, trials: int = MNEE_TRIALS, salt: int = 0) -> dict:
+               seeds: np.ndarray | None = None, trials: float = MNEE_TRIALS, salt: int = 0) -> dict:
     """Run the kernel's manifold connection (relief builds) for vertices ``verts`` (n, 4: x, y, z
     um, a layer guess) to the light at ``light_um``; mode as connect_probe.  Returns ok,
     iterations, halvings, G, the factor (band 0), the Fresnel product, cos theta_v, cos theta_a,
@@ -164,7 +164,7 @@ def mnee_probe(dev: Device, vol: volume.Volume, light_um, verts: np.ndarray, mod
     layer, upward normal, 0; vertex first, the light's height last).  ``seeds`` (n, 2): Newton
     on the surfaces from these momenta instead of the flat seed (no continuation).  Without
     seeds also ``all_factor``, ``solutions``, ``trials`` and ``clamped``: one sample of the
-    render's connection (specular manifold sampling with ``trials`` random trials, random stream
+    render's connection (specular manifold sampling with ``trials`` random trials on average, random stream
     (vertex index, ``salt``); band 0, isotropic phase function x 4 pi)."""
     assert not vol.flat
     pr = Probe(dev, vol, verts, light_um, 20, 8)

@@ -86,7 +86,7 @@ PT_DTYPE = np.dtype([
     ("lx", "f4"), ("ly", "f4"), ("lz", "f4"),
     ("alpha", "f4"), ("specular", "i4"),
     ("rr_threshold", "f4"), ("rr_m", "f4"), ("max_vertices", "i4"),
-    ("nee_od", "f4"), ("nee_q_floor", "f4"), ("mnee_trials", "i4"),
+    ("nee_od", "f4"), ("nee_q_floor", "f4"), ("mnee_trials", "f4"),
 ])
 
 #: ``GridParams`` (kernels/grid.h)

@@ -58,7 +58,9 @@ MNEE_STATS = ["solves", "solved", "newton_iterations", "continued", "vertex_abov
               "solutions", "found", "other_solutions", "random_trials", "clamped"]
 # Random trials of specular manifold sampling per connection (relief): the light paths through a
 # furrow or over a papilla can be several (caustics); a trial that finds one other than the
-# flat-seeded solution adds it weighted by its trial count to recur (docs/relief.md)
+# flat-seeded solution adds it weighted by its trial count to recur.  A mean (the number drawn
+# per connection, kernels/pt.cl sms_count); below 1 it saved time but not error on the forearm
+# (docs/relief.md section 4)
 MNEE_TRIALS = 1
 FLAT_REF = "configs/forearm_flat.toml"
 
@@ -356,7 +358,7 @@ def mnee_report(tot: list[int]) -> dict:
                    "ray differentials for the Jacobian, step halving, seeded by the flat solution; "
                    "where that fails, continuation from the flat surfaces; the other solutions by "
                    f"specular manifold sampling, unbiased: {MNEE_TRIALS} random trial(s) per connection "
-                   "(8 where the flat-seeded solve fails), a solution found weighted by the trials "
+                   "(16 where the flat-seeded solve fails), a solution found weighted by the trials "
                    "until it recurs (capped at 256: clamped) "
                    "(docs/relief.md)")
     return d
