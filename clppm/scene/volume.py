@@ -466,24 +466,30 @@ def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> n
         m = j1 - j0 + 1
         R = {ox: _x_pass(pad, sub.shape[1], ox) for ox in (0, 1, 2)}   # shared by the orders
 
-        def bound(ox, oy, fn, absolute=True):
-            """fn over the Bernstein coefficients of d^ox/dfx^ox d^oy/dfy^oy h on the block's
-            patches (of their magnitudes if absolute), one coefficient at a time: the extremes
-            without holding every coefficient (tests/test_smooth.py checks them, bit for bit,
-            against all coefficients at once)."""
-            Qy, acc = _weights_bernstein(oy), None
+        def coefficients(ox, oy):
+            """The Bernstein coefficients of d^ox/dfx^ox d^oy/dfy^oy h on the block's patches,
+            one at a time, so that their extremes are kept without holding them all
+            (tests/test_smooth.py checks the bounds, bit for bit, against all at once)."""
+            Qy = _weights_bernstein(oy)
             for l in range(Qy.shape[1]):
                 for r in R[ox]:
-                    c = _wsum(Qy[:, l], [r[cut + b:cut + b + m] for b in range(4)])
-                    c = np.abs(c) if absolute else c
-                    acc = c if acc is None else fn(acc, c, out=acc)
+                    yield _wsum(Qy[:, l], [r[cut + b:cut + b + m] for b in range(4)])
+
+        def bound(ox, oy):
+            """max |coefficient| of that derivative's patches"""
+            acc = None
+            for c in coefficients(ox, oy):
+                c = np.abs(c, out=c)
+                acc = c if acc is None else np.maximum(acc, c, out=acc)
             return acc
-        lo, hi = bound(0, 0, np.minimum, False), bound(0, 0, np.maximum, False)
-        kxx = bound(2, 0, np.maximum) / (dx * dx)
-        kyy = bound(0, 2, np.maximum) / (dy * dy)
-        kxy = bound(1, 1, np.maximum) / (dx * dy)
+        lo = hi = None
+        for c in coefficients(0, 0):                            # the height's range: one pass
+            lo, hi = (c, c.copy()) if lo is None else (np.minimum(lo, c, out=lo), np.maximum(hi, c, out=hi))
+        kxx = bound(2, 0) / (dx * dx)
+        kyy = bound(0, 2) / (dy * dy)
+        kxy = bound(1, 1) / (dx * dy)
         k = np.maximum(kxx, kyy) + kxy
-        g2 = (bound(1, 0, np.maximum) / dx) ** 2 + (bound(0, 1, np.maximum) / dy) ** 2
+        g2 = (bound(1, 0) / dx) ** 2 + (bound(0, 1) / dy) ** 2
         return np.stack([_tile_reduce(lo, np.minimum), _tile_reduce(hi, np.maximum), _tile_reduce(k, np.maximum),
                          _tile_reduce(g2, np.maximum)], -1)
 
