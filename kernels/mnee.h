@@ -42,13 +42,13 @@
 #define MN_SEED_BUDGET 24       /* traces per extra seed */
 #define HF_MAXIT 24             /* Newton iterations per ray-height-field intersection */
 #define MN_CONT 64              /* continuation steps */
+#define MN_WARM 12              /* events whose intersections start from the last trace's (a
+                                   Newton step of the solver moves the chain a little, so
+                                   they need fewer evaluations of the height field) */
 
 /* A ray (o, d) with its differentials (do_a, dd_a), a = 1, 2, with respect to u */
 typedef struct { real4 o, d, do1, do2, dd1, dd2; } Ray;
 
-/* Intersect the ray with interface k (Newton along the ray from the plane through h(o.xy));
- * on success the ray's origin and its differentials move to the hit, *f is h there, *t the
- * distance.  0: no convergence or a hit behind. */
 /* The surface deformed from the plane z = zr by lam in [0, 1] (lam = 1: the surface itself):
  * the homotopy the solver continues along when Newton from the flat seed fails. */
 inline void hf_eval_l(__constant const Params* P, __constant const float4* iface,
@@ -60,11 +60,19 @@ inline void hf_eval_l(__constant const Params* P, __constant const float4* iface
     }
 }
 
+/* Intersect the ray with interface k (Newton along the ray from t_warm where it is > 0, the
+ * last trace's distance for this event, else from the plane through h(o.xy)); on success the
+ * ray's origin and its differentials move to the hit, *f is h there, *t the distance.  0: no
+ * convergence or a hit behind. */
 inline int hf_hit(__constant const Params* P, __constant const float4* iface,
-                  __global const float* smooth, int k, real lam, real zr, Ray* r, HF* f, real* t_out) {
+                  __global const float* smooth, int k, real lam, real zr, real t_warm, Ray* r, HF* f,
+                  real* t_out) {
     if (r->d.z == 0) return 0;
-    hf_eval_l(P, iface, smooth, k, r->o.x, r->o.y, lam, zr, f);
-    real t = (f->h - r->o.z) / r->d.z;
+    real t = t_warm;
+    if (!(t > 0)) {
+        hf_eval_l(P, iface, smooth, k, r->o.x, r->o.y, lam, zr, f);
+        t = (f->h - r->o.z) / r->d.z;
+    }
     int ok = 0;
     for (int it = 0; it < HF_MAXIT; ++it) {
         const real4 p = r->o + t * r->d;
@@ -131,16 +139,18 @@ typedef struct {
     real len[NL];               /* path length in each layer */
     real4 s;                    /* the surface crossing (the last event's point) */
     real4 d0;                   /* the direction leaving the vertex */
+    real tw[MN_WARM];           /* the first MN_WARM events' distances: the next trace's starts */
     float F;                    /* product of Fresnel R or T over the events */
     int why;                    /* where a failed trace stopped: 1 momentum, 2 heading, 3 hit, 4 TIR,
                                    5 side, 6 air (10 x event + code) */
 } Trace;
 
-/* Trace the chain's events from vertex v (layer k0) with momentum u to the light's height;
+/* Trace the chain's events from vertex v (layer k0) with momentum u to the light's height,
+ * each intersection started from the trace warm's (0: none);
  * pts (tests, else 0): 8 numbers per point (position, layer of the segment ending there,
  * upward normal), the vertex first, the point at the light's height last. */
 inline int mnee_trace(const Chain* ch, real4 v, int k0, real ux, real uy, real4 l, real lam,
-                      __constant const Params* P, __constant const float4* iface,
+                      const Trace* warm, __constant const Params* P, __constant const float4* iface,
                       __constant const float* layer_n, __global const float* smooth, Trace* T,
                       __global real* pts) {
     const real nv = layer_n[k0];
@@ -167,7 +177,9 @@ inline int mnee_trace(const Chain* ch, real4 v, int k0, real ux, real uy, real4 
         if ((i == k) != (r.d.z > 0)) { T->why = 10 * e + 2; return 0; }
         HF f;
         real t;
-        if (!hf_hit(P, iface, smooth, i, lam, ch->zref[i], &r, &f, &t)) { T->why = 10 * e + 3; return 0; }
+        const real tw = (warm && e < MN_WARM) ? warm->tw[e] : (real)0;
+        if (!hf_hit(P, iface, smooth, i, lam, ch->zref[i], tw, &r, &f, &t)) { T->why = 10 * e + 3; return 0; }
+        if (e < MN_WARM) T->tw[e] = t;
         T->len[k] += t;
         real len;
         const real4 n = hf_normal(&f, &len);
@@ -219,7 +231,7 @@ inline int mnee_newton(const Chain* ch, real4 v, int k0, real* ux, real* uy, rea
     const real tol = (real)MN_TOL * sqrt(rdot(dv, dv));
     if (st->traces >= MN_BUDGET) return 0;
     st->traces++;
-    if (!mnee_trace(ch, v, k0, *ux, *uy, l, lam, P, iface, layer_n, smooth, T, 0)) return 0;
+    if (!mnee_trace(ch, v, k0, *ux, *uy, l, lam, 0, P, iface, layer_n, smooth, T, 0)) return 0;
     real err = sqrt(T->c[0] * T->c[0] + T->c[1] * T->c[1]);
     for (int it = 0; it < MN_MAXIT; ++it) {
         if (err <= tol) return 1;
@@ -235,7 +247,7 @@ inline int mnee_newton(const Chain* ch, real4 v, int k0, real* ux, real* uy, rea
             if (st->traces >= MN_BUDGET) return 0;
             st->traces++;
             const real nx = *ux + step * du, ny = *uy + step * dv2;
-            if (mnee_trace(ch, v, k0, nx, ny, l, lam, P, iface, layer_n, smooth, &Tn, 0)) {
+            if (mnee_trace(ch, v, k0, nx, ny, l, lam, T, P, iface, layer_n, smooth, &Tn, 0)) {
                 const real en = sqrt(Tn.c[0] * Tn.c[0] + Tn.c[1] * Tn.c[1]);
                 if (en < err) { *ux = nx; *uy = ny; *T = Tn; err = en; acc = 1; break; }
             }
