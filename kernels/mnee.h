@@ -39,8 +39,7 @@
 #define MN_MAXIT 16             /* Newton iterations on the landing constraint */
 #define MN_HALF 6               /* step halvings per iteration */
 #define MN_BUDGET 160           /* traces per connection, all attempts together (then: failed) */
-#define MN_SEED_BUDGET 8        /* traces per random trial (pt.cl sms_trial) */
-#define MN_SEED_HALF 1          /* step halvings per iteration of a random trial */
+#define MN_SEED_BUDGET 24       /* traces per extra seed */
 #define HF_MAXIT 24             /* Newton iterations per ray-height-field intersection */
 #define MN_CONT 64              /* continuation steps */
 #define MN_WARM 12              /* events whose intersections start from the last trace's (a
@@ -223,10 +222,9 @@ inline int mnee_trace(const Chain* ch, real4 v, int k0, real ux, real uy, real4 
 /* Solver statistics of a connection */
 typedef struct { int ok, iters, halvings, cont, traces; } MneeStat;
 
-/* Newton on c(u) = 0 for the surfaces at homotopy lam, from u, at most max_half step halvings
- * per iteration; 1 with the converged trace. */
+/* Newton on c(u) = 0 for the surfaces at homotopy lam, from u; 1 with the converged trace. */
 inline int mnee_newton(const Chain* ch, real4 v, int k0, real* ux, real* uy, real4 l, real lam,
-                       int max_half, __constant const Params* P, __constant const float4* iface,
+                       __constant const Params* P, __constant const float4* iface,
                        __constant const float* layer_n, __global const float* smooth,
                        Trace* T, MneeStat* st) {
     const real4 dv = l - v;
@@ -245,7 +243,7 @@ inline int mnee_newton(const Chain* ch, real4 v, int k0, real* ux, real* uy, rea
         real step = 1;
         int acc = 0;
         Trace Tn;
-        for (int hlv = 0; hlv < max_half; ++hlv) {
+        for (int hlv = 0; hlv < MN_HALF; ++hlv) {
             if (st->traces >= MN_BUDGET) return 0;
             st->traces++;
             const real nx = *ux + step * du, ny = *uy + step * dv2;
@@ -272,14 +270,14 @@ inline int mnee_solve(const Chain* ch, real4 v, int k0, real* ux, real* uy, real
                       Trace* T, MneeStat* st) {
     st->ok = 0; st->iters = 0; st->halvings = 0; st->cont = 0; st->traces = 0;
     const real sx = *ux, sy = *uy;
-    if (mnee_newton(ch, v, k0, ux, uy, l, 1, MN_HALF, P, iface, layer_n, smooth, T, st)) { st->ok = 1; return 1; }
+    if (mnee_newton(ch, v, k0, ux, uy, l, 1, P, iface, layer_n, smooth, T, st)) { st->ok = 1; return 1; }
     st->cont = 1;
     *ux = sx; *uy = sy;
     real lam = 0, dl = (real)0.25;
     for (int g = 0; g < MN_CONT; ++g) {
         const real ln = fmin((real)1, lam + dl);
         real nx = *ux, ny = *uy;
-        if (mnee_newton(ch, v, k0, &nx, &ny, l, ln, MN_HALF, P, iface, layer_n, smooth, T, st)) {
+        if (mnee_newton(ch, v, k0, &nx, &ny, l, ln, P, iface, layer_n, smooth, T, st)) {
             *ux = nx; *uy = ny; lam = ln;
             if (lam >= 1) { st->ok = 1; return 1; }
             dl = fmin((real)0.5, dl * 2);

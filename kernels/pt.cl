@@ -360,11 +360,7 @@ inline float connect_mnee(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift,
 #define MN_SMS_NOFLAT 16        /* random trials where the flat-seeded solve fails */
 
 /* One random trial: Newton on the surfaces from a seed u0 + N(0, sigma^2) in each component of
- * the momentum (Box-Muller; full support), on a short leash: MN_SEED_BUDGET traces, MN_SEED_HALF
- * halvings per iteration.  The leash sets p(x), the chance that a trial finds solution x, and
- * the recurrence count estimates 1/p(x) under the same leash, so the sum stays unbiased as long
- * as p(x) > 0: seeds near enough to x converge by full Newton steps, which any leash allows
- * (bench/studies/mnee_solutions.py checks the sum against a dense seed search per layer). */
+ * the momentum (Box-Muller; full support, so every solution's basin has a chance). */
 inline int sms_trial(const Chain* ch, real4 v, int Ls, real u0x, real u0y, real4 l, Rng* rng,
                      __constant const Params* P, __constant const float4* iface,
                      __constant const float* layer_n, __global const float* smooth,
@@ -374,7 +370,7 @@ inline int sms_trial(const Chain* ch, real4 v, int Ls, real u0x, real u0y, real4
     *ux = u0x + (real)(r * cos(ph)); *uy = u0y + (real)(r * sin(ph));
     MneeStat s2;
     s2.iters = 0; s2.halvings = 0; s2.cont = 0; s2.traces = MN_BUDGET - MN_SEED_BUDGET;
-    const int ok = mnee_newton(ch, v, Ls, ux, uy, l, 1, MN_SEED_HALF, P, iface, layer_n, smooth, T, &s2);
+    const int ok = mnee_newton(ch, v, Ls, ux, uy, l, 1, P, iface, layer_n, smooth, T, &s2);
     st->iters += s2.iters;
     return ok;
 }
@@ -919,7 +915,7 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
         chain_local_H(&ch, v, l.z, P, iface, smooth);
         real ux = seeds[2 * i], uy = seeds[2 * i + 1];
         ms.iters = 0; ms.halvings = 0; ms.cont = 0; ms.traces = 0;
-        ms.ok = mnee_newton(&ch, v, Ls, &ux, &uy, l, 1, MN_HALF, P, iface, layer_n, smooth, &T, &ms);
+        ms.ok = mnee_newton(&ch, v, Ls, &ux, &uy, l, 1, P, iface, layer_n, smooth, &T, &ms);
         if (ms.ok) f = mnee_factor(&T, &ch, (float2)(0.0f), 0, P, optics, &dl);
     } else {
         f = connect_mnee(&ch, v, Ls, (float4)(light.xyz, 0.0f), (float2)(0.0f), 0, P, iface, layer_n, optics,
