@@ -2,13 +2,14 @@
 # clppm on an NVIDIA GPU in one shot (the `device` tool's machine: no network, no OpenCL set up).
 #
 #   here:  bash ../shared/gpu/prepare.sh          # wheels for the GPU machine's Python into .whl/
-#   there: bash bench/gpu_check.sh                 # device run, carry [".whl"], timeout_s 560 (most of it the time boxes of the tests, 200 s, and test_mnee, 120 s)
+#   there: bash bench/gpu_check.sh                 # device run, carry [".whl"], timeout_s 560 (most of it the tests' time box, 300 s)
 #
 # Registers NVIDIA's OpenCL driver, installs clppm from the checkout, runs its self-test, the
 # README's render twice (cold: kernel builds included; warm: from pyopencl's binary cache), the
 # tests in order of what a GPU is likeliest to break (each stuck test dumps its Python stack after
 # T_STUCK s, and the suite is stopped by SIGINT at T_TESTS s, so pytest still prints its summary),
-# bench/devices.py, and test_mnee last, on its own.  At most 8 files come back in $OUT.  TESTS=... overrides the test list.
+# then bench/devices.py.  NVIDIA's compiler takes about 35 s per relief program, so the box is
+# mostly builds.  At most 8 files come back in $OUT.  TESTS=... overrides the test list.
 set -u
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1 CLPPM_CACHE_DIR=/tmp/clppm-cache
@@ -39,18 +40,12 @@ for run in cold warm; do
 done
 cp /tmp/r/forearm.png "$OUT/" 2>/dev/null
 log "tests"
-timeout -s INT -k 30 ${T_TESTS:-200} python3 -m pytest -v -p no:cacheprovider --maxfail=20 -rfEs --tb=short \
+timeout -s INT -k 30 ${T_TESTS:-300} python3 -m pytest -v -p no:cacheprovider --maxfail=20 -rfEs --tb=short \
   --durations=25 -o faulthandler_timeout=${T_STUCK:-90} \
-  ${TESTS:-tests/test_selftest.py tests/test_photonpass.py tests/test_gather.py tests/test_determinism.py tests/test_smooth.py tests/test_pathtracer.py tests/test_spectral.py tests/test_surface.py tests/test_render.py tests/test_stability.py tests/test_checkpoint.py tests/test_hashgrid.py} \
+  ${TESTS:-tests/test_selftest.py tests/test_photonpass.py tests/test_gather.py tests/test_determinism.py tests/test_smooth.py tests/test_pathtracer.py tests/test_spectral.py tests/test_surface.py tests/test_render.py tests/test_stability.py tests/test_checkpoint.py tests/test_hashgrid.py tests/test_mnee.py} \
   >>"$OUT/tests.log" 2>&1
 log "tests rc=$? ($(grep -E '^(=+ )?[0-9]+ (passed|failed)' "$OUT/tests.log" | tail -1))"
 log "bench/devices.py"
 timeout ${T_BENCH:-100} python3 bench/devices.py --repeat 2 --out /tmp/bench >>"$OUT/render.log" 2>&1
 log "bench rc=$?"; cp /tmp/bench/devices.json "$OUT/" 2>/dev/null
-# test_mnee last and on its own: its snapped-furrow probe gave no answer on an H200 (docs/devices.md);
-# the stack dumped after 60 s says whether it waits in the build or the launch
-log "test_mnee"
-timeout -s INT -k 20 ${T_MNEE:-120} python3 -m pytest -v -p no:cacheprovider -rfEs --tb=short --durations=10 \
-  -o faulthandler_timeout=60 tests/test_mnee.py >>"$OUT/tests.log" 2>&1
-log "test_mnee rc=$?"
 log "done"
