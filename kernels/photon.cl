@@ -184,31 +184,6 @@ HOT float2 tile_bound(__constant const Params* P, __constant const float4* iface
  * step ends in (at its boundary, or at the collision within it). */
 #define PHOTON_TILES 8
 
-/* smoothwalk.h smooth_face for the part s >= s_start of the ray that lies in tile (tx, ty) */
-HOT void photon_face(float3 p, float3 d, int k, int j, int tx, int ty, float s_start,
-                     __constant const Params* P, __constant const float4* iface, __global const float* heights,
-                     float smax, float* best, int* e) {
-    const int v = IF_VAR(k);
-    if (v < 0) {
-        const float z = IF_Z(k);
-        if (j == 0 ? d.z > 0.0f : (d.z < 0.0f && z > -BIG)) {
-            const float s = (z - p.z) / d.z;
-            if (s < *best) { *best = s; *e = j ? EV_BOTTOM : EV_TOP; }
-        }
-        return;
-    }
-    const float lim = fmin(*best, smax);
-    const float4 b = smooth_tile(P, iface, heights, k, tx, ty);
-    const float zs = p.z + s_start * d.z, z1 = p.z + fmin(lim, 1e6f) * d.z;
-    if (j == 0 ? fmax(zs, z1) < b.x : fmin(zs, z1) > b.y) return;     /* clear of the tile's patches */
-    if ((j == 0 ? d.z < 0.0f : d.z > 0.0f) && d.z * d.z * (1.0f + b.w * b.w) >= b.w * b.w)
-        return;                                                       /* away, steeper than the surface */
-    const float s0 = j == 0 ? (zs < b.x ? (b.x - p.z) / d.z : s_start) : (zs > b.y ? (b.y - p.z) / d.z : s_start);
-    int hit;
-    const float s = smooth_march(P, heights, v, (real)IF_Z(k), p, d, s0, lim, b, j == 0 ? (real)1 : (real)-1, &hit);
-    if (s < *best) { *best = s; *e = hit ? (j ? EV_BOTTOM : EV_TOP) : EV_ZONE; }
-}
-
 HOT float photon_smooth_boundary(const Track* t, __constant const Params* P, __constant const float4* iface,
                                  __global const float* heights, float smax, int* ev, int2* tile) {
     const float3 p = t->pos, d = t->dir;
@@ -228,8 +203,8 @@ HOT float photon_smooth_boundary(const Track* t, __constant const Params* P, __c
             if (s < best) { best = s; e = EV_WALL_Y; }
         }
         domain_sides(p, d, P, &best, &e);
-        photon_face(p, d, t->L + first, first, tx, ty, s_start, P, iface, heights, smax, &best, &e);
-        photon_face(p, d, t->L + 1 - first, 1 - first, tx, ty, s_start, P, iface, heights, smax, &best, &e);
+        smooth_face(p, d, t->L + first, first, tx, ty, s_start, P, iface, heights, smax, &best, &e);
+        smooth_face(p, d, t->L + 1 - first, 1 - first, tx, ty, s_start, P, iface, heights, smax, &best, &e);
         if ((e != EV_WALL_X && e != EV_WALL_Y) || best >= smax || i + 1 == PHOTON_TILES) {
             *ev = e;
             *tile = (int2)(tx, ty);

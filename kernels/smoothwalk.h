@@ -132,13 +132,14 @@ inline void cross_cell(Track* t, __constant const Params* P, int axis) {
     }
 }
 
-/* Interface k = L + j (j = 0: the top of layer L, 1: its bottom) where the ray crosses it within
- * *best (a plane where k is flat): *best and *e (EV_TOP, EV_BOTTOM; EV_ZONE for a march out of
- * steps) updated. */
-HOT void smooth_face(const Track* t, int j, __constant const Params* P, __constant const float4* iface,
-                        __global const float* heights, float smax, float* best, int* e) {
-    const int k = t->L + j;
-    const float3 p = t->pos, d = t->dir;
+/* Interface k (j = 0: the top of the ray's layer, 1: its bottom) where the part s >= s_start of
+ * the ray p + s d that lies in tile (tx, ty) crosses it within *best (a plane where k is flat):
+ * *best and *e (EV_TOP, EV_BOTTOM; EV_ZONE for a march out of steps) updated.  The walk asks for
+ * its own tile from s = 0 (smooth_boundary); the photon pass for the tiles a free flight crosses
+ * (photon.cl). */
+HOT void smooth_face(float3 p, float3 d, int k, int j, int tx, int ty, float s_start,
+                     __constant const Params* P, __constant const float4* iface, __global const float* heights,
+                     float smax, float* best, int* e) {
     const int v = IF_VAR(k);
     if (v < 0) {
         const float z = IF_Z(k);
@@ -149,13 +150,13 @@ HOT void smooth_face(const Track* t, int j, __constant const Params* P, __consta
         return;
     }
     const float lim = fmin(*best, smax);
-    const float4 b = smooth_tile(P, iface, heights, k, t->ix / SMOOTH_CELL, t->iy / SMOOTH_CELL);
-    const float z1 = p.z + fmin(lim, 1e6f) * d.z;
-    if (j == 0 ? fmax(p.z, z1) < b.x : fmin(p.z, z1) > b.y) return;     /* clear of the tile's patches */
+    const float4 b = smooth_tile(P, iface, heights, k, tx, ty);
+    const float zs = p.z + s_start * d.z, z1 = p.z + fmin(lim, 1e6f) * d.z;
+    if (j == 0 ? fmax(zs, z1) < b.x : fmin(zs, z1) > b.y) return;     /* clear of the tile's patches */
     if ((j == 0 ? d.z < 0.0f : d.z > 0.0f) && d.z * d.z * (1.0f + b.w * b.w) >= b.w * b.w)
         return;                                                       /* away, steeper than the surface */
     /* no crossing before the ray enters the tile's height range */
-    const float s0 = j == 0 ? (p.z < b.x ? (b.x - p.z) / d.z : 0.0f) : (p.z > b.y ? (b.y - p.z) / d.z : 0.0f);
+    const float s0 = j == 0 ? (zs < b.x ? (b.x - p.z) / d.z : s_start) : (zs > b.y ? (b.y - p.z) / d.z : s_start);
     int hit;
     const float s = smooth_march(P, heights, v, (real)IF_Z(k), p, d, s0, lim, b, j == 0 ? (real)1 : (real)-1, &hit);
     if (s < *best) { *best = s; *e = hit ? (j ? EV_BOTTOM : EV_TOP) : EV_ZONE; }
@@ -171,8 +172,9 @@ HOT float smooth_boundary(const Track* t, __constant const Params* P, __constant
     domain_sides(t->pos, t->dir, P, &best, &e);
     /* the face the ray moves toward first: its crossing shortens the other's search */
     const int first = t->dir.z < 0.0f;
-    smooth_face(t, first, P, iface, heights, smax, &best, &e);
-    smooth_face(t, 1 - first, P, iface, heights, smax, &best, &e);
+    const int tx = t->ix / SMOOTH_CELL, ty = t->iy / SMOOTH_CELL;
+    smooth_face(t->pos, t->dir, t->L + first, first, tx, ty, 0.0f, P, iface, heights, smax, &best, &e);
+    smooth_face(t->pos, t->dir, t->L + 1 - first, 1 - first, tx, ty, 0.0f, P, iface, heights, smax, &best, &e);
     *ev = e;
     return best > 0.0f ? best : 0.0f;
 }
