@@ -199,6 +199,12 @@ def storage_importance(vol: Volume) -> np.ndarray:
 
 #: photons one launch may store beyond a pass's target (its last photons overshoot it)
 OVERSHOOT = 4096
+# A pass emits at most EMIT_PER_TARGET photons per photon it is to store (and at least EMIT_MIN):
+# where fewer reach what the camera sees, the pass ends with the photons it has instead of
+# running on for hours; the estimate divides by the photons emitted, so it stays right, only
+# noisier.  A pass that has stored nothing after EMIT_MIN photons ends there.
+EMIT_PER_TARGET = 4096
+EMIT_MIN = 1 << 22
 #: a render's photon buffer holds this many times the target, plus OVERSHOOT
 CAPACITY_FACTOR = 1.2
 
@@ -372,7 +378,9 @@ class PhotonPass:
         return out
 
     def run_pass(self, pass_index: int, target: int, tallies: Tallies | None = None) -> dict:
-        """Emit photons until at least ``target`` scattering events are stored.
+        """Emit photons until at least ``target`` scattering events are stored, or
+        ``max(EMIT_MIN, EMIT_PER_TARGET * target)`` photons are emitted (``capped``), or none is
+        stored after ``EMIT_MIN``.
 
         Returns emitted and stored counts; the stored photons are in ``pos_w``/``dir_b``.
         The exit and absorption tallies go to ``tallies`` (default: this pass object's own).
@@ -383,8 +391,9 @@ class PhotonPass:
                              f"by at least {OVERSHOOT} (one launch's last photons overshoot it)")
         self._set_count(0)
         stored, emitted, launches = 0, 0, 0
+        cap_emitted = max(EMIT_MIN, EMIT_PER_TARGET * int(target))
         per_photon = None
-        while stored < target:
+        while stored < target and emitted < cap_emitted:
             if per_photon is None:
                 n = 256
             else:
@@ -395,6 +404,7 @@ class PhotonPass:
             n = max(1, min(n, MAX_LAUNCH))
             if per_photon is not None:
                 n = min(n, max(256, 4 * emitted))     # grow geometrically: no hour-long launch
+            n = min(n, cap_emitted - emitted, 2**32 - (emitted & 0xFFFFFFFF))   # no launch across 2^32
             while True:
                 self._launch(n, emitted, pass_index, cap)
                 c = self._count()
@@ -418,11 +428,10 @@ class PhotonPass:
             stored = c
             launches += 1
             per_photon = stored / emitted
-            if emitted > 2**31 and stored == 0:
-                break
-            if per_photon == 0 and emitted >= 1 << 22:
+            if per_photon == 0 and emitted >= EMIT_MIN:
                 break                     # no photon reaches the stored region
-        return {"emitted": emitted, "stored": stored, "launches": launches}
+        return {"emitted": emitted, "stored": stored, "launches": launches,
+                "capped": stored < target and emitted >= cap_emitted}
 
 
 def trace_report(pp: PhotonPass, n_photons: int, batches: int = 10) -> dict:
