@@ -164,6 +164,27 @@ def test_non_absorbing_medium(dev):
     assert np.all(np.isfinite(res.spectral)) and np.all(res.spectral >= 0)
 
 
+def test_a_render_whose_passes_stored_less_than_asked_says_so(dev, tmp_path, capsys):
+    """A clear, strongly absorbing layer over a black one: the passes end at their emission cap
+    (photonpass.EMIT_PER_TARGET) short of render.photons, and the command says so in one note;
+    a render that stores its budget says nothing of it."""
+    from clppm.cli.render import short_passes_note
+    assert short_passes_note({"stored_per_pass": 100, "passes_done": 2, "photons_stored": 200}) is None
+    assert "150 of the 200 photons" in short_passes_note(
+        {"stored_per_pass": 100, "passes_done": 2, "photons_stored": 150})
+    for layers, said in (([dict(name="clear", thickness_um=100.0, n=1.0, mua=1000.0, mus=0.0, g=0.0),
+                           dict(name="black", thickness_um=math.inf, n=1.0, mua=1e5, mus=1000.0, g=-0.5)], True),
+                         (BASE["layer"], False)):
+        raw = copy.deepcopy(BASE)
+        raw["layer"] = copy.deepcopy(layers)
+        p = tmp_path / "c.toml"
+        p.write_text(_toml(raw))
+        capsys.readouterr()
+        assert cli.main(["render", str(p), "-o", str(tmp_path / "x.png"), "-q", "--force"]) == 0
+        err = capsys.readouterr().err
+        assert ("photons asked for" in err) == said, err
+
+
 def test_photon_launches_grow_geometrically(dev):
     """A scene where the first photons store nothing and later ones store 1e5 events each."""
     cfg = _cfg(**{"layers.mua": 10.0})

@@ -157,12 +157,29 @@ def cmd_render(a) -> int:
     print(f"wrote {a.output} (+ {side}): {what}, {r['seconds']['total']:.1f} s on {d['name']}{chosen}")
     for note in d.get("passed_over", ()):
         print(f"clppm: note: {note}", file=sys.stderr)
+    if a.integrator != "pt":
+        short = short_passes_note(r)
+        if short:
+            print(f"clppm: note: {short}", file=sys.stderr)
     if r["interrupted"]:
         sig = interrupt_signal() or signal.SIGINT
         print(f"interrupted by {signal.Signals(sig).name} after pass {r['passes_done']} of "
               f"{r['passes_requested']}: resume with {resume_command(a, files['checkpoint'])}")
         return EXIT["sigterm"] if sig == signal.SIGTERM else EXIT["sigint"]
     return EXIT["ok"]
+
+
+def short_passes_note(r: dict) -> str | None:
+    """A line when the passes stored fewer photons than asked for (a pass ends at its emission
+    cap, clppm/integrators/photonpass.py), else None."""
+    from ..integrators.photonpass import EMIT_PER_TARGET
+    asked = int(r["stored_per_pass"]) * int(r["passes_done"])
+    if r["photons_stored"] >= asked:
+        return None
+    return (f"the passes stored {r['photons_stored']:,} of the {asked:,} photons asked for "
+            f"(render.photons x passes): little or none of the light reaches what the camera sees, "
+            f"and a pass ends after {EMIT_PER_TARGET} emitted photons per photon to store, so the "
+            f"image is noisier than its budget")
 
 
 def _render_ppm(a, req):
