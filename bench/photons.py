@@ -37,8 +37,8 @@ event counters (photon.cl PHOTON_COUNTERS, each tree's own) per entered photon: 
 from /proc/cpuinfo times the compute units), and lane utilisation: sum of loop steps over
 (width x the longest) in groups of 8 and 16 neighbouring work items, what a SIMD compiler that
 runs neighbouring work items in lanes (Intel's) can use at best.  ``--render``: the same
-alternation for ``clppm render configs/forearm.toml`` (seconds.photon and the total from the
-run report).
+alternation for ``clppm render configs/forearm.toml``, each tree its own (seconds.photon and the
+total from the run report).
 
     python bench/photons.py --events --base /tmp/photons-base [--rounds 3] [--impl pocl,intel]
     python bench/photons.py --render --base /tmp/photons-base [--rounds 2] [--impl intel]
@@ -499,7 +499,8 @@ def render_ab(base: Path | None, impls: list, rounds: int, extra: list, out_path
             for k, tree in trees:
                 o = Path(tempfile.mkdtemp(prefix="clppm_ab_")) / "forearm.exr"
                 env = tree_env(PYOPENCL_CTX=impl)
-                subprocess.run([str(tree / ".venv" / "bin" / "python"), "-m", "clppm.cli", "render", str(ROOT / "configs" / "forearm.toml"),
+                cfg = tree / "configs" / "forearm.toml"    # each tree renders its own default scene
+                subprocess.run([str(tree / ".venv" / "bin" / "python"), "-m", "clppm.cli", "render", str(cfg),
                                 "-o", str(o), "-q", *extra], check=True, env=env, cwd=str(tree))
                 rep = json.loads(o.with_suffix(".json").read_text())
                 sec = rep["seconds"]

@@ -154,6 +154,12 @@ SCHEMA: dict[str, dict[str, F]] = {
                          "(docs/gather.md)", picture="none"),
         "store_depth_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e6,
                             doc="store photons only this deep (default: all)"),
+        "depth_roulette_um": F("float", 0.0, lo=0, hi=1e6,
+                               doc="below the depth that no sample point reaches, Russian roulette "
+                                   "(survival 1/2, weight x2; unbiased) when a photon first passes "
+                                   "each plane this far apart, the first this far below: light that "
+                                   "goes deep rarely returns, so its long walks are cut short "
+                                   "(docs/method.md); 0: off"),
         "bands_per_path": F("int", 0, lo=0, hi=512,
                             doc="wavelength bands a photon path carries (hero wavelength sampling; "
                                 "must divide the number of bands); 0: the largest divisor up to 9"),
@@ -542,7 +548,7 @@ def override(cfg: dict, section: str, key: str, value: Any, source: str = "comma
 #: the paper's design: every scattering event stored, one band per photon path, the plain
 #: sphere estimator, the per-point progressive radius (Kamatani & Kawai; Hachisuka et al. 2008)
 PAPER_MODE = {"storage": "all", "estimator": "sphere", "radius": "ppm", "bands_per_path": 1,
-              "band_sampling": "power", "emission": "random"}
+              "band_sampling": "power", "emission": "random", "depth_roulette_um": 0.0}
 #: the paper's model: light walks the 5 um voxels (the interfaces' staircase)
 PAPER_MODEL = {"surface": "voxels"}
 

@@ -489,10 +489,32 @@ HOT void scatter_photon(__constant const Params* P, float4 op, Track* t, Spectra
     }
 }
 
+/* Depth roulette (render.depth_roulette_um; off when deep_m = 0): below the storage depth a
+ * photon counts only through its return, which the deeper it goes the less likely it is.  On
+ * first reaching each plane deep_z0 - k deep_dz (k = 0 .. DEEP_PLANES - 1, checked after a
+ * scattering) it survives with probability 1/deep_m, its weight multiplied by deep_m, the gain and
+ * loss tallied with the weight roulette's: unbiased, and the deep wanderings are cut short. */
+#define DEEP_PLANES 6
+HOT void deep_roulette(__constant const Params* P, const Track* t, Spectral* sw, long* W, Fates* f,
+                       int* planes, Rng* rng) {
+    if (P->deep_m <= 0.0f || t->pos.z >= P->deep_z0 || *planes >= DEEP_PLANES) return;
+    const int reached = min((int)((P->deep_z0 - t->pos.z) / P->deep_dz) + 1, DEEP_PLANES);
+    while (*planes < reached && *W > 0) {
+        (*planes)++;
+        if (rng_u01(rng) * P->deep_m <= 1.0f) {
+            const long g2 = *W * (long)(P->deep_m) - *W;
+            f->gain += g2; *W += g2;
+            sw_scale(sw, P->deep_m);
+        } else {
+            f->loss += *W; *W = 0;
+        }
+    }
+}
+
 /* A collision after free path s: absorb by weight (the layer's albedo), store the event
  * inside the storage depth, scatter; then the next optical depth to travel. */
 HOT void collide(__constant const Params* P, float4 op, float s, Track* t, Spectral* sw, long* W, int b,
-                 Fates* f, float* tau, Rng* rng, Rng* srng, __global const float2* store_imp,
+                 Fates* f, int* planes, float* tau, Rng* rng, Rng* srng, __global const float2* store_imp,
                  __global const float2* band_spi, __global const float4* optics,
                  __global const float* logmu, PhotonMap map, Counters* cnt) {
     COUNT(cnt, K_COLLISIONS);
@@ -509,6 +531,7 @@ HOT void collide(__constant const Params* P, float4 op, float s, Track* t, Spect
         if (P->capacity > 0u && t->pos.z > P->store_zmin)
             store_event(P, t, sw, *W, b, srng, store_imp, band_spi, optics, logmu, map, cnt);
         scatter_photon(P, op, t, sw, W, f, logmu, rng);
+        deep_roulette(P, t, sw, W, f, planes, rng);
     } else if (*W > 0) {
         /* pure absorber reached here only when mus = 0 and mua > 0: all absorbed */
         f->absorbed[t->L] += *W; *W = 0;
@@ -633,7 +656,7 @@ __kernel void photon_pass(VOLUME_ARGS,
     Fates f;
     fates_clear(&f);
     long W = 0;
-    int b = 0, events = 0, live = 0;
+    int b = 0, events = 0, live = 0, planes = 0;   /* depth-roulette planes passed */
     int still = 0;                                     /* boundary events in a row under TRAP_UM */
     float tau = 0.0f;
     for (;;) {
@@ -652,6 +675,7 @@ __kernel void photon_pass(VOLUME_ARGS,
 #endif
             live = t.L >= 0;
             events = 0;
+            planes = 0;
             still = 0;
             tau = neg_log_u01(rng_u01(&rng));
             continue;
@@ -673,7 +697,7 @@ __kernel void photon_pass(VOLUME_ARGS,
 #endif
 #endif
         if (s < db) {
-            collide(P, op, s, &t, &sw, &W, b, &f, &tau, &rng, &srng, store_imp, band_spi, optics, logmu,
+            collide(P, op, s, &t, &sw, &W, b, &f, &planes, &tau, &rng, &srng, store_imp, band_spi, optics, logmu,
                     map, &cnt);
             continue;
         }

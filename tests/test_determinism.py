@@ -35,6 +35,7 @@ def _render(dev, tmp_path, name, **changes):
 VARIANTS = {
     "e_ppm": {},
     # jittered eye rays (spp 2), global radius, equal spacing, a collimated wide beam
+    "depth_roulette": {"render": {"depth_roulette_um": 20.0}},
     "a_global_spp2": {"render": {"method": "a", "radius": "global"}, "camera": {"spp": 2},
                       "light": {"kind": "wide", "direction": [0.3, 0.0, -1.0], "center_mm": [0.5, 0.5],
                                 "width_mm": [0.6, 0.6]}},
@@ -50,6 +51,25 @@ def test_same_seed_byte_identical(dev, tmp_path, variant):
     assert np.array_equal(r1.spectral, r2.spectral)
     assert b1 == b2, "same seed, same device: the EXR files differ"
     assert np.all(np.isfinite(r1.spectral)) and r1.spectral.max() > 0
+
+
+def test_depth_roulette_resumes_to_the_same_bytes(dev, tmp_path):
+    """With render.depth_roulette_um the photons' roulettes draw from their own Philox streams:
+    a render stopped after 2 passes and resumed to 3 writes the uninterrupted run's bytes, and
+    the roulette changes the image (it acts)."""
+    from clppm.output import checkpoint as ckpt
+    on = {"render": {"depth_roulette_um": 20.0}}
+    b_plain, _ = _render(dev, tmp_path, "plain")
+    b_on, r_on = _render(dev, tmp_path, "on", **on)
+    assert b_on != b_plain
+    raw = copy.deepcopy(BASE)
+    raw["render"].update(on["render"], checkpoint_every=1)
+    cfg = C.validate(raw, "det")
+    part = tmp_path / "part.exr"
+    progressive.render(cfg, dev=dev, out=str(part), passes=2)
+    res = progressive.render(cfg, dev=dev, out=str(part), resume=ckpt.default_path(str(part)))
+    assert res.report["passes_done"] == 3
+    assert part.read_bytes() == b_on, "resumed render differs from the uninterrupted one"
 
 
 def test_different_seed_differs(dev, tmp_path):

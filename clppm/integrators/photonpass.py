@@ -205,6 +205,8 @@ OVERSHOOT = 4096
 # noisier.  A pass that has stored nothing after EMIT_MIN photons ends there.
 EMIT_PER_TARGET = 4096
 EMIT_MIN = 1 << 22
+# depth roulette (set_storage_depth): survivors of each plane's roulette weigh this many times more
+DEEP_ROULETTE_M = 2.0
 #: a render's photon buffer holds this many times the target, plus OVERSHOOT
 CAPACITY_FACTOR = 1.2
 
@@ -300,6 +302,17 @@ class PhotonPass:
         c = math.radians(max(0.0, min(float(cone_deg), 90.0)))
         self.p["store_cos"], self.p["store_sin"] = math.cos(c), math.sin(c)
         self.p["store_scale"], self.p["store_qmin"] = float(scale), float(qmin)
+
+    def set_storage_depth(self, zmin_um: float, roulette_um: float = 0.0) -> None:
+        """Store no event below ``zmin_um`` (they could never be gathered), and with
+        ``roulette_um`` > 0 play Russian roulette (survival 1/2, weight x2; unbiased) when a
+        photon first reaches each plane ``roulette_um`` apart from ``roulette_um`` below that
+        depth (photon.cl deep_roulette): light that goes deeper returns ever less often."""
+        self.p["store_zmin"] = zmin_um
+        on = roulette_um > 0.0
+        self.p["deep_z0"] = zmin_um - roulette_um if on else -3.0e38
+        self.p["deep_dz"] = roulette_um if on else 1.0
+        self.p["deep_m"] = DEEP_ROULETTE_M if on else 0.0
 
     def _launch(self, n: int, offset: int, pass_index: int, capacity: int) -> None:
         import pyopencl as cl

@@ -328,7 +328,7 @@ class Pipeline:
     def apply(self, cal: "Calibration") -> None:
         """Apply the calibration to the photon pass (storage depth)."""
         if cal.store_zmin is not None:
-            self.pp.p["store_zmin"] = cal.store_zmin
+            self.pp.set_storage_depth(cal.store_zmin, self.rs.depth_roulette_um)
 
     def calibrate(self) -> "Calibration":
         """The paper's initial radius: the radius at which the first search finds K photons.
