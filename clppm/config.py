@@ -157,8 +157,9 @@ SCHEMA: dict[str, dict[str, F]] = {
         "depth_roulette_um": F("float", 0.0, lo=0, hi=1e6,
                                doc="below the depth that no sample point reaches, Russian roulette "
                                    "(survival 1/2, weight x2; unbiased) when a photon first passes "
-                                   "each plane this far apart, the first this far below: light that "
-                                   "goes deep rarely returns, so its long walks are cut short "
+                                   "each of six planes this far apart, the first this far below: "
+                                   "light that goes deep rarely returns, so its long walks are cut "
+                                   "short; it can cost more noise than it saves time "
                                    "(docs/method.md); 0: off"),
         "bands_per_path": F("int", 0, lo=0, hi=512,
                             doc="wavelength bands a photon path carries (hero wavelength sampling; "
