@@ -489,11 +489,13 @@ HOT void scatter_photon(__constant const Params* P, float4 op, Track* t, Spectra
     }
 }
 
-/* Depth roulette (render.depth_roulette_um; off when deep_m = 0): below the storage depth a
+/* Depth roulette (render.depth_roulette_um; built with DEPTH_ROULETTE only, so the plain pass
+ * carries none of it): below the storage depth a
  * photon counts only through its return, which the deeper it goes the less likely it is.  On
  * first reaching each plane deep_z0 - k deep_dz (k = 0 .. DEEP_PLANES - 1, checked after a
  * scattering) it survives with probability 1/deep_m, its weight multiplied by deep_m, the gain and
  * loss tallied with the weight roulette's: unbiased, and the deep wanderings are cut short. */
+#ifdef DEPTH_ROULETTE
 #define DEEP_PLANES 6
 HOT void deep_roulette(__constant const Params* P, const Track* t, Spectral* sw, long* W, Fates* f,
                        int* planes, Rng* rng) {
@@ -510,6 +512,9 @@ HOT void deep_roulette(__constant const Params* P, const Track* t, Spectral* sw,
         }
     }
 }
+#else
+#define deep_roulette(P, t, sw, W, f, planes, rng)
+#endif
 
 /* A collision after free path s: absorb by weight (the layer's albedo), store the event
  * inside the storage depth, scatter; then the next optical depth to travel. */

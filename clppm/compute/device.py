@@ -378,7 +378,8 @@ ESTIMATORS = {"sphere": 0, "clip": 1, "layer": 2, "beam": 3}
 def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator: str | None = None,
                    gclass: int | None = None, pt_fp64: bool | None = None,
                    count_candidates: bool = False, exact_rsqrt: bool = False,
-                   photon_counters: bool = False, photon_plain_walk: bool = False) -> dict:
+                   photon_counters: bool = False, photon_plain_walk: bool = False,
+                   depth_roulette: bool = False) -> dict:
     """Every ``-D`` switch of clppm's kernels, assembled in this one place (as MCX-CL does).
 
     From the volume: NB bands, NL layers, FLAT (no relief or papillae: the flat code paths),
@@ -391,7 +392,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     COUNT_CANDIDATES (gather.cl: count the photons a query visits, for bench/gather.py),
     EXACT_RSQRT (gather.cl: rsqrt for native_rsqrt, to compare layouts off PoCL to float rounding),
     PHOTON_COUNTERS (photon.cl: count events, crossings and loop steps, for bench/photons.py),
-    PHOTON_PLAIN_WALK (photon.cl: the smooth walk of the other passes, tile by tile, for tests)."""
+    PHOTON_PLAIN_WALK (photon.cl: the smooth walk of the other passes, tile by tile, for tests),
+    DEPTH_ROULETTE (photon.cl: render.depth_roulette_um's roulette below the storage depth)."""
     if vol is None:
         return {"NB": int(nb)} if nb is not None else {}
     d = {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
@@ -415,6 +417,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
         d["PHOTON_COUNTERS"] = 1
     if photon_plain_walk:
         d["PHOTON_PLAIN_WALK"] = 1
+    if depth_roulette:
+        d["DEPTH_ROULETTE"] = 1
     return d
 
 

@@ -233,10 +233,8 @@ class PhotonPass:
         self.hero = self.bands.hero
         self.counters = bool(counters)
         self.items = persistent_items(dev)
-        self.prg = dev.build("photon.cl", kernel_defines(vol, hero=self.hero, pt_fp64=surface_fp64(dev, vol),
-                                                         photon_counters=self.counters,
-                                                         photon_plain_walk=plain_walk))
-        self.kernel = Kernel(self.prg, "photon_pass")
+        self.plain_walk = bool(plain_walk)
+        self._build(depth_roulette=False)
         self.vbuf = vbuf or upload_volume(dev, vol)
         self.spectrum = self.bands.spectrum
         self.band = self.bands.fixed
@@ -303,6 +301,15 @@ class PhotonPass:
         self.p["store_cos"], self.p["store_sin"] = math.cos(c), math.sin(c)
         self.p["store_scale"], self.p["store_qmin"] = float(scale), float(qmin)
 
+    def _build(self, depth_roulette: bool) -> None:
+        """The photon pass's program (pyopencl's cache keeps each build), with or without the
+        depth roulette (photon.cl DEPTH_ROULETTE)."""
+        self.depth_roulette = depth_roulette
+        self.prg = self.dev.build("photon.cl", kernel_defines(
+            self.vol, hero=self.hero, pt_fp64=surface_fp64(self.dev, self.vol), photon_counters=self.counters,
+            photon_plain_walk=self.plain_walk, depth_roulette=depth_roulette))
+        self.kernel = Kernel(self.prg, "photon_pass")
+
     def set_storage_depth(self, zmin_um: float, roulette_um: float = 0.0) -> None:
         """Store no event below ``zmin_um`` (they could never be gathered), and with
         ``roulette_um`` > 0 play Russian roulette (survival 1/2, weight x2; unbiased) when a
@@ -313,6 +320,8 @@ class PhotonPass:
         self.p["deep_z0"] = zmin_um - roulette_um if on else -3.0e38
         self.p["deep_dz"] = roulette_um if on else 1.0
         self.p["deep_m"] = DEEP_ROULETTE_M if on else 0.0
+        if on != self.depth_roulette:
+            self._build(on)
 
     def _launch(self, n: int, offset: int, pass_index: int, capacity: int) -> None:
         import pyopencl as cl
