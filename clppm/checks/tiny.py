@@ -1,9 +1,9 @@
 """A tiny scene through every kernel family clppm has, on one device.
 
-Photon pass, grid build (counting sort with pyopencl's scan, and the radix-sort variant), eye
-pass, calibration (initial radius, neighbour counts), both gathers (the point estimators' and the
-beam's), the grid's query kernels, the path tracer, the reflectance tallies, and the photon and
-eye passes' walk on the smooth surfaces.  Used by
+Photon pass (plain, and built with the depth roulette), grid build (counting sort with pyopencl's
+scan, and the radix-sort variant), eye pass, calibration (initial radius, neighbour counts), both
+gathers (the point estimators' and the beam's), the grid's query kernels, the path tracer, the
+reflectance tallies, and the photon and eye passes' walk on the smooth surfaces.  Used by
 ``clppm devices --kernels`` (every kernel's limits and the local size clppm launched it with),
 ``tests/oclgrind/run.sh`` (memory and race checks) and ``bench/devices.py``.
 """
@@ -19,7 +19,8 @@ import numpy as np
 from .. import config
 
 FAMILIES = ("render: photon pass, grid build, eye pass, calibration, gather",
-            "render: the beam estimator's gather", "path tracer", "reflectance tallies",
+            "render: the beam estimator's gather, the depth roulette's photon pass", "path tracer",
+            "reflectance tallies",
             "grid queries (radix build, gather_grid, gather_bruteforce)",
             "render on the smooth surfaces (model.surface = smooth: photon and eye passes)")
 
@@ -70,8 +71,9 @@ def run_all(dev, photons: int = 2000, resolution=(8, 6), families=None) -> dict:
     cfg = tiny_config(photons=photons, resolution=resolution)
     layer = config.override(copy.deepcopy(cfg), "render", "estimator", "layer")
     timed(FAMILIES[0], lambda: progressive.render(layer, dev=dev))
-    timed(FAMILIES[1], lambda: progressive.render(config.override(
-        copy.deepcopy(cfg), "render", "estimator", "beam"), dev=dev))
+    beam = config.override(copy.deepcopy(cfg), "render", "estimator", "beam")
+    timed(FAMILIES[1], lambda: progressive.render(config.override(beam, "render", "depth_roulette_um", 20.0),
+                                                  dev=dev))
     flat = tiny_config("forearm_flat.toml", photons=photons, resolution=resolution)
     timed(FAMILIES[2], lambda: pathtracer.render_pt(flat, passes=1, dev=dev))
     timed(FAMILIES[3], lambda: reflectance.spectral_reflectance(
