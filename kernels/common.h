@@ -84,8 +84,7 @@ typedef struct {
     float store_qmin;
     int qmc;                    /* 1: emission (band, direction or footprint) from a shifted R3 sequence */
     uint qmc_s0, qmc_s1, qmc_s2;  /* the pass's random shift (Cranley-Patterson), 2^-32 units */
-    float deep_z0, deep_dz;     /* depth roulette (photon.cl): planes deep_z0 - k deep_dz */
-    float deep_m;               /* its survivors' weight factor (0: off) */
+    float deep_z0, deep_dz;     /* depth roulette (photon.cl, DEPTH_ROULETTE builds): planes deep_z0 - k deep_dz */
 } Params;
 
 /* Interface k: (z if flat, zmin, zmax, var index as float; -1 = flat). */

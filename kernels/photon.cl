@@ -490,23 +490,22 @@ HOT void scatter_photon(__constant const Params* P, float4 op, Track* t, Spectra
 }
 
 /* Depth roulette (render.depth_roulette_um; built with DEPTH_ROULETTE only, so the plain pass
- * carries none of it): below the storage depth a
- * photon counts only through its return, which the deeper it goes the less likely it is.  On
- * first reaching each plane deep_z0 - k deep_dz (k = 0 .. DEEP_PLANES - 1, checked after a
- * scattering) it survives with probability 1/deep_m, its weight multiplied by deep_m, the gain and
- * loss tallied with the weight roulette's: unbiased, and the deep wanderings are cut short. */
+ * carries none of it): below the storage depth a photon counts only through its return, which
+ * the deeper it goes the less likely it is.  On first reaching each plane deep_z0 - k deep_dz
+ * (k = 0 .. DEEP_PLANES - 1, checked after a scattering) it survives with probability 1/2, its
+ * weight doubled, the gain and loss tallied with the weight roulette's: unbiased, and the deep
+ * wanderings are cut short. */
 #ifdef DEPTH_ROULETTE
 #define DEEP_PLANES 6
 HOT void deep_roulette(__constant const Params* P, const Track* t, Spectral* sw, long* W, Fates* f,
                        int* planes, Rng* rng) {
-    if (P->deep_m <= 0.0f || t->pos.z >= P->deep_z0 || *planes >= DEEP_PLANES) return;
+    if (t->pos.z >= P->deep_z0 || *planes >= DEEP_PLANES) return;
     const int reached = min((int)((P->deep_z0 - t->pos.z) / P->deep_dz) + 1, DEEP_PLANES);
     while (*planes < reached && *W > 0) {
         (*planes)++;
-        if (rng_u01(rng) * P->deep_m <= 1.0f) {
-            const long g2 = *W * (long)(P->deep_m) - *W;
-            f->gain += g2; *W += g2;
-            sw_scale(sw, P->deep_m);
+        if (rng_u01(rng) <= 0.5f) {
+            f->gain += *W; *W += *W;
+            sw_scale(sw, 2.0f);
         } else {
             f->loss += *W; *W = 0;
         }

@@ -34,7 +34,7 @@ _FIELDS = [
     ("store_rule", "i4"), ("store_cos", "f4"), ("store_sin", "f4"), ("store_scale", "f4"),
     ("store_qmin", "f4"),
     ("qmc", "i4"), ("qmc_s0", "u4"), ("qmc_s1", "u4"), ("qmc_s2", "u4"),
-    ("deep_z0", "f4"), ("deep_dz", "f4"), ("deep_m", "f4"),
+    ("deep_z0", "f4"), ("deep_dz", "f4"),
 ]
 PARAMS_DTYPE = np.dtype(_FIELDS)
 assert PARAMS_DTYPE.itemsize == 4 * len(_FIELDS)
@@ -50,7 +50,6 @@ def new_params() -> np.ndarray:
     p["rr_m"] = 10.0
     p["max_events"] = 1_000_000
     p["store_zmin"] = -3.0e38
-    p["deep_z0"], p["deep_dz"], p["deep_m"] = -3.0e38, 1.0, 0.0
     p["rcone_cos"] = 0.98
     p["store_cos"], p["store_sin"], p["store_scale"], p["store_qmin"] = 1.0, 0.0, 1.0, 1.0
     return p

@@ -205,8 +205,6 @@ OVERSHOOT = 4096
 # noisier.  A pass that has stored nothing after EMIT_MIN photons ends there.
 EMIT_PER_TARGET = 4096
 EMIT_MIN = 1 << 22
-# depth roulette (set_storage_depth): survivors of each plane's roulette weigh this many times more
-DEEP_ROULETTE_M = 2.0
 #: a render's photon buffer holds this many times the target, plus OVERSHOOT
 CAPACITY_FACTOR = 1.2
 
@@ -317,9 +315,8 @@ class PhotonPass:
         depth (photon.cl deep_roulette): light that goes deeper returns ever less often."""
         self.p["store_zmin"] = zmin_um
         on = roulette_um > 0.0
-        self.p["deep_z0"] = zmin_um - roulette_um if on else -3.0e38
-        self.p["deep_dz"] = roulette_um if on else 1.0
-        self.p["deep_m"] = DEEP_ROULETTE_M if on else 0.0
+        if on:                            # read only by the DEPTH_ROULETTE build
+            self.p["deep_z0"], self.p["deep_dz"] = zmin_um - roulette_um, roulette_um
         if on != self.depth_roulette:
             self._build(on)
 
