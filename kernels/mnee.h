@@ -42,9 +42,12 @@
 #define MN_SEED_BUDGET 24       /* traces per extra seed */
 #define HF_MAXIT 24             /* Newton iterations per ray-height-field intersection */
 #define MN_CONT 64              /* continuation steps */
-#define MN_WARM 12              /* events whose intersections start from the last trace's (a
-                                   Newton step of the solver moves the chain a little, so
-                                   they need fewer evaluations of the height field) */
+#define MN_TAYLOR 1e-5          /* um: the longest last step of an intersection taken without
+                                   evaluating the surface again (hf_hit) */
+#define MN_WARM 12              /* events whose intersections start from the last trace's,
+                                   moved to first order by the solver's step in u (a step moves
+                                   the chain a little, so they need fewer evaluations of the
+                                   height field) */
 
 /* A ray (o, d) with its differentials (do_a, dd_a), a = 1, 2, with respect to u */
 typedef struct { real4 o, d, do1, do2, dd1, dd2; } Ray;
@@ -60,15 +63,40 @@ inline void hf_eval_l(__constant const Params* P, __constant const float4* iface
     }
 }
 
-/* Intersect the ray with interface k (Newton along the ray from t_warm where it is > 0, the
- * last trace's distance for this event, else from the plane through h(o.xy)); on success the
- * ray's origin and its differentials move to the hit, *f is h there, *t the distance.  0: no
- * convergence or a hit behind. */
+/* Whether (x1, y1) and (x2, y2) lie in the same bicubic patch (between the same samples) */
+inline int same_patch(__constant const Params* P, real x1, real y1, real x2, real y2) {
+    const real gx1 = floor((x1 - (real)P->x0) / (real)P->dx - (real)0.5);
+    const real gx2 = floor((x2 - (real)P->x0) / (real)P->dx - (real)0.5);
+    const real gy1 = floor((y1 - (real)P->y0) / (real)P->dy - (real)0.5);
+    const real gy2 = floor((y2 - (real)P->y0) / (real)P->dy - (real)0.5);
+    return gx1 == gx2 && gy1 == gy2;
+}
+
+/* Intersect the ray with interface k (a flat one in closed form; else Newton along the ray from
+ * t_warm where it is > 0, the last trace's distance for this event predicted to first order,
+ * else from the plane through h(o.xy)); on success the ray's origin and its differentials move
+ * to the hit, *f is h there, *t_out the distance and *dt1, *dt2 its derivatives in u (from the
+ * ray differentials: the next trace's prediction).  0: no convergence or a hit behind. */
 inline int hf_hit(__constant const Params* P, __constant const float4* iface,
                   __global const float* smooth, int k, real lam, real zr, real t_warm, Ray* r, HF* f,
-                  real* t_out) {
+                  real* t_out, real* dt1, real* dt2) {
     if (r->d.z == 0) return 0;
     real t = t_warm;
+    if (IF_VAR(k) < 0) {
+        /* a flat interface: its plane, in closed form (the continuation's plane through it, zr,
+         * is the plane itself) */
+        f->h = (real)IF_Z(k);
+        f->hx = f->hy = f->hxx = f->hxy = f->hyy = 0;
+        t = (f->h - r->o.z) / r->d.z;
+        if (!(t > 0)) return 0;
+        const real4 q1 = r->do1 + t * r->dd1, q2 = r->do2 + t * r->dd2;
+        *dt1 = -q1.z / r->d.z; *dt2 = -q2.z / r->d.z;
+        r->do1 = q1 + *dt1 * r->d;
+        r->do2 = q2 + *dt2 * r->d;
+        r->o = R4(r->o.x + t * r->d.x, r->o.y + t * r->d.y, f->h);
+        *t_out = t;
+        return 1;
+    }
     if (!(t > 0)) {
         hf_eval_l(P, iface, smooth, k, r->o.x, r->o.y, lam, zr, f);
         t = (f->h - r->o.z) / r->d.z;
@@ -83,17 +111,36 @@ inline int hf_hit(__constant const Params* P, __constant const float4* iface,
         const real dt = g / gp;
         t -= dt;
         /* the step's floor is the rounding of the position (~1e-16 of 1e4 um), not of t */
-        if (fabs(dt) <= HF_TOL * (1 + fabs(t) + fabs(r->o.x) + fabs(r->o.y))) { ok = 1; break; }
+        const real tol = HF_TOL * (1 + fabs(t) + fabs(r->o.x) + fabs(r->o.y));
+        if (fabs(dt) <= tol) { ok = 1; break; }
+        /* a last step this short (inside one patch): Newton's error after it, dt^2 times the
+         * ray's curvature term q / (2 gp), is below the tolerance, and h and its derivatives at
+         * the new point are their Taylor expansion from this one (the patch's third derivatives
+         * leave < 1e-12 at this distance): the evaluation that would only confirm it is saved */
+        const real ex = -dt * r->d.x, ey = -dt * r->d.y;
+        if (fabs(ex) + fabs(ey) <= (real)MN_TAYLOR && same_patch(P, p.x, p.y, p.x + ex, p.y + ey)) {
+            const real q = f->hxx * r->d.x * r->d.x + 2 * f->hxy * r->d.x * r->d.y + f->hyy * r->d.y * r->d.y;
+            if (fabs(q) * dt * dt <= 2 * fabs(gp) * tol) {
+                f->h += f->hx * ex + f->hy * ey
+                        + (real)0.5 * (f->hxx * ex * ex + 2 * f->hxy * ex * ey + f->hyy * ey * ey);
+                f->hx += f->hxx * ex + f->hxy * ey;
+                f->hy += f->hxy * ex + f->hyy * ey;
+                ok = 1;
+                break;
+            }
+        }
     }
     if (!ok || !(t > 0)) return 0;
-    /* f is h at the last iterate, within the step's rounding-level dt of the hit */
+    /* f is h at the last iterate, within the step's rounding-level dt of the hit, or its Taylor
+     * expansion at the hit */
     const real4 p = r->o + t * r->d;
     /* transfer: dt = -(do + t dd) . N / (d . N), N = (-hx, -hy, 1) */
     const real4 N = R4(-f->hx, -f->hy, 1);
     const real dn = rdot(r->d, N);
     const real4 q1 = r->do1 + t * r->dd1, q2 = r->do2 + t * r->dd2;
-    r->do1 = q1 - (rdot(q1, N) / dn) * r->d;
-    r->do2 = q2 - (rdot(q2, N) / dn) * r->d;
+    *dt1 = -rdot(q1, N) / dn; *dt2 = -rdot(q2, N) / dn;
+    r->do1 = q1 + *dt1 * r->d;
+    r->do2 = q2 + *dt2 * r->d;
     r->o = R4(p.x, p.y, f->h);
     *t_out = t;
     return 1;
@@ -140,18 +187,20 @@ typedef struct {
     real4 s;                    /* the surface crossing (the last event's point) */
     real4 d0;                   /* the direction leaving the vertex */
     real tw[MN_WARM];           /* the first MN_WARM events' distances: the next trace's starts */
+    real tw1[MN_WARM], tw2[MN_WARM];    /* and their derivatives in u (the starts' first-order
+                                           prediction for a trace at a nearby u) */
     float F;                    /* product of Fresnel R or T over the events */
     int why;                    /* where a failed trace stopped: 1 momentum, 2 heading, 3 hit, 4 TIR,
                                    5 side, 6 air (10 x event + code) */
 } Trace;
 
 /* Trace the chain's events from vertex v (layer k0) with momentum u to the light's height,
- * each intersection started from the trace warm's (0: none);
+ * each intersection started from the trace warm's (0: none), traced at u - (wdu1, wdu2);
  * pts (tests, else 0): 8 numbers per point (position, layer of the segment ending there,
  * upward normal), the vertex first, the point at the light's height last. */
 inline int mnee_trace(const Chain* ch, real4 v, int k0, real ux, real uy, real4 l, real lam,
-                      const Trace* warm, __constant const Params* P, __constant const float4* iface,
-                      __constant const float* layer_n, __global const float* smooth, Trace* T,
+                      const Trace* warm, real wdu1, real wdu2, __constant const Params* P,
+                      __constant const float4* iface, __constant const float* layer_n, __global const float* smooth, Trace* T,
                       __global real* pts) {
     const real nv = layer_n[k0];
     const real sx = ux / nv, sy = uy / nv;
@@ -177,9 +226,11 @@ inline int mnee_trace(const Chain* ch, real4 v, int k0, real ux, real uy, real4 
         if ((i == k) != (r.d.z > 0)) { T->why = 10 * e + 2; return 0; }
         HF f;
         real t;
-        const real tw = (warm && e < MN_WARM) ? warm->tw[e] : (real)0;
-        if (!hf_hit(P, iface, smooth, i, lam, ch->zref[i], tw, &r, &f, &t)) { T->why = 10 * e + 3; return 0; }
-        if (e < MN_WARM) T->tw[e] = t;
+        const real tw = (warm && e < MN_WARM)
+                        ? warm->tw[e] + wdu1 * warm->tw1[e] + wdu2 * warm->tw2[e] : (real)0;
+        real t1, t2;
+        if (!hf_hit(P, iface, smooth, i, lam, ch->zref[i], tw, &r, &f, &t, &t1, &t2)) { T->why = 10 * e + 3; return 0; }
+        if (e < MN_WARM) { T->tw[e] = t; T->tw1[e] = t1; T->tw2[e] = t2; }
         T->len[k] += t;
         real len;
         const real4 n = hf_normal(&f, &len);
@@ -231,7 +282,7 @@ inline int mnee_newton(const Chain* ch, real4 v, int k0, real* ux, real* uy, rea
     const real tol = (real)MN_TOL * sqrt(rdot(dv, dv));
     if (st->traces >= MN_BUDGET) return 0;
     st->traces++;
-    if (!mnee_trace(ch, v, k0, *ux, *uy, l, lam, 0, P, iface, layer_n, smooth, T, 0)) return 0;
+    if (!mnee_trace(ch, v, k0, *ux, *uy, l, lam, 0, 0, 0, P, iface, layer_n, smooth, T, 0)) return 0;
     real err = sqrt(T->c[0] * T->c[0] + T->c[1] * T->c[1]);
     for (int it = 0; it < MN_MAXIT; ++it) {
         if (err <= tol) return 1;
@@ -247,7 +298,7 @@ inline int mnee_newton(const Chain* ch, real4 v, int k0, real* ux, real* uy, rea
             if (st->traces >= MN_BUDGET) return 0;
             st->traces++;
             const real nx = *ux + step * du, ny = *uy + step * dv2;
-            if (mnee_trace(ch, v, k0, nx, ny, l, lam, T, P, iface, layer_n, smooth, &Tn, 0)) {
+            if (mnee_trace(ch, v, k0, nx, ny, l, lam, T, step * du, step * dv2, P, iface, layer_n, smooth, &Tn, 0)) {
                 const real en = sqrt(Tn.c[0] * Tn.c[0] + Tn.c[1] * Tn.c[1]);
                 if (en < err) { *ux = nx; *uy = ny; *T = Tn; err = en; acc = 1; break; }
             }

@@ -942,7 +942,7 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
     o[8] = T.d0.x * layer_n[Ls]; o[9] = T.d0.y * layer_n[Ls]; o[10] = ch.wsel;
     const real4 l = R4((real)light.x, (real)light.y, (real)light.z);
     Trace T2;
-    mnee_trace(&ch, v, Ls, o[8], o[9], l, 1, 0, P, iface, layer_n, smooth, &T2,
+    mnee_trace(&ch, v, Ls, o[8], o[9], l, 1, 0, 0, 0, P, iface, layer_n, smooth, &T2,
                pts + (size_t)i * (MAXE + 2) * 8);
     o[12] = ch.ne + 2;
 }

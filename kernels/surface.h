@@ -38,13 +38,17 @@ typedef float real;
  * them as calls.  The w component costs nothing on PoCL: xyz is computed by the same operations. */
 #ifdef PT_FP64
 typedef double4 real4;
+#define convert_real4 convert_double4
 #else
 typedef float4 real4;
+#define convert_real4 convert_float4
 #endif
 #define R4(x, y, z) ((real4)((x), (y), (z), 0))
 
 /* dot product written out (PoCL calls its library's dot out of line) */
 inline real rdot(real4 a, real4 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+/* all four components (sample rows, not points) */
+inline real rdot4(real4 a, real4 b) { const real4 p = a * b; return (p.x + p.y) + (p.z + p.w); }
 
 /* h and its derivatives up to second order at (x, y) */
 typedef struct { real h, hx, hy, hxx, hxy, hyy; } HF;
@@ -66,7 +70,8 @@ inline int hf_index(int i, int n, int periodic) {
 }
 
 /* h and its derivatives up to `order` (1: h, hx, hy; 2: the second ones too; a constant at
- * every call, so the compiler drops the rest) */
+ * every call, so the compiler drops the rest).  The patch's 4 x 4 samples as four row vectors
+ * (one vload4 each inside the grid), combined over y first, then dotted with the x weights. */
 inline void hf_eval_n(__constant const Params* P, __constant const float4* iface,
                       __global const float* smooth, int k, real x, real y, HF* o, const int order) {
     o->hx = o->hy = o->hxx = o->hxy = o->hyy = 0;
@@ -78,34 +83,44 @@ inline void hf_eval_n(__constant const Params* P, __constant const float4* iface
     const real fx = gx - (real)ix, fy = gy - (real)iy;
     const real fx2 = fx * fx, fx3 = fx2 * fx, fy2 = fy * fy, fy3 = fy2 * fy;
     real a0, a1, a2, a3, b0, b1, b2, b3, c0, c1, c2, c3;
-    CR_W(fx, fx2, fx3, a0, a1, a2, a3)
-    CR_D(fx, fx2, b0, b1, b2, b3)
-    CR_S(fx, c0, c1, c2, c3)
     const int per = P->lateral == 2;
-    const int i0 = hf_index(ix - 1, P->nx, per), i1 = hf_index(ix, P->nx, per);
-    const int i2 = hf_index(ix + 1, P->nx, per), i3 = hf_index(ix + 2, P->nx, per);
     __global const float* base = smooth + (size_t)v * (size_t)(P->nx * P->ny);
-    real r0[3], r1[3], r2[3], r3[3];
+    real4 s0, s1, s2, s3;
+    if (ix >= 1 && ix + 2 < P->nx && iy >= 1 && iy + 2 < P->ny) {
+        __global const float* q = base + (size_t)(iy - 1) * (size_t)P->nx + (size_t)(ix - 1);
+        s0 = convert_real4(vload4(0, q)); q += P->nx;
+        s1 = convert_real4(vload4(0, q)); q += P->nx;
+        s2 = convert_real4(vload4(0, q)); q += P->nx;
+        s3 = convert_real4(vload4(0, q));
+    } else {
+        const int i0 = hf_index(ix - 1, P->nx, per), i1 = hf_index(ix, P->nx, per);
+        const int i2 = hf_index(ix + 1, P->nx, per), i3 = hf_index(ix + 2, P->nx, per);
 #define CR_ROW(j, out) { \
         __global const float* row = base + (size_t)hf_index(iy - 1 + (j), P->ny, per) * (size_t)P->nx; \
-        const real s0 = row[i0], s1 = row[i1], s2 = row[i2], s3 = row[i3]; \
-        out[0] = a0 * s0 + a1 * s1 + a2 * s2 + a3 * s3; \
-        out[1] = b0 * s0 + b1 * s1 + b2 * s2 + b3 * s3; \
-        out[2] = order > 1 ? c0 * s0 + c1 * s1 + c2 * s2 + c3 * s3 : (real)0; }
-    CR_ROW(0, r0) CR_ROW(1, r1) CR_ROW(2, r2) CR_ROW(3, r3)
+        out = (real4)(row[i0], row[i1], row[i2], row[i3]); }
+        CR_ROW(0, s0) CR_ROW(1, s1) CR_ROW(2, s2) CR_ROW(3, s3)
 #undef CR_ROW
+    }
     CR_W(fy, fy2, fy3, a0, a1, a2, a3)
     CR_D(fy, fy2, b0, b1, b2, b3)
-    CR_S(fy, c0, c1, c2, c3)
+    const real4 V = a0 * s0 + a1 * s1 + a2 * s2 + a3 * s3;
+    const real4 VD = b0 * s0 + b1 * s1 + b2 * s2 + b3 * s3;
+    CR_W(fx, fx2, fx3, a0, a1, a2, a3)
+    CR_D(fx, fx2, b0, b1, b2, b3)
+    const real4 AX = (real4)(a0, a1, a2, a3), BX = (real4)(b0, b1, b2, b3);
     const real idx = 1 / (real)P->dx, idy = 1 / (real)P->dy;
     /* the row's height plus the interface's offset (0 unless rows are shared: smoothwalk.h) */
-    o->h = (a0 * r0[0] + a1 * r1[0] + a2 * r2[0] + a3 * r3[0]) + (real)IF_Z(k);
-    o->hx = (a0 * r0[1] + a1 * r1[1] + a2 * r2[1] + a3 * r3[1]) * idx;
-    o->hy = (b0 * r0[0] + b1 * r1[0] + b2 * r2[0] + b3 * r3[0]) * idy;
+    o->h = rdot4(AX, V) + (real)IF_Z(k);
+    o->hx = rdot4(BX, V) * idx;
+    o->hy = rdot4(AX, VD) * idy;
     if (order < 2) return;
-    o->hxx = (a0 * r0[2] + a1 * r1[2] + a2 * r2[2] + a3 * r3[2]) * idx * idx;
-    o->hxy = (b0 * r0[1] + b1 * r1[1] + b2 * r2[1] + b3 * r3[1]) * idx * idy;
-    o->hyy = (c0 * r0[0] + c1 * r1[0] + c2 * r2[0] + c3 * r3[0]) * idy * idy;
+    CR_S(fy, c0, c1, c2, c3)
+    const real4 VS = c0 * s0 + c1 * s1 + c2 * s2 + c3 * s3;
+    CR_S(fx, c0, c1, c2, c3)
+    const real4 CX = (real4)(c0, c1, c2, c3);
+    o->hxx = rdot4(CX, V) * idx * idx;
+    o->hxy = rdot4(BX, VD) * idx * idy;
+    o->hyy = rdot4(AX, VS) * idy * idy;
 }
 
 inline void hf_eval(__constant const Params* P, __constant const float4* iface,

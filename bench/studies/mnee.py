@@ -13,6 +13,7 @@ The solver's statistics are summed over the relief runs.  Results go to out/benc
 
     python bench/studies/mnee.py --resolution 8x6 --spp 128 --passes 2 --repeat 3
     python bench/studies/mnee.py --trials 1,0.5,0.25,0.1 --repeat 4
+    python bench/studies/mnee.py --surface voxels
 """
 from __future__ import annotations
 
@@ -65,6 +66,8 @@ def main(argv=None) -> int:
     ap.add_argument("--trials", default=None,
                     help="comma-separated mean random trials per connection to compare on the relief "
                          f"(default: the path tracer's {pt.MNEE_TRIALS:g})")
+    ap.add_argument("--surface", choices=("smooth", "voxels"), default=None,
+                    help="model.surface of the relief forearm (default: its config's, the smooth walk)")
     ap.add_argument("--device", default=None)
     a = ap.parse_args(argv)
     w, h = (int(v) for v in a.resolution.split("x"))
@@ -75,6 +78,8 @@ def main(argv=None) -> int:
         c = C.load(os.path.join(ROOT, "configs", f"{name}.toml"))
         c["camera"]["resolution"] = [w, h]
         c["render"].update(pt_samples_per_pass=a.spp, specular=False)
+        if a.surface and name == "forearm":
+            c["model"]["surface"] = a.surface
         built[name] = (c, volume.build(c))
     scenes = {label(t): built["forearm"] + (t,) for t in trials}
     scenes["forearm_flat"] = built["forearm_flat"] + (None,)
