@@ -72,36 +72,17 @@ inline int same_patch(__constant const Params* P, real x1, real y1, real x2, rea
     return gx1 == gx2 && gy1 == gy2;
 }
 
-/* Intersect the ray with interface k (a flat one in closed form; else Newton along the ray from
- * t_warm where it is > 0, the last trace's distance for this event predicted to first order,
- * else from the plane through h(o.xy)); on success the ray's origin and its differentials move
- * to the hit, *f is h there, *t_out the distance and *dt1, *dt2 its derivatives in u (from the
- * ray differentials: the next trace's prediction).  0: no convergence or a hit behind. */
-inline int hf_hit(__constant const Params* P, __constant const float4* iface,
-                  __global const float* smooth, int k, real lam, real zr, real t_warm, Ray* r, HF* f,
-                  real* t_out, real* dt1, real* dt2) {
-    if (r->d.z == 0) return 0;
-    real t = t_warm;
-    if (IF_VAR(k) < 0) {
-        /* a flat interface: its plane, in closed form (the continuation's plane through it, zr,
-         * is the plane itself) */
-        f->h = (real)IF_Z(k);
-        f->hx = f->hy = f->hxx = f->hxy = f->hyy = 0;
-        t = (f->h - r->o.z) / r->d.z;
-        if (!(t > 0)) return 0;
-        const real4 q1 = r->do1 + t * r->dd1, q2 = r->do2 + t * r->dd2;
-        *dt1 = -q1.z / r->d.z; *dt2 = -q2.z / r->d.z;
-        r->do1 = q1 + *dt1 * r->d;
-        r->do2 = q2 + *dt2 * r->d;
-        r->o = R4(r->o.x + t * r->d.x, r->o.y + t * r->d.y, f->h);
-        *t_out = t;
-        return 1;
-    }
+/* Newton along the ray for its intersection with the varying interface k, from *t where it is
+ * > 0, else from the plane through h(o.xy); 1 with *t the distance and *f the surface at the hit
+ * (at the last iterate, within the step's rounding-level dt of the hit, or its Taylor expansion
+ * at the hit). */
+inline int hf_newton(__constant const Params* P, __constant const float4* iface,
+                     __global const float* smooth, int k, real lam, real zr, const Ray* r, HF* f, real* t_io) {
+    real t = *t_io;
     if (!(t > 0)) {
         hf_eval_l(P, iface, smooth, k, r->o.x, r->o.y, lam, zr, f);
         t = (f->h - r->o.z) / r->d.z;
     }
-    int ok = 0;
     for (int it = 0; it < HF_MAXIT; ++it) {
         const real4 p = r->o + t * r->d;
         hf_eval_l(P, iface, smooth, k, p.x, p.y, lam, zr, f);
@@ -110,9 +91,10 @@ inline int hf_hit(__constant const Params* P, __constant const float4* iface,
         if (!(fabs(gp) > (real)1e-6)) return 0;
         const real dt = g / gp;
         t -= dt;
+        *t_io = t;
         /* the step's floor is the rounding of the position (~1e-16 of 1e4 um), not of t */
         const real tol = HF_TOL * (1 + fabs(t) + fabs(r->o.x) + fabs(r->o.y));
-        if (fabs(dt) <= tol) { ok = 1; break; }
+        if (fabs(dt) <= tol) return 1;
         /* a last step this short (inside one patch): Newton's error after it, dt^2 times the
          * ray's curvature term q / (2 gp), is below the tolerance, and h and its derivatives at
          * the new point are their Taylor expansion from this one (the patch's third derivatives
@@ -125,14 +107,32 @@ inline int hf_hit(__constant const Params* P, __constant const float4* iface,
                         + (real)0.5 * (f->hxx * ex * ex + 2 * f->hxy * ex * ey + f->hyy * ey * ey);
                 f->hx += f->hxx * ex + f->hxy * ey;
                 f->hy += f->hxy * ex + f->hyy * ey;
-                ok = 1;
-                break;
+                return 1;
             }
         }
     }
-    if (!ok || !(t > 0)) return 0;
-    /* f is h at the last iterate, within the step's rounding-level dt of the hit, or its Taylor
-     * expansion at the hit */
+    return 0;
+}
+
+/* Intersect the ray with interface k (a flat one in closed form; else hf_newton from t_warm,
+ * the last trace's distance for this event predicted to first order, where it is > 0); on
+ * success the ray's origin and its differentials move to the hit, *f is h there, *t_out the
+ * distance and *dt1, *dt2 its derivatives in u (from the ray differentials: the next trace's
+ * prediction).  0: no convergence or a hit behind. */
+inline int hf_hit(__constant const Params* P, __constant const float4* iface,
+                  __global const float* smooth, int k, real lam, real zr, real t_warm, Ray* r, HF* f,
+                  real* t_out, real* dt1, real* dt2) {
+    if (r->d.z == 0) return 0;
+    real t = t_warm;
+    if (IF_VAR(k) < 0) {
+        /* a flat interface: its plane (the continuation's plane through it, zr, is the plane) */
+        f->h = (real)IF_Z(k);
+        f->hx = f->hy = f->hxx = f->hxy = f->hyy = 0;
+        t = (f->h - r->o.z) / r->d.z;
+    } else if (!hf_newton(P, iface, smooth, k, lam, zr, r, f, &t)) {
+        return 0;
+    }
+    if (!(t > 0)) return 0;
     const real4 p = r->o + t * r->d;
     /* transfer: dt = -(do + t dd) . N / (d . N), N = (-hx, -hy, 1) */
     const real4 N = R4(-f->hx, -f->hy, 1);
