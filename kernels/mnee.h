@@ -38,7 +38,8 @@
 #endif
 #define MN_MAXIT 16             /* Newton iterations on the landing constraint */
 #define MN_HALF 6               /* step halvings per iteration */
-#define MN_BUDGET 160           /* traces per connection, all attempts together (then: failed) */
+#define MN_BUDGET 80            /* traces per flat-seeded solve, continuation included (then:
+                                   failed, and the random trials look for every solution) */
 #define MN_SEED_BUDGET 24       /* traces per extra seed */
 #define HF_MAXIT 24             /* Newton iterations per ray-height-field intersection */
 #define MN_CONT 64              /* continuation steps */

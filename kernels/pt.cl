@@ -357,7 +357,6 @@ inline float connect_mnee(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift,
 #endif
 #define MN_SMS_SIGMA 0.2        /* momentum spread of the random seeds around the flat seed */
 #define MN_SMS_CAP 256          /* trials to a solution's recurrence, then clamped (counted) */
-#define MN_SMS_NOFLAT 16        /* random trials where the flat-seeded solve fails */
 
 /* One random trial: Newton on the surfaces from a seed u0 + N(0, sigma^2) in each component of
  * the momentum (Box-Muller; full support, so every solution's basin has a chance). */
@@ -412,9 +411,8 @@ inline int sms_recurrence(const Chain* ch, real4 v, int Ls, real u0x, real u0y, 
  * solution x other than x0 adds f(x) times the number of further trials until x recurs, an
  * estimate of 1/p(x), over the mean number of trials; so the expected sum is that of f over every
  * solution other than x0 that a trial can reach (any: the seeds have full support), whatever
- * their number.  Where the flat-seeded solve fails, at least MN_SMS_NOFLAT trials instead (the
- * number is fixed by the vertex, so the estimate stays unbiased).  Bias only from the cap
- * (counted: ss->clamped). */
+ * their number.  Where the flat-seeded solve fails, the same number of trials find every
+ * solution (none is x0).  Bias only from the cap (counted: ss->clamped). */
 inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift, int b,
                               float g, float4 wdir, float trials, Rng* rng,
                               __constant const Params* P, __constant const float4* iface,
@@ -433,14 +431,7 @@ inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 sh
         if (f > 0.0f) c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz));
     }
     int ns = have0;
-    int ntrials = 0;
-    float per = trials;
-    if (have0) {
-        ntrials = sms_count(trials, rng);
-    } else if (trials > 0.0f) {
-        ntrials = max((int)ceil(trials), MN_SMS_NOFLAT);
-        per = (float)ntrials;
-    }
+    const int ntrials = sms_count(trials, rng);
     for (int j = 0; j < ntrials; ++j) {
         real ax, ay;
         ss->trials++;
@@ -450,7 +441,7 @@ inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 sh
         const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
         if (!(f > 0.0f)) continue;
         const int n = sms_recurrence(ch, v, Ls, u0x, u0y, l, rng, ax, ay, P, iface, layer_n, smooth, st, ss);
-        c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz)) * (float)n / per;
+        c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz)) * (float)n / trials;
     }
     ss->found += ns > 0;
     *nsol = ns;

@@ -355,6 +355,37 @@ def test_a_fractional_mean_of_random_trials_stays_unbiased(dev):
     assert se < 0.05 * total and r["factor"][0] < 0.7 * total, (se, r["factor"][0], total)
 
 
+def test_where_the_flat_seeded_solve_fails_the_random_trials_find_every_solution(dev):
+    """Under the same focusing junction, the vertices (of 4,000 drawn) whose flat-seeded solve
+    fails within its budget (Newton, then continuation, MN_BUDGET traces) get no x0: the
+    connection's one random trial is then the whole estimate, a solution it finds weighted by the
+    trials until it recurs.  The mean of 8,000 samples equals the sum over the solutions of a
+    dense seed search within its standard error at each such vertex (measured within 1.8 SE at
+    six vertices, one with three solutions; a trial finds one in 16-77 % of the samples)."""
+    vol = volume.build(scene(FOCUS, papillae=6.0, period=40.0))
+    rng = np.random.default_rng(1)
+    n = 4000
+    verts = np.stack([rng.uniform(100, 400, n), rng.uniform(100, 400, n), -rng.uniform(20, 300, n),
+                      np.ones(n)], 1)
+    r = testing.mnee_probe(dev, vol, LIGHT, verts, 0)
+    failed = verts[np.flatnonzero(r["built"] & ~r["ok"])][:6]
+    assert len(failed) >= 3, len(failed)
+    rf = testing.mnee_probe(dev, vol, LIGHT, failed, 0)
+    sols = _solutions(dev, vol, failed, rf)
+    checked = 0
+    for i, q in enumerate(sols):
+        total = sum(s[1] for s in q)
+        if not total > 0:
+            continue
+        sms = testing.mnee_probe(dev, vol, LIGHT, np.repeat(failed[i:i + 1], 8000, 0), 0, salt=5)
+        a = sms["all_factor"]
+        se = a.std() / math.sqrt(len(a))
+        assert 0 < se < 0.1 * total, (i, se, total)
+        assert abs(a.mean() - total) <= 4 * se, (i, a.mean(), se, total, len(q))
+        checked += 1
+    assert checked >= 3, checked
+
+
 # ----------------------------------------------------------------------------- renders
 def test_render_at_vanishing_amplitude_matches_the_flat_path_tracer(dev):
     """A junction of amplitude 1e-3 um (a relief build: column tracking, smooth normals, MNEE)
