@@ -358,7 +358,8 @@ def mnee_report(tot: list[int]) -> dict:
                    "ray differentials for the Jacobian, step halving, seeded by the flat solution; "
                    "where that fails, continuation from the flat surfaces; the other solutions by "
                    f"specular manifold sampling, unbiased: {MNEE_TRIALS} random trial(s) per connection "
-                   "(16 where the flat-seeded solve fails), a solution found weighted by the trials "
+                   "(where the flat-seeded solve fails, they look for every solution), a solution "
+                   "found weighted by the trials "
                    "until it recurs (capped at 256: clamped) "
                    "(docs/relief.md)")
     return d
