@@ -66,11 +66,7 @@ inline void hf_eval_l(__constant const Params* P, __constant const float4* iface
 
 /* Whether (x1, y1) and (x2, y2) lie in the same bicubic patch (between the same samples) */
 inline int same_patch(__constant const Params* P, real x1, real y1, real x2, real y2) {
-    const real gx1 = floor((x1 - (real)P->x0) / (real)P->dx - (real)0.5);
-    const real gx2 = floor((x2 - (real)P->x0) / (real)P->dx - (real)0.5);
-    const real gy1 = floor((y1 - (real)P->y0) / (real)P->dy - (real)0.5);
-    const real gy2 = floor((y2 - (real)P->y0) / (real)P->dy - (real)0.5);
-    return gx1 == gx2 && gy1 == gy2;
+    return floor(hf_gx(P, x1)) == floor(hf_gx(P, x2)) && floor(hf_gy(P, y1)) == floor(hf_gy(P, y2));
 }
 
 /* Newton along the ray for its intersection with the varying interface k, from *t where it is

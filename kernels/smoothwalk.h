@@ -185,9 +185,7 @@ HOT float smooth_z(__constant const Params* P, __constant const float4* iface,
                    __global const float* heights, int k, float x, float y) {
     const int v = IF_VAR(k);
     if (v < 0) return IF_Z(k);
-    const real gx = ((real)x - (real)P->x0) / (real)P->dx - (real)0.5;
-    const real gy = ((real)y - (real)P->y0) / (real)P->dy - (real)0.5;
-    return (float)((real)IF_Z(k) + hf_grid1(P, heights, v, gx, gy).x);
+    return (float)((real)IF_Z(k) + hf_grid1(P, heights, v, hf_gx(P, (real)x), hf_gy(P, (real)y)).x);
 }
 
 /* hit_surface's walk from the plane of the highest surface point down to the first hit of the

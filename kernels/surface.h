@@ -69,6 +69,11 @@ inline int hf_index(int i, int n, int periodic) {
     return clamp(i, 0, n - 1);
 }
 
+/* (x, y) in the samples' grid coordinates: sample i lies at i + 1/2 (the patch of (x, y) is
+ * between samples floor(g) and floor(g) + 1) */
+inline real hf_gx(__constant const Params* P, real x) { return (x - (real)P->x0) / (real)P->dx - (real)0.5; }
+inline real hf_gy(__constant const Params* P, real y) { return (y - (real)P->y0) / (real)P->dy - (real)0.5; }
+
 /* h and its derivatives up to `order` (1: h, hx, hy; 2: the second ones too; a constant at
  * every call, so the compiler drops the rest).  The patch's 4 x 4 samples as four row vectors
  * (one vload4 each inside the grid), combined over y first, then dotted with the x weights. */
@@ -77,8 +82,7 @@ inline void hf_eval_n(__constant const Params* P, __constant const float4* iface
     o->hx = o->hy = o->hxx = o->hxy = o->hyy = 0;
     const int v = IF_VAR(k);
     if (v < 0) { o->h = (real)IF_Z(k); return; }
-    const real gx = (x - (real)P->x0) / (real)P->dx - (real)0.5;
-    const real gy = (y - (real)P->y0) / (real)P->dy - (real)0.5;
+    const real gx = hf_gx(P, x), gy = hf_gy(P, y);
     const int ix = (int)gx - (gx < 0), iy = (int)gy - (gy < 0);      /* floor */
     const real fx = gx - (real)ix, fy = gy - (real)iy;
     const real fx2 = fx * fx, fx3 = fx2 * fx, fy2 = fy * fy, fy3 = fy2 * fy;
