@@ -106,6 +106,8 @@ def main(argv=None) -> int:
     from ..output.checkpoint import CheckpointError
     from ..compute.device import DeviceError
     verbose = getattr(a, "verbose", False)
+    from ..compute import devicecheck
+    devicecheck.PROGRESS["on"] = not getattr(a, "quiet", False)
     try:
         old = signal.signal(signal.SIGTERM, _on_sigterm)
     except ValueError:                       # not the main thread

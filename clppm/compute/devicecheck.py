@@ -171,8 +171,22 @@ def check(device, spec: str, rerun: bool = False, on_crash=None) -> SelfTest:
         hit = cached(device)
         if hit is not None:
             return hit
+    name = f"{spec} ({device.name.strip()}, {device.platform.name.strip()})"
+    say(f"self-testing device {name}: a known-answer forearm through every kernel, "
+        "once per device, driver and clppm version (usually 10-40 s)...")
     res = run_child(spec, on_crash)
     res = SelfTest(res.passed, res.seconds, res.reason,
                    time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()))
+    say(f"device {spec} {res.line()}")
     _store(device, res)
     return res
+
+
+#: whether :func:`check` says on stderr that it runs a self-test (the CLI's ``-q`` turns it off)
+PROGRESS = {"on": True}
+
+
+def say(line: str) -> None:
+    """One line of the self-test's progress on stderr, unless :data:`PROGRESS` is off."""
+    if PROGRESS["on"]:
+        print(line, file=sys.stderr, flush=True)
