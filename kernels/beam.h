@@ -217,11 +217,7 @@ HOT int beam_pair_depth(const BeamPiece* pc, float4 p, int bl, float2 tb_p, floa
 
 /* whether the model has open or periodic sides, where a disc takes a window (disc.h) */
 HOT int beam_lateral(__constant const Params* P) {
-#ifndef PROF_NOWIN
     return P->lateral != 0;
-#else
-    return 0;                           /* timing only: no window */
-#endif
 }
 
 /* The pair test of a piece and a photon (p: position and weight, bl: band + 256 layer, tb_p:

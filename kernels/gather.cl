@@ -57,7 +57,7 @@
  * bands of its class (the default: 81 bands, 9 per path): the same float operations per band
  * as the scalar loop, lane by lane (exp_neg16, kernels/beam.h, is exp_neg's expression), so the
  * same bits. */
-#if NBC == 9 && HERO_C == 9 && !defined(BAND_SCALAR)
+#if NBC == 9 && HERO_C == 9 
 #define BAND16 1
 #endif
 
@@ -463,22 +463,12 @@ HOT void class_od_advance(ClassOd* od, __global const float4* optics, __global c
  * piece, in fixed point. */
 #ifdef BAND16
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __global const float16* hgc,
-                         __global const float16* sw16, __global const float* sextra, uint j,
-                         float4 p, int bl, int g, float cw, float wax, const BeamHit* h) {
+                         __global const float16* sw16, uint j, int bl, int g, float cw, float wax,
+                         const BeamHit* h) {
     const float wl = h->wl, wwin = h->wwin, ts = h->ts;
-    /* the photon's weights in class order: lane k holds member c = k - kh (mod 9) (c = 0: the
-     * hero's p.w); lanes 9-15: 0 */
-#ifdef PROF_SHUFFLE
-    const uint16 lane = (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-    const uint kh = (uint)((bl & 255) / GCLASS);
-    const float8 wx = vload8(j, sextra);
-    const float16 wc = (float16)(p.w, wx, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f);
-    const uint16 rot = select(select(lane - kh, lane + 9u - kh, lane < kh),
-                              (uint16)(15u), lane > 8u);
-    const float16 w = shuffle(wc, rot) * wax * wl * wwin;
-#else
+    /* the photon's weights in class order (sw16: lane k holds member c = k - kh (mod 9), c = 0
+     * the hero's p.w; lanes 9-15: 0) */
     const float16 w = sw16[j] * wax * wl * wwin;
-#endif
     __global const float16* hh = hgc + ((bl >> 8) * GCLASS + g) * 3;
     const float16 q = hh[0] + hh[1] * cw;
 #ifdef EXACT_RSQRT                      /* tests on implementations whose native_rsqrt differs
@@ -488,15 +478,11 @@ HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __glob
     const float16 rq = native_rsqrt16(q);
 #endif
     const float16 T = exp_neg16(od->v + mut16 * ts);
-#ifdef PROF_NOSAT
-    acc->v += convert_long16(fmin(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f));
-#else
     /* add_sat for the nonnegative terms (fmin maps NaN to 9e18): the sum of two values in
      * [0, 2^63) does not wrap as ulong */
     acc->v = as_long16(min(as_ulong16(acc->v) + as_ulong16(convert_long16(
                  fmin(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f))),
                  (ulong16)(0x7fffffffffffffffUL)));
-#endif
 }
 #else
 /* the term of band b (class member k, the photon's band c: c = 0 the hero) */
@@ -554,11 +540,7 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
     const float16 mut16 = mutc[pc->Lk * GCLASS + g];
 #endif
     for (int iy = bx.c0.y; iy <= bx.c1.y; ++iy) {
-#ifndef ROWS_FULL
         const int2 xr = beam_box_row(gp, &bx, iy);      /* the disc's chord over the row */
-#else
-        const int2 xr = (int2)(bx.c0.x, bx.c1.x);
-#endif
         if (xr.y < xr.x) continue;
         for (int iz = bx.c0.z; iz <= bx.c1.z; ++iz) {
             const uint row = grid_cell_index(gp, xr.x, iy, iz) + cls0;
@@ -578,12 +560,9 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
 #endif
                 BeamHit h;
                 if (!beam_pair(P, pc, R, R2, Rwin, p, bl, tb_p, &h)) continue;
-#ifdef PROF_NOBANDS
-                ++M; continue;
-#endif
                 const float cw = dot(dd.xyz, pc->d);                /* w_eye = -d */
 #ifdef BAND16
-                beam_pair_bands(acc, od, mut16, hgc, sw16, sextra, j, p, bl, g, cw, pc->wax, &h);
+                beam_pair_bands(acc, od, mut16, hgc, sw16, j, bl, g, cw, pc->wax, &h);
 #else
                 beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, g, cw, pc->wax, &h);
 #endif
@@ -597,7 +576,7 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
 /* A point's pieces, each gathered over (gather_piece) with the ray's optical depth at its start;
  * the depth runs on through them.  Returns the pairs found. */
 HOT uint gather_point(const GridParams gp, __constant const Params* P, __constant const float4* iface,
-                      __global const float* heights, __constant const float4* vlay,
+                      __constant const float4* vlay,
                       __global const uint* cell_start, uint cls0, __global const float4* spos_w,
                       __global const float4* sdir_b, __global const float2* sslab,
                       __global const float* sextra, __global const float4* hgtab,
@@ -613,11 +592,7 @@ HOT uint gather_point(const GridParams gp, __constant const Params* P, __constan
     for (uint k = k0; k < k1; ++k) {
         BeamPiece pc = beam_piece_at(geo, k);
         if (R > 0.0f && pc.len > 0.0f) {
-#ifndef PROF_SLAB_INLINE
             const float4 pslab_k = pslab[k];
-#else                                   /* timing only: the height field per piece and class */
-            const float4 pslab_k = beam_piece_slab(P, iface, heights, &pc);
-#endif
             beam_axis(&pc);
             beam_frame(&pc, pslab_k);
             M += gather_piece(gp, P, iface, vlay, cell_start, cls0, spos_w, sdir_b, sslab, sextra,
@@ -646,7 +621,6 @@ HOT void add_point(float* accp, const ClassAcc* acc, float4 pp, float R, float R
 __kernel void gather_beam(const GridParams gp,
                           __constant const Params* P,       /* the volume: columns, sides */
                           __constant const float4* iface,
-                          __global const float* heights,
                           __global const uint* cell_start,
                           __global const float4* spos_w,
                           __global const float4* sdir_b,
@@ -688,7 +662,7 @@ __kernel void gather_beam(const GridParams gp,
             const float R2 = R * R;
             ClassAcc acc;
             class_acc_clear(&acc);
-            const uint M = gather_point(gp, P, iface, heights, vlay, cell_start, cls0, spos_w, sdir_b,
+            const uint M = gather_point(gp, P, iface, vlay, cell_start, cls0, spos_w, sdir_b,
                                         sslab, sextra, hgtab, optics, hgc, mutc, sw16, pslab, geo,
                                         pt_piece[i], pt_piece[i + 1], R, R2, g, &od, &acc);
             add_point(accp, &acc, pp, R, R2);

@@ -264,7 +264,7 @@ class GatherLayout:
         pslab = bg.piece_slabs()             # launched before gather_beam is (the launch order)
         bg.kernels.gather_beam(
             q, sc.npix, rows=bg.gclass, gp=grid.params, P=sc.pp.pbuf, iface=sc.vbuf.iface,
-            heights=sc.vbuf.heights, cell_start=grid.cell_start, spos_w=grid.spos_w, sdir_b=grid.sdir_b,
+            cell_start=grid.cell_start, spos_w=grid.spos_w, sdir_b=grid.sdir_b,
             sslab=sslab, vlay=bg.vlay, sextra=extra, hgtab=sc.hgtab, optics=sc.vbuf.optics, hgc=bg.hgc,
             mutc=bg.mutc, sw16=sw, pslab=pslab, ray_start=e.ray_start, pt_pos=e.pt_pos,
             pt_piece=e.pt_piece, geo=e.geo, pt_R=st.R, pt_N=st.N, pt_M=st.M, pix_acc=acc.pix,
