@@ -7,6 +7,10 @@
 #ifndef CLPPM_BEAM_H
 #define CLPPM_BEAM_H
 
+#include "common.h"
+#include "disc.h"
+#include "grid.h"
+
 /* exp_neg (common.h) on 16 lanes: both layouts' band math on one vector, the same bits per lane. */
 inline float16 exp_neg16(float16 x) {
     const float16 y = fmax(x, 0.0f) * 1.44269504088896f;

@@ -28,6 +28,8 @@
 #ifndef CLPPM_DISC_H
 #define CLPPM_DISC_H
 
+#include "volume.h"
+
 #ifndef DISC_KAPPA
 #define DISC_KAPPA 0.125f
 #endif

@@ -16,6 +16,7 @@
 #ifndef CLPPM_SMOOTHWALK_H
 #define CLPPM_SMOOTHWALK_H
 
+#include "volume.h"
 #include "surface.h"
 
 #if !defined(NVAR) || !defined(SMOOTH_CELL)

@@ -31,6 +31,8 @@
 #ifndef CLPPM_SPECTRAL_H
 #define CLPPM_SPECTRAL_H
 
+#include "volume.h"
+
 #ifndef HERO_C
 #define HERO_C 1
 #endif

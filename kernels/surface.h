@@ -18,6 +18,8 @@
 #ifndef CLPPM_SURFACE_H
 #define CLPPM_SURFACE_H
 
+#include "volume.h"
+
 #ifndef CLPPM_REAL
 #define CLPPM_REAL
 #ifdef PT_FP64

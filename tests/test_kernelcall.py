@@ -23,7 +23,7 @@ def test_every_kernel_is_read_and_volume_args_expanded():
     assert [p.kind for p in eye.params[:2]] == ["buffer", "buffer"]
     g = {p.name: p for p in sigs["gather"].params}
     assert (g["gp"].kind, g["npix"].kind, g["pass_scale"].ctype) == ("struct", "scalar", "double")
-    assert len(sigs["gather_beam"].params) == 29
+    assert len(sigs["gather_beam"].params) == 28
 
 
 def test_parameter_declarations():

@@ -16,7 +16,8 @@ import pytest
 
 from clppm.checks import selftest
 from clppm.compute import devicecheck
-from clppm.compute.device import device_spec, expected_kernels, implementation, list_devices
+from clppm.compute.device import device_spec, implementation, list_devices
+from clppm.compute.programs import expected_kernels
 
 SMALL = ["--resolution", "16x12", "--passes", "1", "--photons", "4000"]
 

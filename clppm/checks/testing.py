@@ -20,16 +20,9 @@ from ..integrators.hashgrid import WG, Grid, GridBuffers, as_device
 from ..compute.kernelcall import Kernel
 from ..integrators.pathtracer import MNEE_TRIALS, build, chain_tables, fp64
 
-_GATHERS: dict[tuple, dict] = {}     # keyed by (context, bands), as hashgrid's own kernels
-
-
 def _gather_kernels(dev: Device, nb: int) -> dict:
     """kernels/hashgrid.cl's two queries, built for ``nb`` bands."""
-    key = (dev.ctx, nb)
-    if key not in _GATHERS:
-        prg = dev.build("hashgrid.cl", {"NB": int(nb)})
-        _GATHERS[key] = {nm: Kernel(prg, nm) for nm in ("gather_grid", "gather_bruteforce")}
-    return _GATHERS[key]
+    return dev.kernels("hashgrid.cl", ("gather_grid", "gather_bruteforce"), {"NB": int(nb)})
 
 
 # --------------------------------------------------------------------------- photon-grid queries

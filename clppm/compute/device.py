@@ -2,14 +2,13 @@
 
 One place that picks a device (``--device`` or ``PYOPENCL_CTX``), finds the
 kernel sources of an installed clppm, and builds them with ``-D`` options
-through pyopencl's program cache.  Errors here are :class:`DeviceError` with a
+through the process's program registry (:mod:`clppm.compute.programs`).  Errors here are :class:`DeviceError` with a
 message a user can act on (no traceback).
 """
 from __future__ import annotations
 
 import functools
 import os
-import re
 from dataclasses import dataclass
 from importlib import resources
 
@@ -380,10 +379,33 @@ class Device:
         return {**describe(self.device), "chosen": self.chosen, "passed_over": list(self.passed_over)}
 
     def build(self, filename: str, defines: dict | None = None) -> object:
-        """Build ``kernels/filename`` with ``-D`` defines (cached per device and options), and
-        check that the program holds every kernel the source declares (:func:`_build`)."""
-        return _build(self.ctx, filename, tuple(sorted((defines or {}).items())),
-                      os.environ.get("CLPPM_FAULT", ""))
+        """The program of ``kernels/filename`` with ``-D`` ``defines``, from the process's
+        registry (:mod:`clppm.compute.programs`: built once per context, binaries cached per
+        device, checked to hold every kernel the source declares)."""
+        from .programs import REGISTRY, BuildSpec, BuildError
+        try:
+            return REGISTRY.program(self.ctx, BuildSpec.of(filename, defines), _fault())
+        except BuildError as e:
+            raise DeviceError(str(e)) from None
+
+    def kernels(self, filename: str, names, defines: dict | None = None) -> dict:
+        """``{name: Kernel}`` of the program of ``filename`` and ``defines`` (:meth:`build`),
+        made once per context."""
+        from .programs import REGISTRY, BuildSpec, BuildError
+        try:
+            return REGISTRY.kernels(self.ctx, BuildSpec.of(filename, defines), names, _fault())
+        except BuildError as e:
+            raise DeviceError(str(e)) from None
+
+    def library(self, name: str, make):
+        """A library kernel on this context (``make(ctx)``: a pyopencl scan or sort), made once."""
+        from .programs import REGISTRY
+        return REGISTRY.library(self.ctx, name, make)
+
+
+def _fault() -> str:
+    """``CLPPM_FAULT``: deliberately broken builds for the self-test's tests (programs.inject_fault)."""
+    return os.environ.get("CLPPM_FAULT", "")
 
 
 #: the gather's density estimators (kernels/gather.cl ESTIMATOR)
@@ -444,177 +466,22 @@ def surface_fp64(dev, vol) -> bool | None:
     return None if vol.flat else bool(dev.info()["fp64"])
 
 
-@functools.lru_cache(maxsize=None)
-def _build(ctx, filename: str, defines: tuple, fault: str = ""):
-    cl = _cl()
-    kdir = kernel_dir()
-    path = os.path.join(kdir, filename)
-    try:
-        with open(path, encoding="utf-8") as f:
-            src = f.read()
-    except (OSError, UnicodeDecodeError) as e:
-        raise DeviceError(f"kernel source {filename} cannot be read from {kdir} ({e}); "
-                          "the clppm installation is incomplete: reinstall it (pip install clppm)") from None
-    if any(c.isspace() for c in kdir):
-        # OpenCL compilers split options at blanks and take no quotes (PoCL: "Invalid build
-        # option"), so an install path with a space cannot go into -I: inline the headers.
-        src = _inline_includes(src, kdir)
-        opts = []
-    else:
-        opts = [f"-I{kdir}"]
-    opts += _define_options(defines)
-    want = expected_kernels(src, {o[2:].split("=")[0] for o in opts if o.startswith("-D")})
-    dev = ctx.devices[0]
-    src, opts = _inject_fault(fault, dev, filename, src, opts)
-    prg = _program(ctx, src, opts, filename)
-    missing = want - set(_kernel_names(prg))
-    for whole in (False, True):   # a broken cache entry (a crashed compile's): drop it, rebuild
-        if not missing:
-            break
-        forget_kernel_cache(implementation(dev), ctx, src, opts, whole=whole)
-        prg = _program(ctx, src, opts, filename, cache=False)
-        missing = want - set(_kernel_names(prg))
-    if missing:
-        raise DeviceError(f"kernel build of {filename} on device '{dev.name.strip()}' "
-                          f"({implementation(dev)}, {short_version(dev)}) holds no kernel "
-                          f"{', '.join(sorted(missing))}, even rebuilt without the kernel caches")
-    return prg
-
-
-def _define_options(defines: tuple) -> list[str]:
-    opts = []
-    for k, v in defines:
-        if k == "FAST_MATH":                 # not a -D: the compiler's relaxed-math switch
-            if v:
-                opts += ["-cl-fast-relaxed-math", "-DFAST_MATH=1"]
-            continue
-        if isinstance(v, bool):
-            if v:
-                opts.append(f"-D{k}=1")
-        elif isinstance(v, float):
-            opts.append(f"-D{k}={v!r}f")
-        else:
-            opts.append(f"-D{k}={v}")
-    return opts
-
-
-def _program(ctx, src: str, opts: list, filename: str, cache: bool = True):
-    cl = _cl()
-    try:
-        return cl.Program(ctx, src).build(options=opts, **({} if cache else {"cache_dir": False}))
-    except cl.Error as e:  # build failure (RuntimeError), bad options (LogicError): name + log
-        dev = ctx.devices[0].name.strip()
-        raise DeviceError(f"kernel build of {filename} failed on device '{dev}' "
-                          f"with options {' '.join(opts)}:\n{e}") from None
-
-
-def _kernel_names(prg) -> list[str]:
-    try:
-        return [n for n in prg.kernel_names.split(";") if n]
-    except Exception:                     # a program the driver cannot describe holds nothing
-        return []
-
-
-_KERNEL_DECL = re.compile(r"__kernel\s+void\s+(\w+)\s*\(")
-_COND = re.compile(r"^[ \t]*#[ \t]*(if|ifdef|ifndef|elif|else|endif)\b[ \t]*(\w*)", re.M)
-
-
-def expected_kernels(src: str, defined: set[str]) -> set[str]:
-    """The kernels ``src`` declares outside preprocessor conditions it cannot decide: ``#ifdef``
-    and ``#ifndef`` of ``defined`` names are followed, any other ``#if`` is left undecided (its
-    kernels are not required)."""
-    events = sorted([(m.start(), "k", m.group(1)) for m in _KERNEL_DECL.finditer(src)]
-                    + [(m.start(), m.group(1), m.group(2)) for m in _COND.finditer(src)])
-    stack: list = []                 # per open condition: True, False, or None (undecided)
-    out = set()
-    for _, what, arg in events:
-        if what == "k":
-            if all(c is True for c in stack):
-                out.add(arg)
-        elif what in ("ifdef", "ifndef"):
-            stack.append((arg in defined) == (what == "ifdef"))
-        elif what == "if":
-            stack.append(None)
-        elif what == "elif" and stack:
-            stack[-1] = None
-        elif what == "else" and stack:
-            stack[-1] = None if stack[-1] is None else not stack[-1]
-        elif what == "endif" and stack:
-            stack.pop()
-    return out
-
-
-def _inject_fault(fault: str, dev, filename: str, src: str, opts: list) -> tuple[str, list]:
-    """Deliberately broken builds, for the tests of the self-test and of verified builds only:
-    ``CLPPM_FAULT=[IMPL@]FILE:KIND[:KERNEL]`` (several, comma-separated; IMPL: on that
-    implementation only), KIND ``crash`` (KERNEL's first
-    work item writes to address 0 at its first launch), ``drop`` (KERNEL is not a kernel: the
-    program lacks it) or ``wrong`` (``-DCLPPM_FAULT_WRONG``: photon.cl scatters less)."""
-    for f in filter(None, (x.strip() for x in fault.split(","))):
-        impl, _, f = f.rpartition("@")
-        file_, kind, *rest = f.split(":") + [""]
-        if file_ != filename or (impl and impl != implementation(dev)):
-            continue
-        name = rest[0] if rest and rest[0] else r"\w+"
-        m = re.search(r"__kernel(\s+void\s+" + name + r"\s*\()", src)
-        if kind == "wrong":
-            opts = opts + ["-DCLPPM_FAULT_WRONG=1"]
-        elif kind == "drop" and m:
-            src = src[:m.start()] + m.group(1).lstrip() + src[m.end():]
-        elif kind == "crash" and m:
-            brace = src.index("{", m.end())
-            src = (src[:brace + 1] + " if (get_global_id(0) == 0) *(volatile __global int*)0 = 1; "
-                   + src[brace + 1:])
-    return src, opts
-
-
-def forget_kernel_cache(impl: str, ctx=None, src: str | None = None, opts: list | None = None,
-                        whole: bool = True) -> None:
-    """Drop what the kernel caches may hold of a crashed or broken build: PoCL's broken entries
-    (:func:`clppm.compute.icd.prune_pocl_cache`) and, with ``whole``, every entry of the PoCL cache
-    clppm owns (``POCL_CACHE_DIR`` set by :func:`clppm.compute.icd.own_pocl_cache`; a cache the user
-    chose is only pruned); for ``src`` and ``opts``, pyopencl's cached binary."""
+def forget_kernel_cache(impl: str) -> None:
+    """Drop what the kernel caches may hold of a crashed or broken build: clppm's program
+    binaries (:func:`clppm.compute.programs.forget_binaries`), PoCL's broken entries
+    (:func:`clppm.compute.icd.prune_pocl_cache`) and every entry of the PoCL cache clppm owns
+    (``POCL_CACHE_DIR`` set by :func:`clppm.compute.icd.own_pocl_cache`; a cache the user
+    chose is only pruned)."""
     import shutil
     from .icd import owned_pocl_cache, prune_pocl_cache
+    from .programs import forget_binaries
+    forget_binaries()
     d = os.environ.get("POCL_CACHE_DIR")
     if impl == "pocl" and d and os.path.isdir(d):
         prune_pocl_cache(d)
-        if whole and d == owned_pocl_cache():  # its entries: PoCL needs the folder itself
+        if d == owned_pocl_cache():  # its entries: PoCL needs the folder itself
             for n in os.listdir(d):
                 shutil.rmtree(os.path.join(d, n), ignore_errors=True)
-    if ctx is not None and src is not None:
-        try:
-            from pyopencl.cache import get_cache_key
-            prg = _cl().Program(ctx, src)
-            ob = prg._process_build_options(ctx, opts)[0]
-            import platformdirs
-            import sys
-            base = os.path.join(platformdirs.user_cache_dir("pyopencl", "pyopencl"),
-                                "pyopencl-compiler-cache-v2-py" + ".".join(map(str, sys.version_info)))
-            shutil.rmtree(os.path.join(base, get_cache_key(ctx.devices[0], ob, src)),
-                          ignore_errors=True)
-        except Exception:             # pyopencl's private layout changed: the rebuild bypasses it
-            pass
-
-
-_INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]*"([^"]+)"[ \t]*$', re.M)
-
-
-def _inline_includes(src: str, kdir: str, seen: frozenset = frozenset()) -> str:
-    """Replace ``#include "x.h"`` of files in ``kdir`` by their text (``#line`` keeps log lines)."""
-    def sub(m):
-        name = m.group(1)
-        if name in seen:                              # a header that includes itself
-            return ""
-        try:
-            with open(os.path.join(kdir, name), encoding="utf-8") as f:
-                text = f.read()
-        except OSError:
-            return m.group(0)                         # not ours: leave it to the compiler
-        line = src.count("\n", 0, m.start()) + 2
-        return (f'#line 1 "{name}"\n' + _inline_includes(text, kdir, seen | {name})
-                + f"\n#line {line}\n")
-    return _INCLUDE.sub(sub, src)
 
 
 DEFAULT_RULE = ("the default: GPUs first, then " + ", ".join(CPU_PREFERENCE)

@@ -34,7 +34,7 @@ from ..scene.camera import Camera, from_config
 from ..scene.light import Light
 from ..compute.device import Device, DeviceError, check_alloc, kernel_defines, surface_fp64
 from ..compute.constants import EyeMode
-from ..compute.kernelcall import Kernel
+from .hashgrid import exclusive_scan
 from ..scene.volume import Volume, VolumeBuffers, volume_params
 
 SPACING = {"a": 4.0, "b": 7.0, "c": 14.0}
@@ -186,9 +186,9 @@ class _EyeKernel:
         ro = mf.READ_ONLY | mf.COPY_HOST_PTR
         self.common = dict(vbuf.named(cl.Buffer(ctx, ro, hostbuf=p)), E=cl.Buffer(ctx, ro, hostbuf=e),
                            rate=cl.Buffer(ctx, ro, hostbuf=rates))
-        self.knl = Kernel(dev.build("eye.cl", kernel_defines(vol, pt_fp64=surface_fp64(dev, vol))), "eye_pass")
+        self.knl = dev.kernels("eye.cl", ("eye_pass",), kernel_defines(vol, pt_fp64=surface_fp64(dev, vol)))["eye_pass"]
         self.smooth = vbuf.smooth
-        self.ctx = ctx
+        self.dev = dev
         self.nrays = cam.width * cam.height * cam.spp
         self.npts = cla.zeros(self.q, self.nrays + 1, np.uint32)
         self.npcs = cla.zeros(self.q, self.nrays + 1, np.uint32)
@@ -214,7 +214,7 @@ class _EyeKernel:
 
     def offsets(self) -> None:
         """In place: exclusive prefix sums of the counts, entry nrays = the total."""
-        scan = _scan_kernel(self.ctx)
+        scan = exclusive_scan(self.dev)
         scan(self.npts)
         scan(self.npcs)
 
@@ -255,13 +255,3 @@ def _depth_reach(geo, npieces: int, pos) -> tuple[float, bool]:
 def _view_cone_deg(dirs) -> float:
     """99th percentile of the sample points' eye directions' angle from +z."""
     return float(np.degrees(np.arccos(np.clip(np.percentile(dirs["z"], 1.0), -1, 1)))) if len(dirs) else 0.0
-
-
-_SCANS: dict = {}
-
-
-def _scan_kernel(ctx):
-    from pyopencl.scan import ExclusiveScanKernel
-    if ctx not in _SCANS:
-        _SCANS[ctx] = ExclusiveScanKernel(ctx, np.uint32, "a+b", "0")
-    return _SCANS[ctx]

@@ -178,38 +178,32 @@ def default_buffers(dev: Device) -> GridBuffers:
 
 # --------------------------------------------------------------------------- programs
 
-_KERNELS: dict[tuple, dict] = {}  # keyed by context (kept alive, as device.open_device does)
-_SCANS: dict[object, object] = {}
-_SORTS: dict[object, object] = {}
+GRID_KERNELS = ("grid_count", "grid_scatter", "grid_keys", "grid_permute", "grid_permute_extra",
+                "grid_starts_from_keys")
 
 
 def _kernels(dev: Device) -> dict:
-    k = _KERNELS.get(dev.ctx)
-    if k is None:
-        prg = dev.build("hashgrid.cl")
-        names = ("grid_count", "grid_scatter", "grid_keys", "grid_permute", "grid_permute_extra",
-                 "grid_starts_from_keys")
-        k = _KERNELS[dev.ctx] = {nm: Kernel(prg, nm) for nm in names}
-    return k
+    return dev.kernels("hashgrid.cl", GRID_KERNELS)
+
+
+def _make_scan(ctx):
+    from pyopencl.scan import ExclusiveScanKernel
+    return ExclusiveScanKernel(ctx, np.uint32, "a+b", "0")
 
 
 def exclusive_scan(dev: Device):
     """The exclusive prefix sum of uint32 (pyopencl ExclusiveScanKernel), one per context."""
-    s = _SCANS.get(dev.ctx)
-    if s is None:
-        from pyopencl.scan import ExclusiveScanKernel
-        s = _SCANS[dev.ctx] = ExclusiveScanKernel(dev.ctx, np.uint32, "a+b", "0")
-    return s
+    return dev.library("exclusive_scan_uint32", _make_scan)
+
+
+def _make_radix(ctx):
+    from pyopencl.algorithm import RadixSort
+    return RadixSort(ctx, "__global uint *keys, __global int *idx", key_expr="keys[i]",
+                     sort_arg_names=["keys", "idx"], key_dtype=np.uint32, index_dtype=np.int32)
 
 
 def _radix(dev: Device):
-    s = _SORTS.get(dev.ctx)
-    if s is None:
-        from pyopencl.algorithm import RadixSort
-        s = _SORTS[dev.ctx] = RadixSort(
-            dev.ctx, "__global uint *keys, __global int *idx", key_expr="keys[i]",
-            sort_arg_names=["keys", "idx"], key_dtype=np.uint32, index_dtype=np.int32)
-    return s
+    return dev.library("radix_sort_uint32_by_int32", _make_radix)
 
 
 # --------------------------------------------------------------------------- build
