@@ -116,8 +116,8 @@ def measure(spec: str, repeat: int = 3) -> dict:
     import numpy as np
     from clppm import config
     from clppm.compute import device
-    from clppm.integrators import hashgrid, pathtracer, photonpass
-    from clppm.run import progressive
+    from clppm.integrators import hashgrid, photonpass
+    from clppm.run import entry
     from clppm.checks import testing, tiny
     from clppm.scene import volume
     dev = device.open_device(spec)
@@ -125,7 +125,7 @@ def measure(spec: str, repeat: int = 3) -> dict:
     for key, cfg, n in (("photon_slab", config.slab_config(SLAB), 200_000),
                         ("photon_forearm", tiny.tiny_config(size_mm=10.0, resolution=RES,
                                                             step_nm=5.0), FOREARM_PHOTONS)):
-        pp = photonpass.PhotonPass(dev, volume.build(cfg), cfg)
+        pp = photonpass.PhotonPass.of_config(dev, volume.build(cfg), cfg)
         out[key] = n / _best(lambda: pp.trace(n), repeat)
     rng = np.random.default_rng(1)
     n, m, h = 1_000_000, 20_000, 0.02
@@ -156,14 +156,14 @@ def measure(spec: str, repeat: int = 3) -> dict:
     out["grid_cand_per_pair"] = float(res["r"].ncand.sum()) / max(pairs, 1)
     cfg = tiny.tiny_config(size_mm=10.0, resolution=RES, step_nm=5.0, photons=RENDER_PHOTONS)
     cfg = config.override(cfg, "render", "passes", RENDER_PASSES)
-    progressive.render(config.override(cfg, "render", "passes", 1), dev=dev)     # warm-up
-    r = progressive.render(cfg, dev=dev).report
+    entry.render(config.override(cfg, "render", "passes", 1), dev=dev)     # warm-up
+    r = entry.render(cfg, dev=dev).report
     out["render_s_per_pass"] = sum(r["seconds_per_pass"].values())
     out["render_seconds_per_pass"] = r["seconds_per_pass"]
     out["render_pairs_s"] = r["gather_pairs"] / max(r["seconds"]["gather"], 1e-9)
     flat = tiny.tiny_config("forearm_flat.toml", size_mm=10.0, resolution=RES, step_nm=5.0)
-    pathtracer.render_pt(flat, passes=1, dev=dev)                                 # warm-up
-    out["pt_paths_s"] = pathtracer.render_pt(flat, passes=2, dev=dev).report["paths_per_second"]
+    entry.render_pt(flat, passes=1, dev=dev)                                 # warm-up
+    out["pt_paths_s"] = entry.render_pt(flat, passes=2, dev=dev).report["paths_per_second"]
     out["kernels"] = device.launched(dev.device)
     return out
 

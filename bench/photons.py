@@ -107,7 +107,7 @@ def bench_trace(dev, cfg, vol, n, label, repeats=3):
     estimate of the device's rate; the median is reported beside it."""
     from clppm.integrators import photonpass
     t0 = _now()
-    pp = photonpass.PhotonPass(dev, vol, cfg, seed=1)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, seed=1)
     pp.trace(min(n, 4096), pass_index=99)                  # build + first launch
     setup = _now() - t0
     times = []
@@ -131,7 +131,7 @@ def bench_store(dev, cfg, vol, target, passes, label):
     from clppm.integrators import photonpass
     t0 = _now()
     # the renderer's slack (progressive.py): a pass stops past the target, by up to one launch
-    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=int(target * 1.2) + 4096, seed=1)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=int(target * 1.2) + 4096, seed=1)
     pp.run_pass(10_000, min(target, 20_000))               # build + warm-up (another pass)
     setup = _now() - t0
     emitted = stored = 0
@@ -383,7 +383,7 @@ def events_worker(spec: dict) -> dict:
             return {"counters": None}
         kw["counters"] = True
     target = spec["stored"]
-    pp = photonpass.PhotonPass(dev, vol, cfg, seed=1, bands=Bands.from_config(cfg),
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, seed=1, bands=Bands.from_config(cfg),
                                capacity=int(target * 1.2) + 4096, **kw)
     pp.set_storage(rc.storage, STORE_CONE_DEG, rc.store_scale, rc.store_min)
     pp.set_emission(rc.emission)

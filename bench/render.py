@@ -106,7 +106,7 @@ def device_bytes(report: dict, photons: int) -> dict:
 
 def run_series(cfg, method, passes, photons, resolution, dev, seed=None):
     """One render; per-pass stage seconds, pairs, emitted and stored photons."""
-    from clppm.run.progressive import render
+    from clppm.run.entry import render
     cum = []
 
     def snap(p, wall, res):
@@ -331,7 +331,7 @@ def main(argv=None) -> int:
     from clppm import config
     from clppm.scene import volume
     from clppm.compute.device import open_device
-    from clppm.run.progressive import render
+    from clppm.run.entry import render
 
     cfg = config.load(a.config)
     dev = open_device(a.device)

@@ -53,7 +53,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 from clppm import config as C
-from clppm.run import executor, progressive  # noqa: E402
+from clppm.run import entry, executor  # noqa: E402
 
 STAGES = ("photon", "grid", "gather")
 NET_10GBE = 1.25e9            # bytes/s, assumed between machines
@@ -75,7 +75,7 @@ def in_process(cfg, repeat) -> dict:
     dev = open_device(None)
     runs = []
     for _ in range(repeat):
-        rep = progressive.render(cfg, dev=dev).report
+        rep = entry.render(cfg, dev=dev).report
         runs.append(sum(rep["seconds"][s] for s in STAGES))
     return {"label": "in-process", "workers": 1, "threads": os.cpu_count(), "seconds": runs,
             "passes": cfg["render"]["passes"], "exr": None}
@@ -95,9 +95,9 @@ def on_cluster(cfg, label, workers, threads, repeat, measure_overhead=False) -> 
            "passes": cfg["render"]["passes"]}
     with executor.local_cluster(envs=[env] * workers) as cl, Client(cl, set_as_default=False) as c:
         c.wait_for_workers(workers, timeout=120)
-        executor.render_distributed(warm, client=c)
+        entry.render_distributed(warm, client=c)
         for _ in range(repeat):
-            rep = executor.render_distributed(cfg, client=c).report
+            rep = entry.render_distributed(cfg, client=c).report
             out["seconds"].append(rep["executor"]["passes_wall_s"])
             out["chunk_task_s"] = [ch["seconds"] for ch in rep["executor"]["chunks"]]
             out["bytes_per_chunk"] = rep["executor"]["bytes_moved"] / len(rep["executor"]["chunks"])

@@ -50,7 +50,7 @@ def tilted_plane(dev, photons: int) -> list[dict]:
                 d = local[0] * tan + local[2] * nrm
                 row = {"slope": slope, "incidence_deg": inc}
                 slab = ts.tilted_scene(sub, False, local)
-                r = photonpass.trace_report(photonpass.PhotonPass(dev, volume.build(slab), slab, seed=11),
+                r = photonpass.trace_report(photonpass.PhotonPass.of_config(dev, volume.build(slab), slab, seed=11),
                                             photons, batches=10)
                 row["slab"] = (r["Rd"], r["Rd_se"])
                 for walk in WALKS:
@@ -58,7 +58,7 @@ def tilted_plane(dev, photons: int) -> list[dict]:
                     cfg["model"]["surface"] = walk
                     zc = -slope * ts.SIZE_MM * 500.0          # the beam meets the plane at the centre
                     cfg["light"]["center_mm"] = [(ts.SIZE_MM * 500.0 - zc / d[2] * d[0]) / 1000.0, ts.SIZE_MM / 2]
-                    t = photonpass.trace_report(photonpass.PhotonPass(dev, volume.build(cfg), cfg, seed=11),
+                    t = photonpass.trace_report(photonpass.PhotonPass.of_config(dev, volume.build(cfg), cfg, seed=11),
                                                 photons, batches=10)
                     row[walk] = (t["Rd"], t["Rd_se"], (t["Rd"] - r["Rd"]) / math.hypot(t["Rd_se"], r["Rd_se"]))
                 rows.append(row)
@@ -80,7 +80,7 @@ def photon_cost(dev, photons: int, rounds: int) -> dict:
     passes, out = {}, {}
     for walk in WALKS:
         cfg, vol = forearm(walk)
-        passes[walk] = photonpass.PhotonPass(dev, vol, cfg, capacity=0, seed=3)
+        passes[walk] = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=0, seed=3)
         passes[walk].trace(5000, 99)                       # built and warm
         out[walk] = {"device_bytes": int(sum(vol.device_bytes().values())), "us_per_photon": []}
     for r in range(rounds):
@@ -91,7 +91,7 @@ def photon_cost(dev, photons: int, rounds: int) -> dict:
             print(f"round {r + 1}: {walk} {out[walk]['us_per_photon'][-1]:.2f} us per emitted photon", flush=True)
     for walk in WALKS:
         cfg, vol = forearm(walk)
-        pp = photonpass.PhotonPass(dev, vol, cfg, capacity=0, seed=3, counters=True)
+        pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=0, seed=3, counters=True)
         pp.trace(min(photons, 100_000), 0)
         c = pp.counts()
         n = min(photons, 100_000)

@@ -30,10 +30,10 @@ def render(config, integrator="ppm", **kwargs):
     * ``progress``: print progress to stderr;
     * ``resume``: a checkpoint ``NAME.ckpt.npz`` to continue (``passes`` the new total);
     * ``devices`` (``"all"`` or ``"P:D,P:D"``) or ``scheduler`` (an address): render on a
-      Dask cluster (:func:`clppm.run.executor.render_distributed`), the same bytes as in-process.
+      Dask cluster (:func:`clppm.run.entry.render_distributed`), the same bytes as in-process.
 
     With ``integrator="pt"``: ``passes``, ``seed``, ``resolution``, ``device``, ``out``,
-    ``progress`` and ``resume`` (:func:`clppm.integrators.pathtracer.render_pt`).
+    ``progress`` and ``resume`` (:func:`clppm.run.entry.render_pt`).
 
     Raises :class:`clppm.config.ConfigError` for a bad value (exit 2 on the command line) and
     :class:`clppm.compute.device.DeviceError` when no device can run it (exit 3).
@@ -42,20 +42,13 @@ def render(config, integrator="ppm", **kwargs):
     >>> res.spectral.shape, res.rgb.shape        # ((48, 64, 81), (48, 64, 3))
 
     The call becomes one :class:`clppm.request.RenderRequest`
-    (:meth:`~clppm.request.RenderRequest.of`).
+    (:meth:`~clppm.request.RenderRequest.of`), rendered by :func:`clppm.run.entry.render`.
     """
     from . import config as _config
     from .request import RenderRequest
     cfg = _config.load(_config.find(config)) if isinstance(config, str) else config
-    req = RenderRequest.of(cfg, integrator, **kwargs)
-    if req.integrator == "pt":
-        from .integrators.pathtracer import render_pt
-        return render_pt(req)
-    if req.cluster is not None and (req.cluster.devices or req.cluster.scheduler):
-        from .run.executor import render_distributed
-        return render_distributed(req)
-    from .run import progressive
-    return progressive.render(req.replace(cluster=None))
+    from .run.entry import render as render_entry
+    return render_entry(RenderRequest.of(cfg, integrator, **kwargs))
 
 
 def __getattr__(name):

@@ -3,9 +3,10 @@
 The config (a validated dict, :mod:`clppm.config`) describes the scene and its defaults; the
 command line or the API may ask for another method, pass count, photon count, resolution, seed
 or sample count for this run.  Those values live in a :class:`RenderRequest`, built once by
-``clppm render`` or :func:`clppm.render` and passed explicitly to the integrator
-(:func:`clppm.run.progressive.render`, :func:`clppm.integrators.pathtracer.render_pt`,
-:func:`clppm.run.executor.render_distributed`); nothing writes them back into the config.
+``clppm render`` or :func:`clppm.render` and rendered by the one entry
+(:func:`clppm.run.entry.render`, whatever the integrator or executor), which builds the
+:class:`clppm.scene.scene.Scene` the passes see from it once; nothing writes them back into the
+config.
 
 The request answers what the run uses (:attr:`RenderRequest.settings`, the ``[render]`` table
 with the run's values; :attr:`RenderRequest.camera`) and what a checkpoint or a report records

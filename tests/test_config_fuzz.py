@@ -534,9 +534,9 @@ def valid_config(draw):
                                                                  HealthCheck.function_scoped_fixture])
 @given(valid_config())
 def test_render_random_valid_config(dev, raw):
-    from clppm.run import progressive
+    from clppm.run import entry
     cfg = C.validate(raw, SRC)
-    res = progressive.render(cfg, dev=dev, source=SRC)
+    res = entry.render(cfg, dev=dev, source=SRC)
     L = res.spectral
     assert L.shape == (8, 12, len(C.wavelengths(cfg)))
     assert np.all(np.isfinite(L)), "non-finite spectral radiance"

@@ -15,7 +15,7 @@ import pytest
 
 from clppm import config as C
 from clppm import image
-from clppm.run import progressive
+from clppm.run import entry
 from scenes import tiny_dict, tiny_toml
 
 BASE = tiny_dict(photons=20000, initial_photons=50, passes=3, checkpoint_every=0, seed=5)
@@ -28,7 +28,7 @@ def _render(dev, tmp_path, name, **changes):
         raw[sec].update(kv)
     cfg = C.validate(raw, "det")
     out = tmp_path / f"{name}.exr"
-    res = progressive.render(cfg, dev=dev, out=str(out))
+    res = entry.render(cfg, dev=dev, out=str(out))
     return out.read_bytes(), res
 
 
@@ -66,8 +66,8 @@ def test_depth_roulette_resumes_to_the_same_bytes(dev, tmp_path):
     raw["render"].update(on["render"], checkpoint_every=1)
     cfg = C.validate(raw, "det")
     part = tmp_path / "part.exr"
-    progressive.render(cfg, dev=dev, out=str(part), passes=2)
-    res = progressive.render(cfg, dev=dev, out=str(part), resume=ckpt.default_path(str(part)))
+    entry.render(cfg, dev=dev, out=str(part), passes=2)
+    res = entry.render(cfg, dev=dev, out=str(part), resume=ckpt.default_path(str(part)))
     assert res.report["passes_done"] == 3
     assert part.read_bytes() == b_on, "resumed render differs from the uninterrupted one"
 

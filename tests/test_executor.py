@@ -27,7 +27,7 @@ pytest.importorskip("distributed")
 
 from clppm.output import checkpoint as ckpt  # noqa: E402
 from clppm import cli
-from clppm.run import executor, progressive
+from clppm.run import entry, executor
 from clppm.integrators import ppm  # noqa: E402
 from clppm import config as C  # noqa: E402
 from scenes import tiny_toml  # noqa: E402
@@ -58,7 +58,7 @@ def cfg(work):
 @pytest.fixture(scope="module")
 def reference(work, cfg, dev):
     """The in-process render: bytes and report."""
-    res = progressive.render(cfg, dev=dev, out=str(work / "ref" / "ref.exr"))
+    res = entry.render(cfg, dev=dev, out=str(work / "ref" / "ref.exr"))
     return (work / "ref" / "ref.exr").read_bytes(), res.report
 
 
@@ -129,7 +129,7 @@ def test_reduction_is_order_independent_and_counts_each_chunk_once(tmp_path):
 # ------------------------------------------------------------------------------------ same bytes
 def test_two_workers_give_the_in_process_bytes(work, cfg, reference, client):
     out = work / "two" / "two.exr"
-    res = executor.render_distributed(cfg, client=client, out=str(out))
+    res = entry.render_distributed(cfg, client=client, out=str(out))
     ref_bytes, ref_rep = reference
     assert out.read_bytes() == ref_bytes, "2 workers: EXR differs from the in-process render"
     rep = json.loads(out.with_suffix(".json").read_text())
@@ -156,34 +156,34 @@ def test_two_workers_in_the_scatter_layout_give_the_in_process_gather_bytes(work
     gat, sca = (C.override(nine, "render", "layout", v) for v in ("gather", "scatter"))
     sc = ppm.Pipeline.build(sca, dev)
     assert sc.estimator.layout.name == "scatter", beam.supports_scatter(dev, sc.vol.nb, sc.gclass, sc.pp.hero)
-    progressive.render(gat, dev=dev, out=str(work / "nine_ref" / "g.exr"))
-    executor.render_distributed(sca, client=client, out=str(work / "nine_two" / "s.exr"))
+    entry.render(gat, dev=dev, out=str(work / "nine_ref" / "g.exr"))
+    entry.render_distributed(sca, client=client, out=str(work / "nine_two" / "s.exr"))
     assert (work / "nine_two" / "s.exr").read_bytes() == (work / "nine_ref" / "g.exr").read_bytes()
 
 
 def test_stopped_run_resumes_to_the_same_bytes(work, cfg, reference, client):
     out = work / "stop" / "s.exr"
     ck = ckpt.default_path(str(out))
-    res = executor.render_distributed(cfg, client=client, out=str(out), stop_after=3)
+    res = entry.render_distributed(cfg, client=client, out=str(out), stop_after=3)
     assert res.report["passes_done"] < PASSES
     st = ckpt.load(ck)
     done = st["pass_index"] + sum(len(h["passes"]) for h in st["held"])
     assert 3 <= done < PASSES
     # resumed on the cluster
-    executor.render_distributed(cfg, client=client, out=str(work / "stop" / "d.exr"), resume=ck)
+    entry.render_distributed(cfg, client=client, out=str(work / "stop" / "d.exr"), resume=ck)
     assert (work / "stop" / "d.exr").read_bytes() == reference[0]
     # ... and in this process: a distributed checkpoint is an in-process one (held chunks rerun)
-    progressive.render(cfg, out=str(work / "stop" / "p.exr"), resume=ck)
+    entry.render(cfg, out=str(work / "stop" / "p.exr"), resume=ck)
     assert (work / "stop" / "p.exr").read_bytes() == reference[0]
 
 
 def test_in_process_checkpoint_inside_a_chunk_resumes_on_the_cluster(work, cfg, dev, reference, client):
     """An in-process run stopped inside a chunk: the cluster continues that chunk from its sums."""
     out = work / "mid" / "m.exr"
-    progressive.render(cfg, dev=dev, out=str(out), stop_after=3)     # pass 3: inside chunk 1
+    entry.render(cfg, dev=dev, out=str(out), stop_after=3)     # pass 3: inside chunk 1
     st = ckpt.load(ckpt.default_path(str(out)))
     assert st["pass_index"] == 3 and np.any(st["chunk_acc"])
-    executor.render_distributed(cfg, client=client, out=str(work / "mid" / "d.exr"),
+    entry.render_distributed(cfg, client=client, out=str(work / "mid" / "d.exr"),
                                 resume=ckpt.default_path(str(out)))
     assert (work / "mid" / "d.exr").read_bytes() == reference[0]
 
@@ -209,7 +209,7 @@ def test_worker_killed_mid_chunk_is_rerun(work, cfg, reference, client):
         killed.update(worker=w, keys=busy[w])
 
     out = work / "kill" / "k.exr"
-    res = executor.render_distributed(cfg, client=client, out=str(out), on_chunk=kill_one)
+    res = entry.render_distributed(cfg, client=client, out=str(out), on_chunk=kill_one)
     assert killed
     assert out.read_bytes() == reference[0], "a rerun chunk changed the image"
     chunks = res.report["executor"]["chunks"]

@@ -21,8 +21,9 @@ from clppm.output import checkpoint as ckpt
 from clppm import cli
 from clppm import config as C
 from clppm.compute import device as D
+from clppm.compute import programs as P
 from clppm.integrators import photonpass
-from clppm.run import progressive
+from clppm.run import entry
 from clppm.scene import volume
 
 H, W = 16, 24
@@ -89,7 +90,7 @@ ZERO_IMAGE = {"zero_power", "light_misses_model", "camera_looks_away"}
 def test_extreme_inputs_finite(dev, tmp_path, case):
     cfg = _cfg(**CASES[case])
     ck = str(tmp_path / "x.ckpt.npz")
-    res = progressive.render(cfg, dev=dev, checkpoint_path=ck)
+    res = entry.render(cfg, dev=dev, checkpoint_path=ck)
     S = res.spectral
     assert np.all(np.isfinite(S)), f"{case}: non-finite spectral radiance"
     assert np.all(S >= 0), f"{case}: negative spectral radiance {S.min()}"
@@ -118,7 +119,7 @@ def test_extreme_inputs_tallies(dev, case):
     """Photon tallies stay exact (integers), finite as fractions, and balance."""
     cfg = _cfg(**{**CASES, **CASES_TRACE_ONLY}[case])
     vol = volume.build(cfg)
-    pp = photonpass.PhotonPass(dev, vol, cfg)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg)
     rep = photonpass.trace_report(pp, 4000, batches=4)
     for k in ("specular", "Rd", "Tt", "A", "lost", "missed", "roulette_net"):
         assert math.isfinite(rep[k]), (case, k, rep[k])
@@ -130,7 +131,7 @@ def test_extreme_inputs_tallies(dev, case):
 
 
 def test_zero_power_light_report(dev):
-    res = progressive.render(_cfg(**{"light.power_w": 0.0}), dev=dev)
+    res = entry.render(_cfg(**{"light.power_w": 0.0}), dev=dev)
     assert np.all(res.spectral == 0) and np.all(res.rgb == 0)
     assert res.exposure == 1.0          # no white reference to scale by: unit exposure
 
@@ -140,7 +141,7 @@ def test_light_far_from_the_view_gives_black_not_nan(dev):
     cfg = _cfg(**{"model.size_mm": [10.0, 10.0], "light.kind": "pencil", "light.center_mm": [0.5, 0.5],
                   "layers.mua": 1e3, "camera.position_mm": [9.5, 9.5, 5.0],
                   "camera.look_at_mm": [9.5, 9.5, 0.0], "camera.fov_deg": 2.0})
-    res = progressive.render(cfg, dev=dev)
+    res = entry.render(cfg, dev=dev)
     assert res.report["photons_stored"] > 0 and res.report["sample_points"] > 0
     assert np.all(res.spectral == 0)
     assert np.all(np.isfinite(res.rgb))
@@ -150,14 +151,14 @@ def test_light_at_the_viewed_point_no_warning(dev):
     cfg = _cfg(**{"light.position_mm": [0.5, 0.5, 0.0]})
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
-        res = progressive.render(cfg, dev=dev)
+        res = entry.render(cfg, dev=dev)
     assert math.isfinite(res.exposure)
 
 
 def test_non_absorbing_medium(dev):
     cfg = _cfg(**{"layers.mua": 0.0, "model.lateral": "infinite", "render.passes": 1})
     try:
-        res = progressive.render(cfg, dev=dev)
+        res = entry.render(cfg, dev=dev)
     except C.ConfigError as e:         # a clean refusal is acceptable too
         assert "render.photons" in str(e) or "mua" in str(e)
         return
@@ -189,7 +190,7 @@ def test_photon_launches_grow_geometrically(dev):
     """A scene where the first photons store nothing and later ones store 1e5 events each."""
     cfg = _cfg(**{"layers.mua": 10.0})
     vol = volume.build(cfg)
-    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=6496)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=6496)
     launches, state = [], {"count": 0}
 
     def events(i):                       # photons 0-3 miss; every later one scatters 1e5 times
@@ -264,7 +265,7 @@ def test_render_stops_before_allocating(dev, monkeypatch, tmp_path):
                         lambda *a, **k: built.append(1) or pytest.fail("allocated before the check"))
     cfg = _cfg(**{"render.photons": 100_000})
     with pytest.raises(D.DeviceError, match=r"needs [0-9.]+ MiB .* 8 MiB global memory .* 2 MiB"):
-        progressive.render(cfg, dev=dev, out=str(tmp_path / "x.exr"))
+        entry.render(cfg, dev=dev, out=str(tmp_path / "x.exr"))
     assert not built and not (tmp_path / "x.exr").exists()
 
 
@@ -290,7 +291,7 @@ def test_huge_resolution_checked_before_eye_pass(dev, monkeypatch):
     monkeypatch.setattr(eyepass, "run", lambda *a, **k: pytest.fail("eye pass ran before the memory check"))
     cfg = _cfg(**{"camera.resolution": [4096, 4096]})
     with pytest.raises(D.DeviceError, match="MiB"):
-        progressive.render(cfg, dev=dev)
+        entry.render(cfg, dev=dev)
 
 
 # ----------------------------------------------------------------------------- platform failures
@@ -351,7 +352,7 @@ __kernel void broken(__global float* a) {
 
 def test_kernel_build_failure_names_device_and_log(dev, monkeypatch, tmp_path):
     (tmp_path / "broken_guard_test.cl").write_text(BROKEN)
-    monkeypatch.setattr(D, "kernel_dir", lambda: str(tmp_path))
+    monkeypatch.setattr(P, "kernel_dir", lambda: str(tmp_path))
     with pytest.raises(D.DeviceError) as ei:
         dev.build("broken_guard_test.cl", {"NB": 3, "GUARD_TEST": 1})
     msg = str(ei.value)
@@ -362,7 +363,7 @@ def test_kernel_build_failure_names_device_and_log(dev, monkeypatch, tmp_path):
 
 
 def test_kernel_source_missing(dev, monkeypatch, tmp_path):
-    monkeypatch.setattr(D, "kernel_dir", lambda: str(tmp_path))
+    monkeypatch.setattr(P, "kernel_dir", lambda: str(tmp_path))
     with pytest.raises(D.DeviceError, match="missing_guard_test.cl cannot be read .* reinstall"):
         dev.build("missing_guard_test.cl", {"NB": 3})
 
@@ -372,7 +373,7 @@ def test_kernels_build_from_a_path_with_spaces(dev, monkeypatch, tmp_path):
     src = D.kernel_dir()
     kdir = tmp_path / "My Programs" / "clppm kernels"
     shutil.copytree(src, kdir, ignore=shutil.ignore_patterns("__pycache__", "*.py"))
-    monkeypatch.setattr(D, "kernel_dir", lambda: str(kdir))
+    monkeypatch.setattr(P, "kernel_dir", lambda: str(kdir))
     prg = dev.build("gather.cl", {"NB": 3, "NL": 2, "FLAT": True, "SPACE_TEST": 1})
     assert "gather" in [k.function_name for k in prg.all_kernels()]
     # an error inside a header still points at the header's own line

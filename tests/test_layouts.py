@@ -19,7 +19,7 @@ cl = pytest.importorskip("pyopencl")
 
 from clppm.integrators import beam, photonpass, ppm
 from clppm import config as C
-from clppm.run import progressive  # noqa: E402
+from clppm.run import entry  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -96,11 +96,11 @@ def test_resume_in_the_other_layout(dev, tmp_path):
     """The layout does not change the picture (config.NOT_PICTURE): a checkpoint written by one
     layout resumes in the other, and gives the uninterrupted render's bytes."""
     assert "layout" in C.NOT_PICTURE
-    full = progressive.render(_cfg("forearm.toml", "gather", passes=2, chunk_passes=1), dev=dev)
+    full = entry.render(_cfg("forearm.toml", "gather", passes=2, chunk_passes=1), dev=dev)
     out = str(tmp_path / "a.exr")
-    progressive.render(_cfg("forearm.toml", "gather", passes=2, chunk_passes=1), dev=dev, out=out,
+    entry.render(_cfg("forearm.toml", "gather", passes=2, chunk_passes=1), dev=dev, out=out,
                        stop_after=1)
     from clppm.output import checkpoint as ckpt
-    res = progressive.render(_cfg("forearm.toml", "scatter", passes=2, chunk_passes=1), dev=dev,
+    res = entry.render(_cfg("forearm.toml", "scatter", passes=2, chunk_passes=1), dev=dev,
                              out=str(tmp_path / "b.exr"), resume=ckpt.default_path(out))
     assert np.array_equal(np.asarray(full.spectral), np.asarray(res.spectral))

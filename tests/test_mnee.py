@@ -17,6 +17,7 @@ import pytest
 from clppm.output import checkpoint as ckpt
 from clppm import config
 from clppm.integrators import pathtracer as pt
+from clppm.run import entry
 from clppm.checks import testing
 from clppm.scene import volume
 
@@ -393,8 +394,8 @@ def test_render_at_vanishing_amplitude_matches_the_flat_path_tracer(dev):
     the image means agree within 1e-3 or 3 standard errors of the per-pixel differences; every
     connection solved, in the report."""
     kw = dict(res=(6, 6), spp=16, passes=2, light=(0.3, 0.2, 2.0))
-    a = pt.render_pt(scene(WAVY, **kw), dev=dev)
-    b = pt.render_pt(scene(WAVY, papillae=1e-3, **kw), dev=dev)
+    a = entry.render_pt(scene(WAVY, **kw), dev=dev)
+    b = entry.render_pt(scene(WAVY, papillae=1e-3, **kw), dev=dev)
     va, vb = a.spectral[..., 0], b.spectral[..., 0]
     assert va.mean() > 0 and a.report["nee_connections_made"] > 3000
     se = (vb - va).std(ddof=1) / math.sqrt(va.size) / va.mean()
@@ -416,14 +417,14 @@ def test_relief_same_seed_same_bytes_and_resume_is_byte_identical(dev, tmp_path)
     outs = []
     for name, seed in (("a", 1), ("b", 1), ("c", 2)):
         out = tmp_path / f"{name}.exr"
-        pt.render_pt(_relief_small(seed=seed), dev=dev, out=str(out))
+        entry.render_pt(_relief_small(seed=seed), dev=dev, out=str(out))
         outs.append(out.read_bytes())
     assert outs[0] == outs[1] and outs[0] != outs[2]
     part = tmp_path / "part.exr"
-    pt.render_pt(_relief_small(), dev=dev, out=str(part), stop_after=1)
+    entry.render_pt(_relief_small(), dev=dev, out=str(part), stop_after=1)
     ck = ckpt.default_path(str(part))
     assert ckpt.load(ck, integrator="pt")["pass_index"] == 1
-    pt.render_pt(_relief_small(), dev=dev, out=str(part), resume=ck)
+    entry.render_pt(_relief_small(), dev=dev, out=str(part), resume=ck)
     assert part.read_bytes() == outs[0]
     full = json.loads((tmp_path / "a.json").read_text())["manifold_nee"]
     resumed = json.loads(part.with_suffix(".json").read_text())["manifold_nee"]

@@ -17,7 +17,7 @@ import pytest
 from clppm.output import checkpoint as ckpt
 from clppm import cli, config
 from clppm.integrators import pathtracer as pt, photonpass
-from clppm.run import progressive
+from clppm.run import entry
 from clppm.checks import testing
 from clppm.scene import volume
 from scenes import tiny_toml
@@ -213,7 +213,7 @@ def _unscattered_reflectance(vol):
 def _tally_radiance(dev, cfg, c, photons):
     """E R_cone / (pi (1 - c^2)) from the photon pass's exact exit tally, unscattered part removed."""
     vol = volume.build(cfg)
-    pp = photonpass.PhotonPass(dev, vol, cfg)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg)
     pp.p["rcone_cos"] = c
     rep = photonpass.trace_report(pp, photons, batches=10)
     k = E_FAR / (math.pi * (1 - c * c))
@@ -234,7 +234,7 @@ def test_far_light_semi_infinite_matches_adding_doubling_and_tally(dev):
     runs (3 x 0.8 M paths): PT / adding-doubling = 1.0001 +- 0.0011."""
     iad = pytest.importorskip("iadpython")
     cfg = scene(SEMI, spp=256, passes=8)
-    res = pt.render_pt(cfg, dev=dev)
+    res = entry.render_pt(cfg, dev=dev)
     v = res.spectral[..., 0].ravel()
     L0, se0 = v.mean(), v.std(ddof=1) / math.sqrt(v.size)
     s = iad.Sample(a=0.9, b=math.inf, g=0.75, n=1.4, n_above=1.0, n_below=1.0, quad_pts=48)
@@ -246,7 +246,7 @@ def test_far_light_semi_infinite_matches_adding_doubling_and_tally(dev):
 
     c = 0.95
     fov = 2 * math.degrees(math.acos(c)) * 1.03
-    res = pt.render_pt(scene(SEMI, fov=fov, res=(32, 32), spp=64, passes=3), dev=dev)
+    res = entry.render_pt(scene(SEMI, fov=fov, res=(32, 32), spp=64, passes=3), dev=dev)
     Lc, sec = _cone_average(res, fov, c)
     ref, seref = _tally_radiance(dev, cfg, c, 3_000_000)
     assert abs(Lc - ref) < 3 * math.hypot(sec, seref) + 0.002 * ref, (Lc, ref, sec, seref)
@@ -265,7 +265,7 @@ def test_far_light_layered_matches_tally(dev):
     c = 0.95
     fov = 2 * math.degrees(math.acos(c)) * 1.03
     cfg = scene(LAYERED, fov=fov, res=(32, 32), spp=64, passes=3)
-    res = pt.render_pt(cfg, dev=dev)
+    res = entry.render_pt(cfg, dev=dev)
     Lc, sec = _cone_average(res, fov, c)
     ref, seref = _tally_radiance(dev, cfg, c, 3_000_000)
     assert abs(Lc - ref) < 3 * math.hypot(sec, seref) + 0.002 * ref, (Lc, ref, sec, seref)
@@ -289,8 +289,8 @@ def test_pt_matches_ppm_within_its_bias(dev):
     cfg = scene(LAYERED, fov=2.0, res=(16, 16), light=(1.5, 1.5, 3.0), lateral="open", size=3.0,
                 spp=64, passes=8, method="e", photons=100_000, initial_photons=20, threshold=1.1e-3,
                 merge="none")
-    ppm = progressive.render(cfg, passes=24, dev=dev).spectral[..., 0]
-    v = pt.render_pt(cfg, dev=dev).spectral[..., 0]
+    ppm = entry.render(cfg, passes=24, dev=dev).spectral[..., 0]
+    v = entry.render_pt(cfg, dev=dev).spectral[..., 0]
     se = v.std(ddof=1) / math.sqrt(v.size) / v.mean()
     ratio = ppm.mean() / v.mean()
     assert abs(ratio - 1) <= PPM_BIAS + 3 * math.hypot(se, PPM_SIGMA), (ratio, se)
@@ -308,8 +308,8 @@ def test_ppm_under_a_far_point_light_matches_pt(dev):
     cfg = scene(LAYERED, fov=2 * math.degrees(math.atan(size / 2 / 40.0)), res=(n, n),
                 light=(size / 2, size / 2, FAR), lateral="open", size=size, spp=64, passes=32,
                 method="e", photons=100_000, initial_photons=20)
-    ppm = progressive.render(cfg, passes=16, dev=dev).spectral[..., 0]
-    v = pt.render_pt(cfg, dev=dev).spectral[..., 0]
+    ppm = entry.render(cfg, passes=16, dev=dev).spectral[..., 0]
+    v = entry.render_pt(cfg, dev=dev).spectral[..., 0]
     inner = np.zeros((n, n), bool)
     inner[4:-4, 4:-4] = True
     ring = np.ones((n, n), bool)
@@ -336,7 +336,7 @@ def test_same_seed_same_bytes_other_seed_differs(dev, tmp_path):
     outs = []
     for name, seed in (("a", 1), ("b", 1), ("c", 2)):
         out = tmp_path / f"{name}.exr"
-        pt.render_pt(_small(seed), dev=dev, out=str(out))
+        entry.render_pt(_small(seed), dev=dev, out=str(out))
         outs.append(out.read_bytes())
     assert outs[0] == outs[1]
     assert outs[0] != outs[2]
@@ -346,13 +346,13 @@ def test_interrupted_and_resumed_is_byte_identical(dev, tmp_path):
     """Stopped after 2 of 4 passes (checkpoint) and resumed: the EXR equals an uninterrupted run's;
     the report counts every pass."""
     full = tmp_path / "full.exr"
-    pt.render_pt(_small(passes=4), dev=dev, out=str(full))
+    entry.render_pt(_small(passes=4), dev=dev, out=str(full))
     part = tmp_path / "part.exr"
-    r1 = pt.render_pt(_small(passes=4), dev=dev, out=str(part), stop_after=2)
+    r1 = entry.render_pt(_small(passes=4), dev=dev, out=str(part), stop_after=2)
     assert r1.report["passes_done"] == 2
     ck = ckpt.default_path(str(part))
     assert ckpt.load(ck, integrator="pt")["pass_index"] == 2
-    r2 = pt.render_pt(_small(passes=4), dev=dev, out=str(part), resume=ck)
+    r2 = entry.render_pt(_small(passes=4), dev=dev, out=str(part), resume=ck)
     assert r2.report["passes_done"] == 4
     assert part.read_bytes() == full.read_bytes()
     rep = json.loads(part.with_suffix(".json").read_text())
@@ -471,7 +471,7 @@ def test_fewer_paths_per_pixel_than_bands_reads_the_same(dev):
         cfg = scene(LAYERED, fov=2.0, res=(32, 32), light=(1.5, 1.5, 3.0), lateral="open", size=3.0,
                     spp=spp, passes=passes, seed=seed)
         cfg["spectrum"].update(start_nm=500.0, stop_nm=560.0, step_nm=5.0)
-        return pt.render_pt(config.validate(cfg, "test"), dev=dev)
+        return entry.render_pt(config.validate(cfg, "test"), dev=dev)
     few = grey(5, 1, 3)
     full = grey(13, 4, 4).spectral.mean()
     assert few.report["bands_interpolated"] > 0.5

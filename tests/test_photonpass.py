@@ -54,7 +54,7 @@ def photons_in(row, nl):
 def slab_pass(dev, spec, seed=SEED, capacity=0, counters=False):
     cfg = config.slab_config(spec)
     vol = volume.build(cfg, "--slab")
-    return photonpass.PhotonPass(dev, vol, cfg, capacity=capacity, seed=seed, counters=counters)
+    return photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=capacity, seed=seed, counters=counters)
 
 
 def traced_report(pp, n, batches=BATCHES):
@@ -358,7 +358,7 @@ def test_forearm_photon_pass(dev, forearm):
     per-band tallies add up to the totals exactly."""
     cfg, vol = forearm
     n = 20_000
-    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=50_000, seed=3)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=50_000, seed=3)
     rep, arrs = traced_report(pp, n)
     for k, v in rep.items():
         if isinstance(v, float):

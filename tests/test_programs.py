@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 
+from clppm.compute.kernelcall import kernels
 from clppm.compute.programs import REGISTRY, BuildSpec, binary_cache_dir, program_cache_dir
 
 BUILD_TWICE = """
@@ -41,8 +42,8 @@ def test_a_program_is_built_once_per_context(dev):
     a = dev.build("hashgrid.cl", spec)
     n1 = REGISTRY.stats.programs
     assert dev.build("hashgrid.cl", spec) is a and REGISTRY.stats.programs == n1 <= n0 + 1
-    k1 = dev.kernels("hashgrid.cl", ("grid_count",), spec)["grid_count"]
-    assert dev.kernels("hashgrid.cl", ("grid_count",), spec)["grid_count"] is k1
+    k1 = kernels(dev, "hashgrid.cl", ("grid_count",), spec)["grid_count"]
+    assert kernels(dev, "hashgrid.cl", ("grid_count",), spec)["grid_count"] is k1
 
 
 def test_a_second_process_finds_the_binaries(dev, tmp_path, monkeypatch):

@@ -13,7 +13,7 @@ import pytest
 from clppm import config
 from clppm.integrators import eyepass, photonpass
 from clppm.scene import volume
-from clppm.run import progressive as pr
+from clppm.run import entry as pr
 from clppm.scene.skin import PAPER_TABLE1
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -162,7 +162,7 @@ def _consistency(dev, method, passes, layers=None):
     layers = layers or [layer("m", math.inf, 1.0, 100.0)]
     cfg = slab_cfg(layers, method=method, passes=passes, photons=200_000, K=20)
     vol = volume.build(cfg)
-    pp = photonpass.PhotonPass(dev, vol, cfg)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg)
     rep = photonpass.trace_report(pp, 300_000, batches=10)
     c = rep["rcone_cos"]
     expect = rep["Rd_cone"] / (math.pi * (1 - c * c))

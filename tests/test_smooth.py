@@ -145,7 +145,7 @@ def test_tilted_plane_is_the_rotated_slab(dev, tmp_path, slope):
                 cfg = _tilted(tmp_path, slope, tilted, d)
                 vol = volume.build(cfg)
                 assert vol.smooth_walk == tilted
-                out[name] = photonpass.trace_report(photonpass.PhotonPass(dev, vol, cfg, seed=11),
+                out[name] = photonpass.trace_report(photonpass.PhotonPass.of_config(dev, vol, cfg, seed=11),
                                                     ts.N_PHOTONS, batches=10)
             s, t = out["slab"], out["tilted"]
             assert t["lost"] < 2e-3 and t["energy_balance_error"] == 0.0, t
@@ -210,7 +210,7 @@ def test_points_lie_in_their_smooth_layers(dev):
     for surface in ("smooth", "voxels"):
         cfg = relief_scene(surface)
         vol = volume.build(cfg)
-        pp = photonpass.PhotonPass(dev, vol, cfg, capacity=120_000, seed=4)
+        pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=120_000, seed=4)
         r = pp.run_pass(0, 60_000)
         pos, db = _stored(pp, r["stored"])
         Lp = db[:, 3].astype(np.int32) >> 8
@@ -246,7 +246,7 @@ def test_gather_frames_follow_the_smooth_surfaces(dev):
     from clppm.integrators.ppm import band_classes
     cfg = relief_scene("smooth")
     vol = volume.build(cfg)
-    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=60_000, seed=5)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=60_000, seed=5)
     n = pp.run_pass(0, 30_000)["stored"]
     pos, db = _stored(pp, n)
     prg = dev.build("gather.cl", kernel_defines(vol, hero=pp.hero, estimator="beam",
@@ -302,7 +302,7 @@ def test_path_tracer_vertices_are_on_the_smooth_side(dev):
         cfg = relief_scene(surface, light="point")
         cfg["light"]["position_mm"] = [0.25, 0.2, 3.0]
         pathtracer.check_scene(cfg)
-        tracer = pathtracer.PathTracer(dev, volume.build(cfg), cfg)
+        tracer = pathtracer.PathTracer.of_config(dev, volume.build(cfg), cfg)
         tracer.run_pass(0)
         counts[surface] = dict(zip(pathtracer.MNEE_STATS, tracer.mnee_totals()))["vertex_above_smooth_surface"]
     assert counts["smooth"] == 0 and counts["voxels"] > 0, counts
@@ -318,12 +318,12 @@ def test_flat_limit_and_closed_energy(dev):
     for name, cfg in (("flat", flat), ("tiny", tiny)):
         vol = volume.build(cfg)
         assert vol.flat == (name == "flat")
-        out[name] = photonpass.trace_report(photonpass.PhotonPass(dev, vol, cfg, seed=8), 60_000, batches=10)
+        out[name] = photonpass.trace_report(photonpass.PhotonPass.of_config(dev, vol, cfg, seed=8), 60_000, batches=10)
     for key in ("Rd", "A", "specular"):
         se = math.hypot(out["flat"].get(key + "_se", 0.0), out["tiny"].get(key + "_se", 0.0))
         assert abs(out["tiny"][key] - out["flat"][key]) < 2 * se + 2e-4, (key, out)
     cfg = relief_scene("smooth", lateral="periodic", light="wide")
-    rep = photonpass.trace_report(photonpass.PhotonPass(dev, volume.build(cfg), cfg, seed=9), 30_000, batches=5)
+    rep = photonpass.trace_report(photonpass.PhotonPass.of_config(dev, volume.build(cfg), cfg, seed=9), 30_000, batches=5)
     assert rep["energy_balance_error"] == 0.0 and rep["lost"] < 1e-4, rep
 
 
@@ -339,7 +339,7 @@ def test_photon_walk_is_the_plain_walk(dev):
     cats += list(range(photonpass.NA, photonpass.NA + vol.nl))
     n, batches = 160_000, 10
     F = [np.array([a.sum(0)[cats] / (photonpass.W0 * (n // batches))
-                   for a in photonpass.PhotonPass(dev, vol, cfg, seed=s, plain_walk=plain).trace(n, batches=batches)])
+                   for a in photonpass.PhotonPass.of_config(dev, vol, cfg, seed=s, plain_walk=plain).trace(n, batches=batches)])
          for s, plain in ((21, False), (22, True))]
     se = np.sqrt(F[0].var(0, ddof=1) / batches + F[1].var(0, ddof=1) / batches)
     ok = se > 0                                     # none transmitted: a semi-infinite dermis
@@ -353,7 +353,7 @@ def test_smooth_walk_is_deterministic(dev):
     vol = volume.build(cfg)
     runs = []
     for _ in range(2):
-        pp = photonpass.PhotonPass(dev, vol, cfg, capacity=40_000, seed=6)
+        pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=40_000, seed=6)
         r = pp.run_pass(0, 20_000)
         pos, db = _stored(pp, r["stored"])
         order = np.lexsort(pos.T[::-1])

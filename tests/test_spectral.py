@@ -77,7 +77,7 @@ def z_scores(a, b):
 
 def photon_pass(dev, cfg, hero=1, capacity=2_000_000, seed=5, band=None):
     vol = volume.build(cfg)
-    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=capacity, seed=seed, bands=Bands.from_config(cfg, hero=hero, sampling="power"))
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=capacity, seed=seed, bands=Bands.from_config(cfg, hero=hero, sampling="power"))
     pp.p["store_zmin"] = -250.0                # the depths eye rays see; the paths go deeper
     if band is not None:                       # every photon in one band (a single-band run)
         pp.p["fixed_band"] = band
@@ -129,7 +129,7 @@ def test_hero_weights_finite_for_degenerate_bands(dev):
     vol.mua = vol.mua.copy()
     vol.mus[:, 2] = 0.0
     vol.mua[:, 6] = 1.0
-    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=2_000_000, seed=6, bands=Bands.from_config(cfg, hero=9, sampling="power"))
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=2_000_000, seed=6, bands=Bands.from_config(cfg, hero=9, sampling="power"))
     pp.p["store_zmin"] = -250.0
     pw = stored_power(pp, 4000, 3, None)
     assert np.all(np.isfinite(pw))
@@ -211,10 +211,10 @@ def test_layered_slab_radiance_unchanged_by_storage_and_bands(dev):
     per path -- the same within their seed-to-seed spread in every band.  The view spans most of
     the lit square so that every path counts; storing every event needs 100x the stored photons
     for a comparable spread (one band per path, ~100 correlated events each)."""
-    from clppm.run import progressive
+    from clppm.run import entry
     runs = {}
     for key, photons in ((("all", 1), 2_000_000), (("importance", 9), 20_000)):
-        runs[key] = np.array([progressive.render(_slab_render_cfg(*key, seed, photons), dev=dev).spectral.mean(axis=(0, 1))
+        runs[key] = np.array([entry.render(_slab_render_cfg(*key, seed, photons), dev=dev).spectral.mean(axis=(0, 1))
                               for seed in (1, 2, 3, 4)])
     a, b = runs[("all", 1)], runs[("importance", 9)]
     z, ok = z_scores(b, a)
@@ -240,7 +240,7 @@ def _stored_all(pp, m):
 def _forearm_pass(dev, scale, qmin, exact=False, seed=4):
     cfg = config.load(config.find("forearm"))
     vol = volume.build(cfg, "forearm")
-    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=60_000, seed=seed, bands=Bands.from_config(cfg))
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=60_000, seed=seed, bands=Bands.from_config(cfg))
     if exact:
         from clppm.compute.device import kernel_defines, surface_fp64
         from clppm.compute.kernelcall import Kernel

@@ -31,7 +31,7 @@ import pytest
 from clppm import config
 from clppm.integrators import photonpass
 from clppm.scene import volume
-from clppm.run import progressive as pr
+from clppm.run import entry as pr
 from clppm.analysis.reference import skin_mask
 
 LAYERS = [
@@ -146,7 +146,7 @@ def test_layer_thinner_than_voxel(dev, quantize):
     vol = volume.build(cfg)
     if quantize:
         assert vol.iface[2, 0] == vol.iface[3, 0]                 # zero thickness after snapping
-    pp = photonpass.PhotonPass(dev, vol, cfg)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg)
     rep = photonpass.trace_report(pp, 20_000, batches=4)
     assert rep["energy_balance_error"] == 0.0
     assert rep["lost"] == 0.0
@@ -229,7 +229,7 @@ def test_light_that_hardly_reaches_the_view_ends_the_pass_at_the_emission_cap(de
     cfg = scene(edit)
     vol = volume.build(cfg)
     target = 2000
-    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=target + photonpass.OVERSHOOT + 1)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=target + photonpass.OVERSHOOT + 1)
     info = pp.run_pass(0, target)
     assert info["capped"]
     assert info["emitted"] == max(photonpass.EMIT_MIN, photonpass.EMIT_PER_TARGET * target)
@@ -368,7 +368,7 @@ def test_tallies_exact_beyond_int64(dev):
     cfg = scene(lambda r: r.update(light={"kind": "wide", "center_mm": [50.0, 50.0], "width_mm": [1.0, 1.0],
                                           "direction": [0.0, 0.0, -1.0]}))
     vol = volume.build(cfg)
-    pp = photonpass.PhotonPass(dev, vol, cfg)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg)
     n = (1 << 25) + (1 << 20)
     pp.trace(n, batches=1)
     t = pp.tallies
@@ -382,7 +382,7 @@ def test_tallies_exact_beyond_int64(dev):
 def _stored_passes(dev, target_total, per_pass):
     cfg = scene()
     vol = volume.build(cfg)
-    pp = photonpass.PhotonPass(dev, vol, cfg, capacity=int(per_pass * 1.2) + 4096)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=int(per_pass * 1.2) + 4096)
     stored, emitted, p = 0, 0, 0
     while stored < target_total:
         info = pp.run_pass(p, per_pass)

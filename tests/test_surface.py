@@ -86,7 +86,7 @@ def test_tilted_plane_energy_split_is_the_rotated_slabs(dev, tmp_path):
         cfg = tilted_scene(tmp_path, tilted, d)
         vol = volume.build(cfg)
         assert vol.flat != tilted
-        out[name] = photonpass.trace_report(photonpass.PhotonPass(dev, vol, cfg, seed=11), N_PHOTONS, batches=10)
+        out[name] = photonpass.trace_report(photonpass.PhotonPass.of_config(dev, vol, cfg, seed=11), N_PHOTONS, batches=10)
     s, t = out["slab"], out["tilted"]
     assert s["lost"] < 1e-3 and t["lost"] < 5e-3, (s["lost"], t["lost"])     # the beam stays in the model
     for key in ("Rd", "A"):

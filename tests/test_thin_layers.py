@@ -38,7 +38,7 @@ def test_vanishing_layer_is_absent():
 
 
 def _photon_seconds(dev, cfg, photons=20000):
-    pp = photonpass.PhotonPass(dev, volume.build(cfg, "t"), cfg)
+    pp = photonpass.PhotonPass.of_config(dev, volume.build(cfg, "t"), cfg)
     photonpass.trace_report(pp, 2000, batches=2)           # build and warm up
     t0 = time.perf_counter()
     rep = photonpass.trace_report(pp, photons, batches=2)

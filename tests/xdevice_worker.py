@@ -11,7 +11,7 @@ import numpy as np
 from clppm import config
 from clppm.compute import device
 from clppm.integrators import photonpass
-from clppm.run import progressive
+from clppm.run import entry
 from clppm.checks import tiny
 from clppm.scene import volume
 
@@ -24,13 +24,13 @@ def main(out: str) -> None:
     dev = device.open_device(None)
     cfg = config.slab_config(SLAB)
     cfg = config.override(cfg, "render", "seed", 11)
-    pp = photonpass.PhotonPass(dev, volume.build(cfg), cfg)
+    pp = photonpass.PhotonPass.of_config(dev, volume.build(cfg), cfg)
     rep = photonpass.trace_report(pp, SLAB_PHOTONS, batches=20)
     scene = tiny.tiny_config(size_mm=4.0, resolution=(40, 30), step_nm=40.0, photons=20_000)
     scene = config.override(scene, "render", "passes", 2)
     imgs = {}
     for i, seed in enumerate((*SEEDS, SEEDS[0])):
-        res = progressive.render(config.override(scene, "render", "seed", seed), dev=dev)
+        res = entry.render(config.override(scene, "render", "seed", seed), dev=dev)
         imgs[f"img{i}"] = res.spectral.astype(np.float64)
     info = {"impl": device.implementation(dev.device), "device": dev.name,
             "tally": {k: rep[k] for k in ("specular", "Rd", "Tt", "A")},

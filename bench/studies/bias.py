@@ -37,7 +37,7 @@ sys.path.insert(0, ROOT)
 from clppm import config as C
 from clppm.scene import volume              # noqa: E402
 from clppm.analysis.compare import MODES, render_seconds    # noqa: E402
-from clppm.run.progressive import render               # noqa: E402
+from clppm.run.entry import render               # noqa: E402
 from clppm.analysis.metrics import accuracy, accuracy_of_seeds, block_mean  # noqa: E402
 from clppm.analysis.reference import RefSpec, get_reference  # noqa: E402
 

@@ -35,7 +35,7 @@ from clppm.compute.device import open_device               # noqa: E402
 
 
 def one(cfg, vol, dev, passes, trials=None):
-    tr = pt.PathTracer(dev, vol, cfg)
+    tr = pt.PathTracer.of_config(dev, vol, cfg)
     if trials is not None:
         tr.e["mnee_trials"] = trials
     t0 = time.perf_counter()

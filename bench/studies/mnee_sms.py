@@ -34,7 +34,7 @@ def main(argv=None) -> int:
     vol = volume.build(c)
     sums, groups = {}, {}
     for K in (0, 1, 2):
-        tr = pt.PathTracer(dev, vol, c)
+        tr = pt.PathTracer.of_config(dev, vol, c)
         tr.e["mnee_trials"] = K
         t0 = time.perf_counter()
         per_pass = []

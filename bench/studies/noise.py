@@ -38,7 +38,7 @@ sys.path.insert(0, ROOT)
 from clppm.scene import colorimetry, volume
 from clppm import config as C, image                # noqa: E402
 from clppm.analysis.compare import render_seconds, schedule          # noqa: E402
-from clppm.run.progressive import render                       # noqa: E402
+from clppm.run.entry import render                       # noqa: E402
 from clppm.analysis.metrics import skin_mask_from_eye  # noqa: E402
 
 STAGES = ("eye", "calibration", "photon", "grid", "gather")   # the stage times kept per row

@@ -27,7 +27,7 @@ from clppm import config as C                                        # noqa: E40
 from clppm.analysis.metrics import accuracy                          # noqa: E402
 from clppm.analysis.reference import RefSpec, get_reference          # noqa: E402
 from clppm.compute.device import open_device                         # noqa: E402
-from clppm.run.progressive import render                             # noqa: E402
+from clppm.run.entry import render                             # noqa: E402
 from clppm.scene import volume                                       # noqa: E402
 
 SURFACES = ("smooth", "voxels")

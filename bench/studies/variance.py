@@ -67,7 +67,7 @@ def render_one(cfg: dict, seed: int, eye_seed: int, passes: int, iso_phase: bool
     c = C.override(cfg, "render", "seed", eye_seed)
     req = RenderRequest(c)
     sc = ppm.Pipeline.build(req, dev)
-    sc.pp = photonpass.PhotonPass(dev, sc.vol, c, capacity=sc.capacity, vbuf=sc.vbuf,
+    sc.pp = photonpass.PhotonPass.of_config(dev, sc.vol, c, capacity=sc.capacity, vbuf=sc.vbuf,
                                  bands=Bands.from_config(c), seed=seed)
     rc = c["render"]
     sc.pp.set_storage(rc["storage"], sc.eye.cone_deg, rc["store_scale"], rc["store_min"])

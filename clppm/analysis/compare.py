@@ -111,7 +111,7 @@ def run_method(cfg: dict, method: str, ref, *, budget: float, max_passes: int, m
                photons: int | None = None, seed: int | None = None, spacing: float | None = None,
                dev=None, log=print) -> dict:
     """Render ``method`` in ``mode`` until ``budget`` render seconds; accuracy at snapshots."""
-    from ..run.progressive import render
+    from ..run.entry import render
     c = cfg
     for k, v in MODES[mode].items():
         c = C.override(c, "render", k, v)
@@ -160,7 +160,7 @@ def run_method(cfg: dict, method: str, ref, *, budget: float, max_passes: int, m
 def run_pt(cfg: dict, ref, *, budget: float, seed: int | None = None, dev=None, log=print,
            samples_per_pass: int = 4) -> dict:
     """The path tracer at the compared resolution until ``budget`` trace seconds."""
-    from ..integrators.pathtracer import render_pt
+    from ..run.entry import render_pt
     w, h = ref.spec.resolution
     c = C.override(cfg, "render", "pt_samples_per_pass", samples_per_pass)
     snaps: list = []
@@ -217,7 +217,7 @@ def colour_shift_experiment(cfg: dict, spacings=(4.0, 7.0, 14.0, 28.0), photons=
 def _shift_renders(cfg: dict, spacings, photons, passes: int, resolution, seed, dev, log):
     """Every (photons, spacing) render: its row (mean skin colour, reuse ...), its image
     (xyz, exposure) by (spacing, photons), and the skin mask."""
-    from ..run.progressive import render
+    from ..run.entry import render
     from ..request import resolved_config
     rows, imgs = [], {}
     with volume.memoised():

@@ -213,9 +213,9 @@ def skin_mask(cfg: dict, dev=None) -> np.ndarray:
 
 def _render_half(c: dict, spec: RefSpec, seed: int, dev, progress: bool):
     if spec.integrator == "pt":
-        from ..integrators.pathtracer import render_pt
+        from ..run.entry import render_pt
         return render_pt(c, seed=int(seed), dev=dev, progress=progress)
-    from ..run.progressive import render
+    from ..run.entry import render
     return render(c, seed=int(seed), dev=dev, progress=progress)
 
 

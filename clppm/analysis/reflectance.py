@@ -165,7 +165,7 @@ def trace_bands(dev, vol, mcfg: dict, photons: int, batches: int = 10,
     if photons < 2:
         raise ConfigError("command line", "--photons", photons, "must be >= 2")
     batches = max(2, min(int(batches), int(photons)))
-    pp = photonpass.PhotonPass(dev, vol, mcfg)
+    pp = photonpass.PhotonPass.of_config(dev, vol, mcfg)
     nb, nl = vol.nb, vol.nl
     cats = list(photonpass.CATEGORIES)
     ix = {c: cats.index(c) for c in ("specular", "diffuse", "transmitted", "lost", "rr_gain",
@@ -376,9 +376,9 @@ def _white_in_region(cfg_r: dict, cam, wl, region, source: str) -> np.ndarray:
 def _image_reflectance(cfg_r: dict, m: str, white, region, dev, source: str, progress: bool,
                        log) -> dict:
     """Render method ``m``; its reflectance factor over ``region`` (mean and standard error)."""
-    from ..run import progressive
+    from ..run import entry
     t0 = time.perf_counter()
-    res = progressive.render(cfg_r, method=m, dev=dev, source=source, progress=progress)
+    res = entry.render(cfg_r, method=m, dev=dev, source=source, progress=progress)
     Rm, se = region_ratio(res.spectral, white, region)
     row = {"scheme": res.report["scheme"], "R": Rm.tolist(), "se": se.tolist(),
            "sample_points": res.report["sample_points"], "seconds": time.perf_counter() - t0}

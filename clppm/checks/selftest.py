@@ -57,23 +57,23 @@ def measure(dev, seed: int = REFERENCE_SEEDS[0]) -> dict:
     :class:`clppm.compute.device.Device`) at ``seed``: name -> value.  Raises AssertionError where
     an exact check fails."""
     from .. import config
-    from ..integrators import hashgrid, pathtracer, photonpass
-    from ..run import progressive
+    from ..integrators import hashgrid, photonpass
+    from ..run import entry
     from . import tiny
     from ..scene import volume
     cfg = config.override(tiny.tiny_config(photons=IMAGE_PHOTONS, resolution=RESOLUTION),
                           "render", "seed", int(seed))
     vol = volume.build(cfg, "self-test forearm")
-    rep = photonpass.trace_report(photonpass.PhotonPass(dev, vol, cfg), TRACE_PHOTONS, batches=4)
+    rep = photonpass.trace_report(photonpass.PhotonPass.of_config(dev, vol, cfg), TRACE_PHOTONS, batches=4)
     out = {k: float(rep[k]) for k in ("specular", "Rd", "Tt", "A")}
     out["energy_balance_error"] = float(rep["energy_balance_error"])
     for est in ("layer", "beam"):
-        res = progressive.render(config.override(copy.deepcopy(cfg), "render", "estimator", est),
+        res = entry.render(config.override(copy.deepcopy(cfg), "render", "estimator", est),
                                  dev=dev)
         out.update({f"{est}_group{i}": v for i, v in enumerate(_band_groups(res.spectral))})
     flat = config.override(tiny.tiny_config("forearm_flat.toml", photons=IMAGE_PHOTONS,
                                             resolution=RESOLUTION), "render", "seed", int(seed))
-    res = pathtracer.render_pt(flat, passes=PT_PASSES, dev=dev)
+    res = entry.render_pt(flat, passes=PT_PASSES, dev=dev)
     out.update({f"pt_group{i}": v for i, v in enumerate(_band_groups(res.spectral))})
     tiny.grid_queries(dev, hashgrid)              # exact: grid queries = brute force
     return out

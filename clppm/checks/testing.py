@@ -17,12 +17,12 @@ from ..compute import structs as S
 from ..scene import volume
 from ..compute.device import Device
 from ..integrators.hashgrid import WG, Grid, GridBuffers, as_device
-from ..compute.kernelcall import Kernel
+from ..compute.kernelcall import Kernel, kernels
 from ..integrators.pathtracer import MNEE_TRIALS, build, chain_tables, fp64
 
 def _gather_kernels(dev: Device, nb: int) -> dict:
     """kernels/hashgrid.cl's two queries, built for ``nb`` bands."""
-    return dev.kernels("hashgrid.cl", ("gather_grid", "gather_bruteforce"), {"NB": int(nb)})
+    return kernels(dev, "hashgrid.cl", ("gather_grid", "gather_bruteforce"), {"NB": int(nb)})
 
 
 # --------------------------------------------------------------------------- photon-grid queries

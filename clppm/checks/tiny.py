@@ -56,8 +56,8 @@ def tiny_config(name: str = "forearm.toml", size_mm: float = 2.0, resolution=(8,
 
 def run_all(dev, photons: int = 2000, resolution=(8, 6), families=None) -> dict:
     """Run each family once on ``dev``; seconds per family."""
-    from ..integrators import hashgrid, pathtracer
-    from ..run import progressive
+    from ..integrators import hashgrid
+    from ..run import entry
     from ..analysis import reflectance
     todo = families or FAMILIES
     out = {}
@@ -70,16 +70,16 @@ def run_all(dev, photons: int = 2000, resolution=(8, 6), families=None) -> dict:
 
     cfg = tiny_config(photons=photons, resolution=resolution)
     layer = config.override(copy.deepcopy(cfg), "render", "estimator", "layer")
-    timed(FAMILIES[0], lambda: progressive.render(layer, dev=dev))
+    timed(FAMILIES[0], lambda: entry.render(layer, dev=dev))
     beam = config.override(copy.deepcopy(cfg), "render", "estimator", "beam")
-    timed(FAMILIES[1], lambda: progressive.render(config.override(beam, "render", "depth_roulette_um", 20.0),
+    timed(FAMILIES[1], lambda: entry.render(config.override(beam, "render", "depth_roulette_um", 20.0),
                                                   dev=dev))
     flat = tiny_config("forearm_flat.toml", photons=photons, resolution=resolution)
-    timed(FAMILIES[2], lambda: pathtracer.render_pt(flat, passes=1, dev=dev))
+    timed(FAMILIES[2], lambda: entry.render_pt(flat, passes=1, dev=dev))
     timed(FAMILIES[3], lambda: reflectance.spectral_reflectance(
         cfg, photons=max(200, photons // 10), batches=2, bands=(500.0, 540.0, 40.0), dev=dev))
     timed(FAMILIES[4], lambda: grid_queries(dev, hashgrid))
-    timed(FAMILIES[5], lambda: progressive.render(config.override(
+    timed(FAMILIES[5], lambda: entry.render(config.override(
         copy.deepcopy(cfg), "model", "surface", "smooth"), dev=dev))
     return out
 

@@ -114,8 +114,8 @@ def _import_renderers() -> None:
     except (AttributeError, ValueError, OSError):     # no pthread_sigmask, or not the main thread
         old = None
     try:
-        from ..integrators import pathtracer
-        from ..run import progressive  # noqa: F401
+        from ..integrators import pathtracer  # noqa: F401
+        from ..run import entry, progressive  # noqa: F401
     finally:
         if old is not None:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
@@ -138,7 +138,7 @@ def cmd_render(a) -> int:
         if said:
             print(f"clppm: {said}", file=sys.stderr)
         try:
-            res = _render_pt(a, req) if a.integrator == "pt" else _render_ppm(a, req)
+            res = _render(a, req)
         except paths.WriteError as e:
             hint = (f": resume with {resume_command(a, e.checkpoint)}" if e.checkpoint else "")
             raise InputError(f"{e}; {e.kept()}{hint}") from None
@@ -182,10 +182,16 @@ def short_passes_note(r: dict) -> str | None:
             f"image is noisier than its budget")
 
 
-def _render_ppm(a, req):
-    from ..run import progressive
+def _render(a, req):
+    """``req`` through the one render entry (:func:`clppm.run.entry.render`); a cluster needs
+    dask.distributed, and its errors are one line."""
+    from ..integrators.driver import say
+    from ..run import entry
+    if req.integrator == "pt":
+        say(not a.quiet, "path tracer: building the volume...")
+        return entry.render(req)
     if req.cluster is None:
-        return progressive.render(req)
+        return entry.render(req)
     cl = req.cluster
     try:
         from ..run import executor
@@ -193,7 +199,7 @@ def _render_ppm(a, req):
         raise ConfigError("command line", cl.flag if cl.scheduler else "--devices", cl.scheduler or cl.devices,
                           f"needs dask.distributed ({e}): pip install 'clppm[dask]'") from None
     try:
-        return executor.render_distributed(req)
+        return entry.render(req)
     except executor.ExecutorError as e:
         raise InputError(str(e)) from None
 
@@ -205,13 +211,6 @@ def _refuse_ppm_flags(a) -> None:
                     ("--bands-per-path", a.bands_per_path), ("--radius", a.radius)):
         if v is not None:
             raise ConfigError("command line", flag, v, "applies to --integrator ppm only")
-
-
-def _render_pt(a, req):
-    from ..integrators.driver import say
-    from ..integrators.pathtracer import render_pt
-    say(not a.quiet, "path tracer: building the volume...")
-    return render_pt(req)
 
 
 RENDER_EPILOG = "sample-point methods (--method, render.method):\n" + "".join(

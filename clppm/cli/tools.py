@@ -77,7 +77,7 @@ def cmd_trace(a) -> int:
     paths.check_writable(a.json, "--json")
     vol = volume.build(cfg, src)
     dev = device.open_device(a.device)
-    pp = photonpass.PhotonPass(dev, vol, cfg)
+    pp = photonpass.PhotonPass.of_config(dev, vol, cfg)
     rep = photonpass.trace_report(pp, a.photons, batches=min(a.batches, a.photons))
     rep["device"] = dev.name
     rep["seed"] = cfg["render"]["seed"]

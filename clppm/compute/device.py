@@ -10,9 +10,10 @@ from __future__ import annotations
 import functools
 import os
 from dataclasses import dataclass
-from importlib import resources
 
 from . import devicecheck
+from .programs import (implementation, kernel_dir,  # noqa: F401
+                       quiet_compiler_chatter)
 
 
 
@@ -26,32 +27,13 @@ NO_PLATFORM_HELP = (
 )
 
 
-def kernel_dir() -> str:
-    """Folder holding ``*.cl`` kernel sources (works for an installed package)."""
-    return str(resources.files("clppm.kernels"))
-
-
 def _cl():
     try:
         import pyopencl as cl
     except ImportError as e:  # pragma: no cover - dependency missing
         raise DeviceError(f"pyopencl is not installed ({e}); pip install clppm") from None
-    _quiet_compiler_chatter()
+    quiet_compiler_chatter()
     return cl
-
-
-#: pyopencl's one-line notice that a build log was not empty; it carries no log of its own
-CHATTER = "Non-empty compiler output encountered"
-
-
-def _quiet_compiler_chatter() -> None:
-    """Drop pyopencl's notice that a build log was not empty (:data:`CHATTER`).  Intel's runtime
-    logs every build ("Compilation started", vectoriser remarks) and the notice cannot tell those
-    from a warning; clppm's kernels build with no compiler warning on the CPU implementations
-    (tests/test_quiet.py reads the logs), and ``PYOPENCL_COMPILER_OUTPUT=1`` still prints every
-    log in full (pyopencl then warns with another message, which passes)."""
-    import warnings
-    warnings.filterwarnings("ignore", message=CHATTER)
 
 
 def list_devices() -> list[tuple[int, int, "object", "object"]]:
@@ -90,13 +72,6 @@ def describe(device) -> dict:
     }
 
 
-# Implementations by the short names ``--device`` takes: a (platform name, platform version)
-# substring identifies each.  Users see these names in ``clppm devices``.
-IMPLEMENTATIONS = (("pocl", ("portable computing language", "pocl")),
-                   ("intel", ("intel(r) opencl", "intel")),
-                   ("nvidia", ("nvidia",)), ("amd", ("amd accelerated", "amd")),
-                   ("rusticl", ("rusticl",)), ("oclgrind", ("oclgrind",)))
-
 # Default choice among devices that pass their self-test: GPUs first, then CPU implementations in
 # this order, the faster first by docs/devices.md's measured throughput (bench/devices.py).
 CPU_PREFERENCE = ("intel", "pocl")
@@ -105,15 +80,6 @@ CPU_PREFERENCE = ("intel", "pocl")
 def short_version(device) -> str:
     """The platform's version up to its first comma ("OpenCL 3.0 PoCL 3.0-rc2  Linux")."""
     return " ".join(device.platform.version.split(",")[0].split())
-
-
-def implementation(device) -> str:
-    """Short name of ``device``'s OpenCL implementation ("pocl", "intel", ...), else its platform."""
-    plat = f"{device.platform.name} {device.platform.version}".lower()
-    for short, keys in IMPLEMENTATIONS:
-        if any(k in plat for k in keys):
-            return short
-    return device.platform.name.strip().lower()
 
 
 def _rank(entry) -> tuple:
@@ -384,16 +350,7 @@ class Device:
         device, checked to hold every kernel the source declares)."""
         from .programs import REGISTRY, BuildSpec, BuildError
         try:
-            return REGISTRY.program(self.ctx, BuildSpec.of(filename, defines), _fault())
-        except BuildError as e:
-            raise DeviceError(str(e)) from None
-
-    def kernels(self, filename: str, names, defines: dict | None = None) -> dict:
-        """``{name: Kernel}`` of the program of ``filename`` and ``defines`` (:meth:`build`),
-        made once per context."""
-        from .programs import REGISTRY, BuildSpec, BuildError
-        try:
-            return REGISTRY.kernels(self.ctx, BuildSpec.of(filename, defines), names, _fault())
+            return REGISTRY.program(self.ctx, BuildSpec.of(filename, defines), fault())
         except BuildError as e:
             raise DeviceError(str(e)) from None
 
@@ -403,7 +360,7 @@ class Device:
         return REGISTRY.library(self.ctx, name, make)
 
 
-def _fault() -> str:
+def fault() -> str:
     """``CLPPM_FAULT``: deliberately broken builds for the self-test's tests (programs.inject_fault)."""
     return os.environ.get("CLPPM_FAULT", "")
 

@@ -227,3 +227,16 @@ class Kernel:
         ``size`` or ``queue``: these two are positional only)."""
         values = self.signature.bind(args)
         return self.kernel(queue, *launch(self.kernel, queue, size, want, rows), *values)
+
+
+def kernels(dev, filename: str, names, defines: dict | None = None) -> dict:
+    """``{name: Kernel}`` of the program of ``kernels/filename`` with ``defines`` on ``dev``
+    (:meth:`clppm.compute.device.Device.build`), each made once per context by the registry."""
+    from .device import DeviceError, fault
+    from .programs import REGISTRY, BuildError, BuildSpec
+    spec = BuildSpec.of(filename, defines)
+    try:
+        return {n: REGISTRY.made(dev.ctx, spec, n, lambda prg, n=n: Kernel(prg, n), fault())
+                for n in names}
+    except BuildError as e:
+        raise DeviceError(str(e)) from None

@@ -35,6 +35,7 @@ from ..scene.light import Light
 from ..compute.device import Device, DeviceError, check_alloc, kernel_defines, surface_fp64
 from ..compute.constants import EyeMode
 from .hashgrid import exclusive_scan
+from ..compute.kernelcall import kernels
 from ..scene.volume import Volume, VolumeBuffers, volume_params
 
 SPACING = {"a": 4.0, "b": 7.0, "c": 14.0}
@@ -186,7 +187,7 @@ class _EyeKernel:
         ro = mf.READ_ONLY | mf.COPY_HOST_PTR
         self.common = dict(vbuf.named(cl.Buffer(ctx, ro, hostbuf=p)), E=cl.Buffer(ctx, ro, hostbuf=e),
                            rate=cl.Buffer(ctx, ro, hostbuf=rates))
-        self.knl = dev.kernels("eye.cl", ("eye_pass",), kernel_defines(vol, pt_fp64=surface_fp64(dev, vol)))["eye_pass"]
+        self.knl = kernels(dev, "eye.cl", ("eye_pass",), kernel_defines(vol, pt_fp64=surface_fp64(dev, vol)))["eye_pass"]
         self.smooth = vbuf.smooth
         self.dev = dev
         self.nrays = cam.width * cam.height * cam.spp

@@ -41,7 +41,7 @@ import pyopencl.cltypes as cltypes
 
 from ..compute import structs as S
 from ..compute.device import Device
-from ..compute.kernelcall import Kernel
+from ..compute.kernelcall import kernels
 
 DEFAULT_MAX_CELLS = 2 ** 23
 
@@ -183,7 +183,7 @@ GRID_KERNELS = ("grid_count", "grid_scatter", "grid_keys", "grid_permute", "grid
 
 
 def _kernels(dev: Device) -> dict:
-    return dev.kernels("hashgrid.cl", GRID_KERNELS)
+    return kernels(dev, "hashgrid.cl", GRID_KERNELS)
 
 
 def _make_scan(ctx):

@@ -34,14 +34,12 @@ import numpy as np
 
 from ..output import checkpoint as ckpt
 from ..scene import colorimetry, volume
-from . import driver
-from ..output import film, paths
-from ..scene.scene import warn_scene
+from ..output import film
 from ..compute import structs as S
 from ..scene.bands import Bands, band_width
-from ..scene.camera import Camera, from_config
+from ..scene.scene import Scene
 from ..scene.light import Light
-from ..config import ConfigError, RenderSettings, render_settings
+from ..config import ConfigError
 from ..compute.device import Device, check_alloc, kernel_defines, open_device
 from ..compute.kernelcall import Kernel
 from ..request import RenderRequest
@@ -137,15 +135,20 @@ def build(dev: Device, vol: volume.Volume):
 class PathTracer:
     """Device state of one path-traced render: the volume, the parameters, the pixel sums."""
 
-    def __init__(self, dev: Device, vol: volume.Volume, cfg: dict, rs: RenderSettings | None = None,
-                 cam: Camera | None = None):
-        """``cfg``: the scene; ``rs`` and ``cam``: a request's settings and camera (default:
-        ``cfg``'s own)."""
+    @classmethod
+    def of_config(cls, dev: Device, vol: volume.Volume, cfg: dict, **run) -> "PathTracer":
+        """The path tracer of a config rendered with its own values (``run``: RenderRequest's run
+        values), on the model ``vol`` built from it: the tools' and tests' way in."""
+        return cls(dev, Scene.of_config(cfg, volume=vol, **run))
+
+    def __init__(self, dev: Device, scene: Scene):
+        """``scene``: the render's (its model, settings, camera and light)."""
         import pyopencl as cl
         import pyopencl.array as cla
-        self.dev, self.vol, self.cfg = dev, vol, cfg
-        self.rs = rc = rs or render_settings(cfg)
-        self.cam = cam = cam or from_config(cfg["camera"])
+        vol = scene.volume
+        self.dev, self.vol, self.scene, self.cfg = dev, vol, scene, scene.config
+        self.rs = rc = scene.settings
+        self.cam = cam = scene.camera
         self.npix = cam.width * cam.height
         self.nspp = int(rc.pt_samples_per_pass)
         q, mf = dev.queue, cl.mem_flags
@@ -157,7 +160,7 @@ class PathTracer:
         self.chain = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=chain_tables(vol))
         e = np.zeros(1, S.PT_DTYPE)
         e["cam"] = cam.struct()
-        self.light = Light.from_config(cfg)
+        self.light = scene.light
         e["nspp"] = self.nspp
         e["seed_lo"], e["seed_hi"] = S.split_seed(rc.seed)
         e["lx"], e["ly"], e["lz"] = self.light.position
@@ -177,7 +180,7 @@ class PathTracer:
         self.mnee_base = np.zeros(len(MNEE_STATS), np.int64)         # counts of the passes before a resume
         self.smooth = self.vbuf.smooth
         self.launch = min(self.npix, max(LAUNCH_MIN, 16384 // self.nspp))   # ~16k paths, then timed
-        self.bands = Bands.from_config(cfg, hero=1)
+        self.bands = scene.bands(hero=1)
         self.spectrum = self.bands.spectrum
         self.offsets = band_offsets(self.npix, nb)
 
@@ -300,12 +303,13 @@ def _finish(tracer: PathTracer, arrays: dict, passes_done, timing, dev, t_start,
             interrupted, record: dict) -> film.RenderResult:
     """The path tracer's sums -> radiance (the film does the rest) and the run report
     (``record``: the config as the run rendered it, RenderRequest.resolved)."""
-    cfg, vol = tracer.cfg, tracer.vol
+    vol = tracer.vol
     wl = vol.wl
     samples = passes_done * tracer.nspp
     counts = band_counts(tracer.offsets, vol.nb, samples)
     scale = band_scale(tracer.light, tracer.bands)
-    res = film.develop(radiance(arrays["pix_sum"], counts, scale, wl), cfg, tracer.cam, wl, tracer.spectrum)
+    res = film.develop(radiance(arrays["pix_sum"], counts, scale, wl), tracer.cam, wl, tracer.spectrum,
+                       tracer.light, tracer.rs.exposure)
     stats = dict(zip(STATS, (int(v) for v in arrays["pix_stats"].sum(0))))
     paths = tracer.npix * samples
     bins = arrays["pix_bins"].sum(0)
@@ -365,44 +369,37 @@ def mnee_report(tot: list[int]) -> dict:
     return d
 
 
-def render_pt(req: RenderRequest | dict, **kw) -> film.RenderResult:
-    """Path-trace a request (point light); the image and report as ``render``, stepped by
-    :func:`clppm.integrators.driver.drive` (the budget's ``on_snapshot(passes, wall seconds,
-    result)`` every ``snapshot_every`` passes, True to stop).  ``req``: a
-    :class:`clppm.request.RenderRequest`, or a config and :meth:`RenderRequest.of`'s keywords."""
-    t_start = time.perf_counter()
-    req = req if isinstance(req, RenderRequest) else RenderRequest.of(req, "pt", **kw)
-    cfg, rc, source = req.scene, req.settings, req.source
-    check_scene(cfg, source)
+def check_request(req: RenderRequest) -> None:
+    """What the path tracer refuses before any work: a scene it cannot trace
+    (:func:`check_scene`), more paths in a pass than it has ids."""
+    rc, source = req.settings, req.source
+    check_scene(req.resolved(), source)
     cam = req.camera
-    w, h = cam.width, cam.height
-    if w * h * rc.pt_samples_per_pass > 2**32:
+    if cam.width * cam.height * rc.pt_samples_per_pass > 2**32:
         raise ConfigError(source, "render.pt_samples_per_pass", rc.pt_samples_per_pass,
-                          f"{w}x{h} pixels x {rc.pt_samples_per_pass} exceeds the 2^32 path ids "
-                          "of a pass")
-    ckpath = req.checkpoint
-    paths.check_outputs(out=req.outputs.out, checkpoint=ckpath)
-    if req.resume:
-        ckpt.load(req.resume, integrator="pt")      # fail fast on a missing or corrupt file
-        ckpt.check_matches(req.resume, config=req.config_identity())
-    warn_scene(req.resolved(), source)
+                          f"{cam.width}x{cam.height} pixels x {rc.pt_samples_per_pass} exceeds the "
+                          "2^32 path ids of a pass")
+
+
+def open_run(req: RenderRequest, t_start: float) -> "PTRun":
+    """The path tracer's run of ``req`` (after :func:`clppm.run.entry.render`'s checks): the
+    device, the volume, the tracer, and a checkpoint's sums when resumed."""
     dev = req.dev or open_device(req.device)
     if req.resume:
         ckpt.check_matches(req.resume, device=dev.name)
     t0 = time.perf_counter()
-    vol = volume.build(cfg, source)
+    scene = Scene.of(req)
+    vol, cam = scene.volume, scene.camera
+    w, h = cam.width, cam.height
     timing = {"volume": time.perf_counter() - t0, "trace": 0.0, "output": 0.0}
     check_alloc(dev, {"pixel sums": w * h * vol.nb * 8, "pixel sums of squares": w * h * vol.nb * 8,
                       "pixel statistics": w * h * 64, "value by vertex index": w * h * NBIN * 8,
                       "smooth heights": 0 if vol.smooth is None else int(vol.smooth.nbytes),
                       **vol.device_bytes()})
-    run = PTRun(PathTracer(dev, vol, cfg, rc, cam), req, timing, t_start)
+    run = PTRun(PathTracer(dev, scene), req, timing, t_start)
     if req.resume:
         run.restore(req.resume)
-    b = req.budget
-    cad = driver.Cadence.of(rc, req.outputs.out, ckpath, snapshot_every=b.snapshot_every,
-                            on_snapshot=b.on_snapshot, stop_after=b.stop_after, progress=req.outputs.progress)
-    return driver.drive(run, cad, t_start, resumed=bool(req.resume))
+    return run
 
 
 class PTRun:

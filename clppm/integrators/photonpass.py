@@ -18,9 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..compute import structs as S
-from ..config import render_settings
 from ..scene.bands import Bands
 from ..scene.light import Light
+from ..scene.scene import Scene
 from ..compute.device import Device, kernel_defines, launch, surface_fp64
 from ..compute.kernelcall import Kernel
 from ..scene.volume import Volume, VolumeBuffers, upload_volume, volume_params
@@ -217,17 +217,24 @@ def capacity_for(target: int) -> int:
 class PhotonPass:
     """Device state for photon passes of one scene."""
 
-    def __init__(self, dev: Device, vol: Volume, cfg: dict, capacity: int = 0,
-                 vbuf: VolumeBuffers | None = None, seed: int | None = None, bands: Bands | None = None,
-                 light: Light | None = None, counters: bool = False, plain_walk: bool = False):
-        """``bands``: the spectral sampling (default: one band per path, the hero drawn from the
-        light's spectrum).  The tallies follow the hero band alone, so it does not change them.
-        ``light``: the config's light (default: read from ``cfg``).  ``counters``: build with
-        the event counters (photon.cl PHOTON_COUNTERS; read them with :meth:`counts`).  ``plain_walk``
-        (tests): on the smooth surfaces, the other passes' walk (photon.cl PHOTON_PLAIN_WALK)."""
+    @classmethod
+    def of_config(cls, dev: Device, vol: Volume, cfg: dict, seed: int | None = None, **kw) -> "PhotonPass":
+        """The photon passes of a config rendered with its own values (``seed``: the run's,
+        else ``render.seed``), on the model ``vol`` built from it: the tools' and tests' way in."""
+        return cls(dev, Scene.of_config(cfg, volume=vol, seed=seed), **kw)
+
+    def __init__(self, dev: Device, scene: Scene, capacity: int = 0, vbuf: VolumeBuffers | None = None,
+                 bands: Bands | None = None, counters: bool = False, plain_walk: bool = False):
+        """``scene``: the render's (its model, light, seed and storage depth).  ``bands``: the
+        spectral sampling (default: one band per path, the hero drawn from the light's
+        spectrum); the tallies follow the hero band alone, so it does not change them.
+        ``counters``: build with the event counters (photon.cl PHOTON_COUNTERS; read them with
+        :meth:`counts`).  ``plain_walk`` (tests): on the smooth surfaces, the other passes' walk
+        (photon.cl PHOTON_PLAIN_WALK)."""
         import pyopencl as cl
-        self.dev, self.vol, self.cfg = dev, vol, cfg
-        self.bands = bands or Bands.from_config(cfg, hero=1, sampling="power")
+        vol = scene.volume
+        self.dev, self.vol, self.scene = dev, vol, scene
+        self.bands = bands or scene.bands(hero=1, sampling="power")
         self.hero = self.bands.hero
         self.counters = bool(counters)
         self.items = persistent_items(dev)
@@ -248,18 +255,17 @@ class PhotonPass:
         self.logmu = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=band_table(vol, self.hero))
         p = S.new_params()
         volume_params(p, vol)
-        self.light = light or Light.from_config(cfg)
+        self.light = scene.light
         self.power_fraction = source_params(p, self.light, vol)
         # of the light's cone, the part the photons are emitted into (the footprint's solid angle
         # for a point light, photon.cl footprint_dir): trace_report gives the tallies per photon
         # of the cone, with the rest as missed, comparable whatever the emission
         self.emission_share = (self.power_fraction / (float(p["cone_omc"][0]) / 2.0)
                                if self.light.kind == "point" else 1.0)
-        s = render_settings(cfg).seed if seed is None else seed
-        self.seed = int(s)
-        p["seed_lo"], p["seed_hi"] = S.split_seed(s)
+        self.seed = scene.seed
+        p["seed_lo"], p["seed_hi"] = S.split_seed(self.seed)
         p["fixed_band"] = self.band
-        sd = render_settings(cfg).store_depth_um
+        sd = scene.settings.store_depth_um
         if sd is not None:
             p["store_zmin"] = -sd
         self.p = p

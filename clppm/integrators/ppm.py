@@ -28,7 +28,7 @@ from . import eyepass, hashgrid, photonpass
 from ..scene import volume
 from .beam import BeamGather
 from .estimators import PassGrid, SphereGather
-from ..scene.bands import Bands
+from ..scene.scene import Scene
 from ..config import RenderSettings, render_settings
 from ..compute.device import Device, check_alloc, kernel_defines
 from ..compute.kernelcall import Kernel
@@ -123,6 +123,7 @@ class Pipeline:
     """One scene on one device: its buffers and kernels, and a method per stage of a pass."""
 
     req: RenderRequest
+    scene: Scene                     # built once from req: model, light, camera, settings
     dev: Device
     vol: volume.Volume
     vbuf: volume.VolumeBuffers
@@ -143,8 +144,8 @@ class Pipeline:
 
     @property
     def cfg(self) -> dict:
-        """The scene's config (the request's; the run's values are in :attr:`rs`)."""
-        return self.req.scene
+        """The scene's config, with the run's values at their keys (:attr:`Scene.config`)."""
+        return self.scene.config
 
     @property
     def rs(self) -> RenderSettings:
@@ -180,7 +181,8 @@ class Pipeline:
         req = req if isinstance(req, RenderRequest) else RenderRequest(req)
         cfg, rc, cam = req.scene, req.settings, req.camera
         t0 = time.perf_counter()
-        vol = volume.build(cfg, req.source)
+        scene = Scene.of(req)
+        vol = scene.volume
         vbuf = volume.upload_volume(dev, vol)
         timing = {"volume": time.perf_counter() - t0}
         nrays, target = cam.width * cam.height * cam.spp, int(rc.photons)
@@ -189,8 +191,8 @@ class Pipeline:
         eye = cls.eye_pass(req, dev, vol, vbuf)
         timing["eye"] = time.perf_counter() - t0
         check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height, target))
-        pp = cls.photon_source(req, dev, vol, vbuf, eye)
-        sc = cls(req=req, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, target=target,
+        pp = cls.photon_source(scene, dev, vbuf, eye)
+        sc = cls(req=req, scene=scene, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, target=target,
                  capacity=pp.capacity, gbufs=hashgrid.GridBuffers(dev), **cls._tables(req, dev, vol, eye, pp))
         sc.estimator = BeamGather(sc) if rc.estimator == "beam" else SphereGather(sc)
         sc.timing.update(timing)
@@ -206,11 +208,11 @@ class Pipeline:
         return eye
 
     @staticmethod
-    def photon_source(req: RenderRequest, dev: Device, vol, vbuf, eye) -> photonpass.PhotonPass:
+    def photon_source(scene: Scene, dev: Device, vbuf, eye) -> photonpass.PhotonPass:
         """The photon pass's device state: the light, the storage rule, the run's seed."""
-        cfg, rc = req.scene, req.settings
-        pp = photonpass.PhotonPass(dev, vol, cfg, capacity=photonpass.capacity_for(int(rc.photons)), vbuf=vbuf,
-                                   bands=Bands.from_config(cfg), seed=rc.seed)
+        rc = scene.settings
+        pp = photonpass.PhotonPass(dev, scene, capacity=photonpass.capacity_for(int(rc.photons)), vbuf=vbuf,
+                                   bands=scene.bands())
         pp.set_storage(rc.storage, eye.cone_deg, rc.store_scale, rc.store_min)
         pp.set_emission(rc.emission)
         return pp

@@ -10,7 +10,6 @@ Lambertian plane at the image centre, lit by the same light, come out white (Y =
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from dataclasses import dataclass
@@ -22,7 +21,7 @@ from .. import image
 from . import paths
 from ..config import render_settings
 from ..scene.bands import tristimulus
-from ..scene.light import Light, white_reference
+from ..scene.light import white_reference
 from ..version import __version__
 
 UNITS = "spectral radiance W m^-2 sr^-1 nm^-1 (EXR spectral channels); RGB linear sRGB"
@@ -61,16 +60,16 @@ def exposure_of(set_by_hand: float | None, white_y: float) -> tuple[float, str]:
     return 1.0, "assumed 1.0: the white reference at the image centre gets no light"
 
 
-def develop(L: np.ndarray, cfg: dict, cam, wl, spectrum) -> RenderResult:
-    """Radiance (npix, NB) -> the image; its report holds the exposure, the white reference
-    and the count of non-finite values (set to 0)."""
+def develop(L: np.ndarray, cam, wl, spectrum, light, exposure: float | None = None) -> RenderResult:
+    """Radiance (npix, NB) -> the image; its report holds the exposure (``exposure``, else from
+    the white reference under ``light``), the white reference and the count of non-finite
+    values (set to 0).  The film knows the camera, the bands and the light, not the integrator."""
     nonfinite = int(np.size(L) - np.count_nonzero(np.isfinite(L)))
     L = np.nan_to_num(L, nan=0.0, posinf=0.0, neginf=0.0).reshape(cam.height, cam.width, len(wl))
     xyz = tristimulus(L, wl)
     rgb = colorimetry.xyz_to_linear_srgb(xyz)
-    Yw = float(tristimulus(white_reference(Light.from_config(cfg), cam, wl, spectrum)[None, :], wl)[0, 1])
-    rc = render_settings(cfg)
-    exposure, source = exposure_of(rc.exposure, Yw)
+    Yw = float(tristimulus(white_reference(light, cam, wl, spectrum)[None, :], wl)[0, 1])
+    exposure, source = exposure_of(exposure, Yw)
     report = {"exposure": exposure, "exposure_from": source, "white_reference_Y": Yw,
               "nonfinite_values_zeroed": nonfinite}
     return RenderResult(spectral=L, xyz=xyz, rgb=rgb, wl=np.asarray(wl), report=report,

@@ -4,13 +4,13 @@ The engine is dask.distributed: ``--devices`` starts a local cluster with one wo
 per listed device, ``--scheduler`` (or ``CLPPM_SCHEDULER``) joins a running ``dask scheduler``
 with its ``dask worker``s.  Nothing here schedules, retries or moves data itself.
 
-Client (:func:`render_distributed`): one worker builds the scene and calibrates (R0 per sample
+Client (:func:`clppm.run.entry.render_distributed`): one worker builds the scene and calibrates (R0 per sample
 point, the storage depth); the request and the calibration then travel to the workers once, as
 task results the chunks depend on (a lost copy is recomputed, unlike scattered data).  Each
 task is one chunk of passes (:meth:`clppm.integrators.ppm.Pipeline.run_chunk`) and returns its
 sums.  The client adds the chunk sums in chunk order, holding chunks that arrive early
 (:class:`Reduction`), so the float64 total rounds exactly as in the in-process loop: the EXR
-is byte-identical to ``progressive.render`` with the same seed and ``render.chunk_passes`` on
+is byte-identical to a render in this process (``clppm.run.entry.render``) with the same seed and ``render.chunk_passes`` on
 the same kind of device.  A chunk whose worker dies is rerun by Dask; since a chunk is a pure
 function of (request, calibration, passes), the rerun gives the same bits, and each chunk is
 added once, by its first pass.  Checkpoints hold the reduced sums, the held chunks and which
@@ -43,10 +43,9 @@ import numpy as np
 from distributed import WorkerPlugin
 
 from ..output import checkpoint as ckpt
-from ..integrators import driver, photonpass, ppm
-from ..output import film, paths
+from ..integrators import photonpass, ppm
+from ..output import film
 from . import progressive
-from ..scene import scene
 from ..config import ConfigError, RenderSettings
 from ..compute.device import DeviceError
 from ..request import Cluster, RenderRequest
@@ -407,34 +406,20 @@ class Reduction:
         return red
 
 
-def render_distributed(req: RenderRequest | dict, **kw) -> film.RenderResult:
-    """Render a request on a Dask cluster; the same bytes as :func:`progressive.render`.
-
-    ``req``: a :class:`clppm.request.RenderRequest`, or a config and
-    :meth:`RenderRequest.of`'s keywords.  Its cluster: ``scheduler``, the address of a running
-    scheduler; ``devices``, ``P:D`` strings (or ``"all"``) for a local cluster, one worker each;
-    ``client``, an existing ``distributed.Client``; none of these: one in-process worker.  The
-    budget's ``stop_after``: stop once this many passes are finished (a checkpoint is written);
-    ``on_chunk(ChunkDone)``: called as each chunk arrives."""
-    t_start = time.perf_counter()
-    req = req if isinstance(req, RenderRequest) else RenderRequest.of(req, **kw)
+@contextlib.contextmanager
+def open_run(req: RenderRequest, t_start: float):
+    """The run of ``req`` on its cluster (after :func:`clppm.run.entry.render`'s checks): the
+    cluster connected, its workers checked, the scene built and calibrated on one of them (or
+    the checkpoint's sums loaded); the client is current while the run is stepped."""
     cl_ = req.cluster or Cluster()
-    rs, out, ckpath = req.settings, req.outputs, req.checkpoint
-    check_distributable(rs, cl_.how)
-    paths.check_outputs(out=out.out, checkpoint=ckpath)
-    if req.resume:
-        ckpt.load(req.resume)                           # fail fast on a missing or corrupt file
-        ckpt.check_matches(req.resume, config=req.config_identity())
-    scene.warn_scene(req.resolved(), req.source)
     devices = parse_devices(cl_.devices) if isinstance(cl_.devices, str) else cl_.devices
     where = cl_.scheduler or ("local cluster" if devices else "client" if cl_.client else "in-process")
     with connect(cl_.scheduler, devices, cl_.client, cl_.flag) as c:
         workers = check_workers(c, f"scheduler {cl_.scheduler}" if cl_.scheduler else "the cluster")
         job = _Job.start(c, req, t_start, workers)
-        run = DaskRun(job, job.reduction(req.resume), ckpath, req.budget.on_chunk, where, workers)
-        cad = driver.Cadence.of(rs, out.out, ckpath, stop_after=req.budget.stop_after, progress=out.progress)
+        run = DaskRun(job, job.reduction(req.resume), req.checkpoint, req.budget.on_chunk, where, workers)
         with c.as_current():
-            return driver.drive(run, cad, t_start, resumed=bool(req.resume))
+            yield run
 
 
 @dataclass

@@ -17,33 +17,18 @@ import numpy as np
 
 from ..output import checkpoint as ckpt
 from ..integrators import driver, photonpass, ppm
-from ..output import film, paths
-from ..scene.scene import warn_scene
+from ..output import film
 from ..compute.device import open_device
 from ..output.film import RenderResult
-from ..scene.light import Light
 from ..request import RenderRequest
 
 FIX_NOTE = "fixed point 2^32 per unit weight x phase; pixel sums in float64"
 
 
-def render(req: RenderRequest | dict, **kw) -> RenderResult:
-    """Render a request in this process; return the image and the run report.
-
-    ``req``: a :class:`clppm.request.RenderRequest`, or a config and
-    :meth:`RenderRequest.of`'s keywords.  Setup, then calibration (or a checkpoint's state),
-    then :func:`clppm.integrators.driver.drive` steps a :class:`PPMRun` pass by pass.  The budget's
-    ``on_snapshot(passes, wall s, result)`` every ``snapshot_every`` passes (True: stop);
-    ``on_pass(p, point state)`` after every pass.  See ``clppm render --help``."""
-    t_start = time.perf_counter()
-    req = req if isinstance(req, RenderRequest) else RenderRequest.of(req, **kw)
-    rs, cfg, out = req.settings, req.resolved(), req.outputs
-    paths.check_outputs(out=out.out, checkpoint=req.checkpoint)
-    if req.resume:
-        ckpt.load(req.resume)                   # fail fast on a missing or corrupt file
-        driver.check_resume_passes(req.resume, int(rs.passes), req.flag_or_key("passes"))
-        ckpt.check_matches(req.resume, config=req.config_identity())
-    warn_scene(cfg, req.source)
+def open_run(req: RenderRequest, t_start: float) -> "PPMRun":
+    """The PPM run of ``req`` in this process (after :func:`clppm.run.entry.render`'s checks):
+    the device, the pipeline built, then calibration or a checkpoint's state."""
+    rs, out = req.settings, req.outputs
     dev = req.dev or open_device(req.device)
     if req.resume:
         ckpt.check_matches(req.resume, device=dev.name)
@@ -53,11 +38,7 @@ def render(req: RenderRequest | dict, **kw) -> RenderResult:
     sc = ppm.Pipeline.build(req, dev)
     driver.say(out.progress, f"{sc.eye.npoints} sample points; " + (
         f"resuming {os.path.basename(req.resume)}..." if req.resume else "calibrating the first photon search..."))
-    run = PPMRun.start(sc, run_identity(req, sc), req.resume, t_start, req.budget.on_pass)
-    cad = driver.Cadence.of(rs, out.out, req.checkpoint, snapshot_every=req.budget.snapshot_every,
-                            on_snapshot=req.budget.on_snapshot, stop_after=req.budget.stop_after,
-                            progress=out.progress)
-    return driver.drive(run, cad, t_start, resumed=bool(req.resume))
+    return PPMRun.start(sc, run_identity(req, sc), req.resume, t_start, req.budget.on_pass)
 
 
 @dataclass
@@ -187,8 +168,8 @@ def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, pa
     scale = P / max(passes_done if rc.radius == "global" else emitted_total, 1)
     L = acc * (scale * 1e12 / bands.dl / cam.spp)
     if rc.specular:
-        L = L + specular_radiance(cfg, eye, bands)
-    res = film.develop(L, cfg, cam, vol.wl, bands.spectrum)
+        L = L + specular_radiance(sc.scene.light, eye, bands)
+    res = film.develop(L, cam, vol.wl, bands.spectrum, sc.scene.light, rc.exposure)
     per_layer = eye.per_layer(vol.nl)
     res.report = {
         **film.common_report(sc.req.resolved(), "ppm", sc.dev, passes_done, interrupted),
@@ -210,10 +191,9 @@ def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, pa
     return res
 
 
-def specular_radiance(cfg: dict, eye, bands) -> np.ndarray:
+def specular_radiance(light, eye, bands) -> np.ndarray:
     """(npix, NB) the light seen in the surface's mirror reflection (the eye pass's ray_spec)."""
     cam = eye.camera
     spec = eye.ray_spec.reshape(cam.height * cam.width, cam.spp).mean(1)
-    light = Light.from_config(cfg)
     fac = light.irradiance_factor(light.power_w * bands.spectrum / bands.dl)
     return spec[:, None] * fac[None, :]

@@ -1,4 +1,5 @@
-"""Whether a scene can give a meaningful image, decided on the host before any work.
+"""The scene a render renders (:class:`Scene`, built once from its request), and whether it can
+give a meaningful image, decided on the host before any work.
 
 A config can be valid key by key and still describe nothing worth rendering: a camera under
 the skin (every ray "hits", from below), a light of zero power or under the skin (a black or
@@ -11,10 +12,54 @@ x, y in [0, size_mm] unless its sides are periodic or infinite.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .camera import from_config as camera_from_config
 from ..config import ConfigError, render_settings, wavelengths
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """What one render renders, built once from its request (:meth:`of`) and handed to every
+    pass: the request's config with the run's values at their keys (``config``, what the run
+    report records), its render settings, camera and light, and the voxel model.  No pass reads
+    a value from a config below the request."""
+
+    config: dict
+    source: str
+    settings: object                 # config.RenderSettings
+    camera: object                   # camera.Camera
+    light: object                    # light.Light
+    volume: object                   # volume.Volume
+
+    @classmethod
+    def of(cls, req, volume=None) -> "Scene":
+        """The scene of a :class:`clppm.request.RenderRequest` (``volume``: one already built of
+        its model, else built now, :func:`clppm.scene.volume.build`)."""
+        from . import volume as V
+        from .light import Light
+        cfg = req.resolved()
+        vol = volume if volume is not None else V.build(cfg, req.source)
+        return cls(config=cfg, source=req.source, settings=req.settings, camera=req.camera,
+                   light=Light.from_config(cfg), volume=vol)
+
+    @classmethod
+    def of_config(cls, cfg: dict, volume=None, source: str = "<config>", **run) -> "Scene":
+        """The scene of a config rendered with its own values (``run``: RenderRequest's run
+        values, e.g. ``seed``): the tools' and tests' way in."""
+        from ..request import RenderRequest
+        return cls.of(RenderRequest(cfg, source=source, **run), volume)
+
+    @property
+    def seed(self) -> int:
+        return int(self.settings.seed)
+
+    def bands(self, hero: int | None = None, sampling: str | None = None):
+        """The spectral sampling (:meth:`clppm.scene.bands.Bands.from_config` of this config)."""
+        from .bands import Bands
+        return Bands.from_config(self.config, hero=hero, sampling=sampling)
+
 
 #: eye rays tried per image axis at most (pixel centres, evenly subsampled)
 _PROBE = 64
