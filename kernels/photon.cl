@@ -15,6 +15,17 @@
 #include "surface.h"
 #endif
 
+/* The values of one launch of the photon pass (the scene's are Params).  Mirrors
+ * clppm/compute/structs.py PHOTON_LAUNCH_DTYPE. */
+typedef struct {
+    uint pass;                  /* the pass: the random streams' counter */
+    uint photon_offset;         /* the launch's first photon in the pass (low 32 bits) */
+    uint offset_hi;             /* its high 32 bits (traces beyond 2^32 photons) */
+    uint count;                 /* photons in this launch (the work items take them in turn) */
+    uint capacity;              /* photon records the store buffers hold */
+    uint qmc_s0, qmc_s1, qmc_s2;  /* the pass's random shift (Cranley-Patterson), 2^-32 units */
+} PhotonLaunch;
+
 #define W0F 274877906944.0f           /* 2^38 */
 /* A photon between two interfaces that coincide in its column (a layer of no thickness there)
  * can be reflected back and forth by both without moving: after this many boundary events in a
@@ -357,19 +368,19 @@ HOT float3 footprint_dir(__constant const Params* P, float u1, float u2, Rng* rn
  * direction; then its first hit with the skin and the deterministic Fresnel split there (the
  * reflected part to f->spec).  Returns the weight that enters layer 0 (0 if it missed the
  * model: then the whole weight went to the missed tally). */
-HOT long emit_photon(uint id, VOLUME_ARGS, __global const float* band_cdf, __global const float* smooth,
-                     __global long* tallies, Rng* rng, Rng* srng, Track* t, Spectral* sw, int* band,
-                     Fates* f) {
-    rng_init(rng, id, P->pass, 2u * P->offset_hi, P->seed_lo, P->seed_hi);   /* eye rays: odd domain */
+HOT long emit_photon(uint id, const PhotonLaunch* L, VOLUME_ARGS, __global const float* band_cdf,
+                     __global const float* smooth, __global long* tallies, Rng* rng, Rng* srng,
+                     Track* t, Spectral* sw, int* band, Fates* f) {
+    rng_init(rng, id, L->pass, 2u * L->offset_hi, P->seed_lo, P->seed_hi);   /* eye rays: odd domain */
     /* storage decisions draw from a stream of their own: the path is the same under every rule */
-    rng_init(srng, id, P->pass, (2u * P->offset_hi) | 0x80000001u, P->seed_lo, P->seed_hi);
+    rng_init(srng, id, L->pass, (2u * L->offset_hi) | 0x80000001u, P->seed_lo, P->seed_hi);
 
     /* the emission's three uniforms: band, then direction (point) or footprint (wide beam) */
     float ue0, ue1, ue2;
     if (P->qmc) {
-        ue0 = r3_u01(id, R3_A0, P->qmc_s0);
-        ue1 = r3_u01(id, R3_A1, P->qmc_s1);
-        ue2 = r3_u01(id, R3_A2, P->qmc_s2);
+        ue0 = r3_u01(id, R3_A0, L->qmc_s0);
+        ue1 = r3_u01(id, R3_A1, L->qmc_s1);
+        ue2 = r3_u01(id, R3_A2, L->qmc_s2);
     } else {
         ue0 = P->fixed_band >= 0 ? 0.5f : rng_u01(rng);
         ue1 = P->src_kind != 0 ? rng_u01(rng) : 0.5f;
@@ -432,7 +443,9 @@ typedef struct {
     __global float4* dir_b;            /* direction, hero band + 256 layer */
     __global float* extra;             /* HERO_C-1 weights of the other bands */
     __global volatile uint* count;
+    uint capacity;                     /* records the buffers hold (0: store nothing) */
 } PhotonMap;
+
 
 /* Store the scattering event at t with weight W (importance storage under store rule 1: kept
  * with probability q and weighted 1/q; every event under rule 0).  The decision draws from the
@@ -465,7 +478,7 @@ HOT void store_event(__constant const Params* P, const Track* t, Spectral* sw, l
     for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
     COUNT(cnt, K_STORED);
     uint i = atomic_inc(map.count);
-    if (i < P->capacity) {
+    if (i < map.capacity) {
         map.pos_w[i] = (float4)(t->pos, F[0]);
         map.dir_b[i] = (float4)(t->dir, (float)(b + 256 * t->L));   /* band, layer */
         for (int j = 1; j < HERO_C; ++j) map.extra[(size_t)i * (HERO_C - 1) + j - 1] = F[j];
@@ -532,7 +545,7 @@ HOT void collide(__constant const Params* P, float4 op, float s, Track* t, Spect
     dw = dw < 0 ? 0 : (dw > *W ? *W : dw);
     f->absorbed[t->L] += dw; *W -= dw;
     if (*W > 0 && op.x < 1.0f) {
-        if (P->capacity > 0u && t->pos.z > P->store_zmin)
+        if (map.capacity > 0u && t->pos.z > P->store_zmin)
             store_event(P, t, sw, *W, b, srng, store_imp, band_spi, optics, logmu, map, cnt);
         scatter_photon(P, op, t, sw, W, f, logmu, rng);
         deep_roulette(P, t, sw, W, f, planes, rng);
@@ -633,7 +646,8 @@ HOT void cross_lateral(int ev, Track* t, long* W, Fates* f, VOLUME_ARGS, __globa
  * a GPU) stay busy however unequal the paths are (one photon per work item left on average
  * three quarters of the lanes idle, bench/photons.py --events).  A photon's path depends on its
  * id alone, and the tallies are integer sums: the same results whichever work item traces it. */
-__kernel void photon_pass(VOLUME_ARGS,
+__kernel void photon_pass(const PhotonLaunch launch,
+                          VOLUME_ARGS,
                           __global const float2* store_imp,  /* [NL*NB] see store_probability */
                           __global const float* band_cdf,    /* hero selection pi, as a cdf */
                           __global const float2* band_spi,   /* [NB] light power s, pi (spectral.h) */
@@ -648,7 +662,7 @@ __kernel void photon_pass(VOLUME_ARGS,
                           __global long* counters,          /* PHOTON_COUNTERS builds only */
                           __global uint* lane_steps)        /* PHOTON_COUNTERS builds only */
 {
-    const PhotonMap map = { store_pos_w, store_dir_b, store_extra, store_count };
+    const PhotonMap map = { store_pos_w, store_dir_b, store_extra, store_count, launch.capacity };
     Counters cnt;
 #ifdef PHOTON_COUNTERS
     for (int k = 0; k < K_NCOUNT; ++k) cnt.k[k] = 0u;
@@ -671,9 +685,9 @@ __kernel void photon_pass(VOLUME_ARGS,
             /* ---- the photon has ended (or none yet): its tallies, then the next photon */
             if (live) { fates_flush(&f, tallies + (size_t)b * NC); fates_clear(&f); live = 0; }
             const uint k = atomic_inc(store_count + 1);
-            if (k >= P->count) break;
-            W = emit_photon(P->photon_offset + k, VOLUME_PASS, band_cdf, smooth, tallies, &rng, &srng,
-                            &t, &sw, &b, &f);
+            if (k >= launch.count) break;
+            W = emit_photon(launch.photon_offset + k, &launch, VOLUME_PASS, band_cdf, smooth, tallies,
+                            &rng, &srng, &t, &sw, &b, &f);
 #ifdef PHOTON_COUNTERS
             if (t.L < 0) COUNT(&cnt, K_MISSED); else COUNT(&cnt, K_ENTERED);
 #endif

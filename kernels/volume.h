@@ -50,8 +50,9 @@
  * (clppm.integrators.photonpass.TILE, clppm.scene.volume.TILE) */
 #define TILE 4
 
-/* Mirrors clppm/compute/structs.py PARAMS_DTYPE (checked by tests/test_structs.py): 4-byte fields
- * only, in this order. */
+/* The scene's constants, uploaded once per scene (a launch's own values are kernel arguments:
+ * photon.cl's PhotonLaunch).  Mirrors clppm/compute/structs.py PARAMS_DTYPE (checked by
+ * tests/test_structs.py): 4-byte fields only, in this order. */
 typedef struct {
     /* volume */
     float x0, y0, dx, dy;       /* column grid origin and pitch */
@@ -68,23 +69,19 @@ typedef struct {
     float cone_omc;             /* point light: 1 - cos of the sampling cone half angle */
     float cax, cay, caz;        /* cone axis */
     int fixed_band;             /* -1: draw from band_cdf */
-    /* pass */
-    uint seed_lo, seed_hi, pass, photon_offset;
-    uint capacity;
+    /* the photon passes (the values of one launch are photon.cl's PhotonLaunch) */
+    uint seed_lo, seed_hi;
     float store_zmin;           /* store scattering events only above this z */
     float rr_threshold;         /* Russian roulette below this weight (fraction of W0) */
     float rr_m;                 /* survive with probability 1/rr_m */
     int max_events;             /* safety bound on boundary + collision events per photon */
-    uint count;                 /* work items in this launch (the rest return) */
     float rcone_cos;            /* exits with cos(theta) above this also go to the cone tally */
-    uint offset_hi;             /* high 32 bits of the photon index (traces beyond 2^32 photons) */
     /* storage rule (photon pass): 0 every scattering event, 1 importance-driven */
     int store_rule;             /* STORE_RULE_ALL, STORE_RULE_IMPORTANCE (constants.h) */
     float store_cos, store_sin; /* half angle of the cone of eye directions around +z */
     float store_scale;          /* storage probability = clamp(scale * importance, qmin, 1) */
     float store_qmin;
     int qmc;                    /* 1: emission (band, direction or footprint) from a shifted R3 sequence */
-    uint qmc_s0, qmc_s1, qmc_s2;  /* the pass's random shift (Cranley-Patterson), 2^-32 units */
     float deep_z0, deep_dz;     /* depth roulette (photon.cl, DEPTH_ROULETTE builds): planes deep_z0 - k deep_dz */
 } Params;
 

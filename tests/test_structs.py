@@ -71,14 +71,16 @@ def _key(name: str) -> str:
 def _structs():
     from clppm.compute import structs
     return [
-        ("common.h", "Params", structs.PARAMS_DTYPE),
+        ("volume.h", "Params", structs.PARAMS_DTYPE),
+        ("photon.cl", "PhotonLaunch", structs.PHOTON_LAUNCH_DTYPE),
         ("grid.h", "GridParams", structs.GRID_PARAMS_DTYPE),
         ("eye.cl", "EyeParams", structs.EYE_DTYPE),
         ("pt.cl", "PtParams", structs.PT_DTYPE),
     ]
 
 
-@pytest.mark.parametrize("filename,name", [("common.h", "Params"), ("grid.h", "GridParams"),
+@pytest.mark.parametrize("filename,name", [("volume.h", "Params"), ("photon.cl", "PhotonLaunch"),
+                                           ("grid.h", "GridParams"),
                                            ("eye.cl", "EyeParams"), ("pt.cl", "PtParams")])
 def test_struct_matches_dtype_field_by_field(filename, name):
     dtype = {n: d for f, n, d in _structs()}[name]

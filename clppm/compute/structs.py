@@ -24,20 +24,25 @@ _FIELDS = [
     ("cone_omc", "f4"),
     ("cax", "f4"), ("cay", "f4"), ("caz", "f4"),
     ("fixed_band", "i4"),
-    ("seed_lo", "u4"), ("seed_hi", "u4"), ("pass_", "u4"), ("photon_offset", "u4"),
-    ("capacity", "u4"),
+    ("seed_lo", "u4"), ("seed_hi", "u4"),
     ("store_zmin", "f4"),
     ("rr_threshold", "f4"),
     ("rr_m", "f4"),
     ("max_events", "i4"),
-    ("count", "u4"), ("rcone_cos", "f4"), ("offset_hi", "u4"),
+    ("rcone_cos", "f4"),
     ("store_rule", "i4"), ("store_cos", "f4"), ("store_sin", "f4"), ("store_scale", "f4"),
     ("store_qmin", "f4"),
-    ("qmc", "i4"), ("qmc_s0", "u4"), ("qmc_s1", "u4"), ("qmc_s2", "u4"),
+    ("qmc", "i4"),
     ("deep_z0", "f4"), ("deep_dz", "f4"),
 ]
 PARAMS_DTYPE = np.dtype(_FIELDS)
 assert PARAMS_DTYPE.itemsize == 4 * len(_FIELDS)
+
+#: one launch of the photon pass (kernels/photon.cl PhotonLaunch, a kernel argument by value)
+PHOTON_LAUNCH_DTYPE = np.dtype([
+    ("pass_", "u4"), ("photon_offset", "u4"), ("offset_hi", "u4"), ("count", "u4"),
+    ("capacity", "u4"), ("qmc_s0", "u4"), ("qmc_s1", "u4"), ("qmc_s2", "u4"),
+])
 
 #: the model's open, closed or periodic sides (Params.lateral)
 LATERAL = {"infinite": 0, "open": 1, "periodic": 2}

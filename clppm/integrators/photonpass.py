@@ -280,6 +280,7 @@ class PhotonPass:
         self.extra = cl.Buffer(dev.ctx, mf.READ_WRITE, 4 * max(cap * (self.hero - 1), 1))
         self.tallies = Tallies(vol.nb, vol.nl)
         self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY, S.PARAMS_DTYPE.itemsize)
+        self._uploaded = b""                  # the Params bytes on the device
         self.truncated = False
         self.store_imp = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=storage_importance(vol))
         self.tile_z = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
@@ -292,6 +293,7 @@ class PhotonPass:
             self.lane_steps: list[np.ndarray] = []
         else:       # the kernel declares them always and touches them only in counter builds
             self.counter_buf = self.lane_buf = cl.Buffer(dev.ctx, mf.READ_WRITE, 8)
+        self._upload_params()
 
     def set_emission(self, how: str) -> None:
         """"random" (Philox per photon) or "qmc" (a randomly shifted R3 sequence per pass)."""
@@ -326,22 +328,29 @@ class PhotonPass:
         if on != self.depth_roulette:
             self._build(on)
 
+    def _upload_params(self) -> None:
+        """The scene's constants (Params) to the device when they changed since the last upload
+        (the storage rule and depth are set before the first pass): once per render."""
+        import pyopencl as cl
+        b = self.p.tobytes()
+        if b != self._uploaded:
+            cl.enqueue_copy(self.dev.queue, self.pbuf, self.p)
+            self._uploaded = b
+
     def _launch(self, n: int, offset: int, pass_index: int, capacity: int) -> None:
         import pyopencl as cl
         q = self.dev.queue
-        self.p["photon_offset"] = offset & 0xFFFFFFFF
-        self.p["offset_hi"] = offset >> 32
         if (offset & 0xFFFFFFFF) + n > 2**32:
             raise ValueError("a launch must not cross a multiple of 2^32 photons")
-        self.p["pass_"] = pass_index
-        self.p["capacity"] = capacity
+        L = np.zeros(1, S.PHOTON_LAUNCH_DTYPE)[0]
+        L["photon_offset"], L["offset_hi"] = offset & 0xFFFFFFFF, offset >> 32
+        L["pass_"], L["capacity"], L["count"] = pass_index, capacity, n
         if self.p["qmc"][0]:
-            self.p["qmc_s0"], self.p["qmc_s1"], self.p["qmc_s2"] = qmc_shift(self.seed, pass_index)
-        self.p["count"] = n
-        cl.enqueue_copy(q, self.pbuf, self.p)
+            L["qmc_s0"], L["qmc_s1"], L["qmc_s2"] = qmc_shift(self.seed, pass_index)
+        self._upload_params()
         cl.enqueue_copy(q, self.count_buf, np.zeros(1, np.uint32), dst_offset=4)   # no photon taken yet
         items = min(n, self.items)
-        self.kernel(q, items, **self.vbuf.named(self.pbuf), store_imp=self.store_imp, band_cdf=self.cdf,
+        self.kernel(q, items, launch=L, **self.vbuf.named(self.pbuf), store_imp=self.store_imp, band_cdf=self.cdf,
                     band_spi=self.band_spi, logmu=self.logmu, store_pos_w=self.pos_w,
                     store_dir_b=self.dir_b, store_extra=self.extra, store_count=self.count_buf,
                     tallies=self.tally_buf, smooth=self.vbuf.smooth, tile_z=self.tile_z,
