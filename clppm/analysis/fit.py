@@ -295,8 +295,7 @@ def solve(resid, u0, box: "_Box", steps, max_iter: int, ftol: float, xtol: float
     """Least squares on ``resid(u)`` within the box: scipy's trust-region reflective solver.
 
     "trf" rather than "lm": the parameters have bounds (saturation in [0, 1], fractions at most
-    1) and MINPACK's "lm" takes none.  Forward differences of about ``steps`` in u (scipy's
-    relative ``diff_step``, taken at the start point), one-sided inwards at a bound.  At most
+    1) and MINPACK's "lm" takes none.  Its Jacobian: :func:`jacobian` with ``steps``.  At most
     ``max_iter`` iterations, fewer once an iteration lowers the cost by less than ``ftol`` of it
     or moves u by less than about ``xtol``; ``log(iteration, params, rms)`` after each.
     Returns scipy's result with ``iterations``, ``converged`` (a tolerance met, not the
@@ -304,7 +303,6 @@ def solve(resid, u0, box: "_Box", steps, max_iter: int, ftol: float, xtol: float
     RMS).
     """
     from scipy.optimize import least_squares
-    u0 = np.clip(np.asarray(u0, float), box.lo, box.hi)
     history = []
 
     def f(u):
@@ -321,23 +319,23 @@ def solve(resid, u0, box: "_Box", steps, max_iter: int, ftol: float, xtol: float
             log(nit, _to_p(x), rms)
         if nit >= max_iter:
             raise StopIteration
-    res = least_squares(f, u0, bounds=(box.lo, box.hi), method="trf",
-                        diff_step=np.asarray(steps) / np.maximum(1.0, np.abs(u0)),
-                        ftol=ftol, xtol=xtol, gtol=1e-12, callback=after_iteration)
+    res = least_squares(f, np.clip(np.asarray(u0, float), box.lo, box.hi),
+                        jac=lambda u: jacobian(f, u, box.hi, steps), bounds=(box.lo, box.hi),
+                        method="trf", ftol=ftol, xtol=xtol, gtol=1e-12, callback=after_iteration)
     res.converged = res.status > 0           # 1-4: a tolerance; 0, -2: evaluation or iteration cap
     res.history = history
     res.iterations = len(history) - 1
     return res
 
 
-def jacobian(resid, u, box: "_Box", steps) -> np.ndarray:
-    """The forward-difference Jacobian of ``resid`` at ``u`` as :func:`solve` takes it (steps
-    of about ``steps``, one-sided inwards at a bound): scipy's least_squares stops before its
-    first step when allowed a single evaluation, and returns the Jacobian there."""
-    from scipy.optimize import least_squares
-    u = np.clip(np.asarray(u, float), box.lo, box.hi)
-    return least_squares(resid, u, bounds=(box.lo, box.hi), method="trf", max_nfev=1,
-                         diff_step=np.asarray(steps) / np.maximum(1.0, np.abs(u))).jac
+def jacobian(resid, u, hi, steps) -> np.ndarray:
+    """Forward differences of ``resid`` at ``u``, of the absolute ``steps`` in u (backwards
+    where a step would pass ``hi``).  Absolute, since scipy's relative ``diff_step`` shrinks
+    to machine precision at u = 0 (a factor of 1), where the photon pass's noise needs steps
+    of a few per cent."""
+    from scipy.optimize import approx_fprime
+    u = np.asarray(u, float)
+    return approx_fprime(u, resid, np.where(u + steps <= hi, steps, -steps))
 
 
 @threadpool_limits.wrap(limits=1, user_api="blas")
@@ -485,7 +483,7 @@ def _fit_hybrid(fwd: "Forward", y, p0: dict, R0, box: _Box, max_iter: int, log) 
     hist = [{"params": dict(p0), "rms": _rms(R0 - y), "surrogate_offset_rms": offset0}]
     p, its, conv = _space_mapping(fwd, sur, y, p0, box, max_iter, log, hist)
     r = fwd(p)[0] - y
-    J = jacobian(lambda uu: sur(_to_p(uu)) - y, _to_u(p), box, _STEP_AD)
+    J = jacobian(lambda uu: sur(_to_p(uu)) - y, _to_u(p), box.hi, _STEP_AD)
     settings = {"forward": ("hybrid: adding-doubling surrogate (iadpython, one index "
                             f"n = {sur.n:g}, normal incidence, {sur.quad_pts} quadrature angles) "
                             "corrected per band by the photon pass (flat model, laterally "
@@ -525,6 +523,7 @@ def _space_mapping(fwd: "Forward", sur: Surrogate, y, p0: dict, box: _Box, max_i
 
         def resid(uu, delta=delta):
             return sur(_to_p(uu)) + delta - y
+        # to 1e-6 of the cost (u to ~1e-4, well inside the outer loop's 2e-3)
         un = solve(resid, u, box, _STEP_AD, SURROGATE_ITERATIONS, 1e-6, 0.1 * _STEP_AD.min()).x
         moved = float(np.max(np.abs(un - u)))
         u, p = un, _to_p(un)
