@@ -13,6 +13,7 @@ import os
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 from clppm import config
 from clppm.analysis import fit, nist
@@ -124,7 +125,7 @@ def test_surrogate_tracks_photon_pass(cfg):
     flat forearm model, and moves the same way with melanin."""
     m = fit.FitModel.from_config(cfg, "forearm.toml")
     wl = np.array([450.0, 550.0, 650.0])
-    with fit._SingleThreadBLAS():
+    with threadpool_limits(limits=1, user_api="blas"):      # as the fit runs it
         sur = fit.Surrogate(m, wl, n=1.34)
         p0 = m.start()
         a0 = sur(p0)
@@ -184,3 +185,50 @@ def test_cli_fit_mc_forward_runs(tmp_path):
     rc = cli.main(["fit", p, "--config", FOREARM, "-o", str(out), "--photons", "150",
                    "--bands", "500:700:200", "--max-iter", "1", "--forward", "mc", "-q"])
     assert rc == 0 and config.load(str(out))["layer"][0]["name"] == "stratum corneum"
+
+
+# ----------------------------------------------------------------------------- solver
+def test_solver_on_a_linear_problem():
+    """The bounded least squares and its Jacobian on r(u) = A u - b, whose answers are known:
+    inside the box the normal equations' solution, with a bound active the solution along the
+    free parameters; the Jacobian is A, also at an upper bound (one-sided inwards)."""
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(12, 4))
+    u_true = np.array([0.3, -0.2, 0.5, 0.1])
+    b = A @ u_true + 0.01 * rng.normal(size=12)
+    box = fit._Box({}, np.full(4, -1.0), np.full(4, 1.0))
+
+    def resid(u):
+        return A @ u - b
+    res = fit.solve(resid, np.zeros(4), box, fit._STEP_AD, 60, 1e-12, 1e-10)
+    assert np.allclose(res.x, np.linalg.lstsq(A, b, rcond=None)[0], atol=1e-6)
+    assert res.converged and res.iterations == len(res.history) - 1 >= 1
+    assert res.history[-1]["rms"] < res.history[0]["rms"]
+    # at an upper bound, where the model clips (as FitModel.apply clips fractions), the step
+    # goes inwards: a step outwards would see a flat residual
+    clipped = lambda u: resid(np.minimum(u, box.hi))                      # noqa: E731
+    assert np.allclose(fit.jacobian(clipped, np.array([1.0, 0.0, 0.0, 0.0]), box.hi, fit._STEP_AD), A)
+    # the unconstrained answer beyond u0 <= 0: u0 sits on the bound, the rest solve the remainder
+    tight = fit._Box({}, np.array([-1.0, -1, -1, -1]), np.array([0.0, 1, 1, 1]))
+    got = fit.solve(resid, np.full(4, -0.5), tight, fit._STEP_AD, 60, 1e-12, 1e-10).x
+    rest = np.linalg.lstsq(A[:, 1:], b, rcond=None)[0]
+    assert abs(got[0]) < 1e-6 and np.allclose(got[1:], rest, atol=1e-5), got
+    # the iteration limit holds and is no convergence
+    one = fit.solve(resid, np.full(4, -0.9), box, fit._STEP_AD, 1, 1e-12, 1e-10)
+    assert one.iterations == 1 and not one.converged
+
+
+def test_fit_runs_blas_on_one_thread(cfg):
+    """Inside the fit every BLAS library runs one thread (OpenBLAS's spinning workers slowed the
+    surrogate several times on a small shared CPU), and the caller's thread counts come back."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return [d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"]
+    before = blas_threads()
+    seen = []
+    wl = np.arange(380.0, 781.0, 10.0)
+    fit.fit(wl, 0.3 + 0.0 * wl, cfg, photons=150, bands=(500.0, 700.0, 200.0), max_iter=1,
+            forward="mc", source="forearm.toml", log=lambda *a: seen.append(blas_threads()))
+    assert before and seen and all(t == [1] * len(before) for t in seen), (before, seen)
+    assert blas_threads() == before

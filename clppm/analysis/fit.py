@@ -19,8 +19,9 @@ adding-doubling surrogate of the same layer stack (iadpython; one refractive ind
 incidence) is fitted with its per-band offset from the photon pass, the offset is re-measured
 with the photon pass at the new parameters, and so on until the parameters stop moving; the
 offset is exact at the end, so the answer is the photon pass's least-squares fit, at a few
-photon-pass evaluations.  ``forward="mc"`` runs a bounded Levenberg-Marquardt (numpy only)
-directly on the photon pass instead.  Both parametrise the three factors by their logarithm.
+photon-pass evaluations.  ``forward="mc"`` runs the same bounded least squares (scipy's
+trust-region reflective solver) directly on the photon pass instead.  Both parametrise the
+three factors by their logarithm.
 
 Output: the full input config with the fitted layer values (relief, light, camera and render
 settings unchanged) as TOML that :func:`clppm.config.load` and ``clppm render`` accept, a plot
@@ -29,13 +30,13 @@ of measured vs fitted, and a JSON report.
 from __future__ import annotations
 
 import copy
-import functools
 import math
 import os
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .. import config as C
 from ..config import ConfigError
@@ -157,49 +158,6 @@ class Forward:
         return self.cache[key]
 
 
-class _SingleThreadBLAS:
-    """Run OpenBLAS on one thread inside the block (restored after; no-op where unknown).
-
-    The surrogate solves thousands of 8x8 systems; OpenBLAS's worker threads spin on every
-    call and, on a small shared CPU next to the PoCL threads, made each solve take ~8 ms
-    instead of ~10 µs.
-    """
-
-    def __enter__(self):
-        import ctypes
-        self.restore = []
-        try:
-            with open("/proc/self/maps") as f:
-                libs = sorted({ln.split()[-1] for ln in f if "openblas" in ln.lower() and "/" in ln})
-        except OSError:
-            return self
-        for path in libs:
-            try:
-                lib = ctypes.CDLL(path)
-            except OSError:
-                continue
-            for pre in ("scipy_openblas_", "openblas_"):
-                for suf in ("", "64_"):
-                    get = getattr(lib, f"{pre}get_num_threads{suf}", None)
-                    put = getattr(lib, f"{pre}set_num_threads{suf}", None)
-                    if get is None or put is None:
-                        continue
-                    try:
-                        n = int(get())
-                        put(1)
-                        self.restore.append((put, n))
-                    except Exception:       # pragma: no cover - foreign library
-                        pass
-        return self
-
-    def __exit__(self, *exc):
-        for put, n in self.restore:
-            try:
-                put(n)
-            except Exception:               # pragma: no cover
-                pass
-
-
 class Surrogate:
     """Adding-doubling R(λ) of the flat layer stack (iadpython), a smooth stand-in for the
     photon pass inside the fit.
@@ -274,8 +232,12 @@ class Surrogate:
 
 # ----------------------------------------------------------------------------- solver
 _LOG = {"melanin": True, "blood": True, "saturation": False, "scattering": True}
-_STEP_MC = {"melanin": 0.05, "blood": 0.05, "saturation": 0.04, "scattering": 0.03}
-_STEP_AD = {"melanin": 1e-3, "blood": 1e-3, "saturation": 1e-3, "scattering": 1e-3}
+# finite-difference steps in u (log factors, saturation), in PARAMS order: a few per cent on the
+# photon pass, whose common-random-number noise swamps smaller differences; fine on the
+# smooth surrogate
+_STEP_MC = np.array([0.05, 0.05, 0.04, 0.03])
+_STEP_AD = np.full(4, 1e-3)
+SURROGATE_ITERATIONS = 60     # hybrid fit: iterations of each surrogate fit (it stops well before)
 POOL_RADIUS = 0.3         # hybrid fit: photon-pass offsets within this distance (log factors,
                           # saturation) of the current point are averaged
 
@@ -329,78 +291,54 @@ class FitResult:
         }
 
 
-def least_squares_lm(resid, u0, lo, hi, steps, max_iter=15, log=None, tol=1e-4):
-    """Bounded Levenberg-Marquardt on ``resid(u)`` with forward-difference Jacobians.
+def solve(resid, u0, box: "_Box", steps, max_iter: int, ftol: float, xtol: float, log=None):
+    """Least squares on ``resid(u)`` within the box: scipy's trust-region reflective solver.
 
-    Returns (u, r, J, iterations, converged, history).  Steps leaving the box are clipped;
-    at an upper bound the difference is taken backwards.
+    "trf" rather than "lm": the parameters have bounds (saturation in [0, 1], fractions at most
+    1) and MINPACK's "lm" takes none.  Its Jacobian: :func:`jacobian` with ``steps``.  At most
+    ``max_iter`` iterations, fewer once an iteration lowers the cost by less than ``ftol`` of it
+    or moves u by less than about ``xtol``; ``log(iteration, params, rms)`` after each.
+    Returns scipy's result with ``iterations``, ``converged`` (a tolerance met, not the
+    iteration limit) and ``history`` (the start and the point after each iteration, with their
+    RMS).
     """
-    u = np.clip(np.asarray(u0, float), lo, hi)
-    r = resid(u)
-    cost = float(r @ r)
-    lam = 1e-3
-    hist = [{"u": u.tolist(), "cost": cost}]
-    converged = False
-    J = None
-    it = 0
-    for it in range(1, max_iter + 1):
-        J = jacobian(resid, u, r, lo, hi, steps)
-        A = J.T @ J
-        g = J.T @ r
-        D = np.diag(np.maximum(np.diag(A), 1e-12))
-        accepted = False
-        rel, step = 0.0, np.zeros_like(u)
-        for _ in range(10):
-            try:
-                dx = -np.linalg.solve(A + lam * D, g)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            un = np.clip(u + dx, lo, hi)
-            if np.allclose(un, u, atol=1e-12):
-                break
-            rn = resid(un)
-            cn = float(rn @ rn)
-            if cn < cost:
-                accepted = True
-                rel = (cost - cn) / max(cost, 1e-300)
-                step = np.abs(un - u)
-                u, r, cost = un, rn, cn
-                lam = max(lam / 5, 1e-9)
-                break
-            lam *= 6
-        hist.append({"u": u.tolist(), "cost": cost, "lambda": lam})
+    from scipy.optimize import least_squares
+    history = []
+
+    def f(u):
+        r = resid(u)
+        if not history:                                      # scipy's first call: the start
+            history.append({"params": _to_p(u), "rms": _rms(r)})
+        return r
+
+    def after_iteration(intermediate_result):              # scipy passes its state by this name
+        x, nit = intermediate_result.x, intermediate_result.nit
+        rms = math.sqrt(2.0 * intermediate_result.cost / intermediate_result.fun.size)  # ½ Σ r²
+        history.append({"params": _to_p(x), "rms": rms})
         if log:
-            log(it, _to_p(u), math.sqrt(cost / r.size))
-        if not accepted:
-            converged = True          # no descent left at this resolution
-            break
-        if rel < tol or np.all(step < 0.1 * np.asarray(steps)):
-            converged = True
-            break
-    return u, r, J, it, converged, hist
+            log(nit, _to_p(x), rms)
+        if nit >= max_iter:
+            raise StopIteration
+    res = least_squares(f, np.clip(np.asarray(u0, float), box.lo, box.hi),
+                        jac=lambda u: jacobian(f, u, box.hi, steps), bounds=(box.lo, box.hi),
+                        method="trf", ftol=ftol, xtol=xtol, gtol=1e-12, callback=after_iteration)
+    res.converged = res.status > 0           # 1-4: a tolerance; 0, -2: evaluation or iteration cap
+    res.history = history
+    res.iterations = len(history) - 1
+    return res
 
 
-def jacobian(resid, u, r, lo, hi, steps) -> np.ndarray:
-    J = np.empty((r.size, u.size))
-    for j in range(u.size):
-        h = steps[j] if u[j] + steps[j] <= hi[j] else -steps[j]
-        du = u.copy()
-        du[j] += h
-        J[:, j] = (resid(du) - r) / h
-    return J
+def jacobian(resid, u, hi, steps) -> np.ndarray:
+    """Forward differences of ``resid`` at ``u``, of the absolute ``steps`` in u (backwards
+    where a step would pass ``hi``).  Absolute, since scipy's relative ``diff_step`` shrinks
+    to machine precision at u = 0 (a factor of 1), where the photon pass's noise needs steps
+    of a few per cent."""
+    from scipy.optimize import approx_fprime
+    u = np.asarray(u, float)
+    return approx_fprime(u, resid, np.where(u + steps <= hi, steps, -steps))
 
 
-def _on_one_blas_thread(f):
-    """``f`` run inside :class:`_SingleThreadBLAS`."""
-    @functools.wraps(f)
-    def run(*args, **kwargs):
-        with _SingleThreadBLAS():
-            return f(*args, **kwargs)
-    return run
-
-
-@_on_one_blas_thread
+@threadpool_limits.wrap(limits=1, user_api="blas")
 def fit(measured_wl, measured_R, cfg: dict | None = None, *, photons: int = DEFAULT_PHOTONS,
         bands=DEFAULT_BANDS, seed: int = 1, angle_deg: float = 8.0, specular: bool = True,
         max_iter: int = 6, forward: str = "hybrid", start: dict | None = None, dev=None,
@@ -419,12 +357,15 @@ def fit(measured_wl, measured_R, cfg: dict | None = None, *, photons: int = DEFA
     At most ``max_iter`` outer iterations, so ``max_iter + 1`` photon-pass evaluations.
     The reported fitted spectrum and residuals are the photon pass's at the final parameters.
 
-    ``forward="mc"``: Levenberg-Marquardt directly on the photon pass (common random numbers,
-    finite differences of 3-5 % steps; ``max_iter`` LM iterations of about 5 evaluations each).
+    ``forward="mc"``: bounded least squares (:func:`solve`) directly on the photon pass (common
+    random numbers, finite differences of 3-5 % steps; ``max_iter`` iterations of about 5
+    evaluations each).
     Slower, and rougher: a change of absorption changes every photon's steps, so nearby
     evaluations share less of their noise than CRN promises for long paths.
 
-    OpenBLAS runs on one thread meanwhile (:class:`_SingleThreadBLAS`).
+    BLAS runs on one thread meanwhile (threadpoolctl): the surrogate makes thousands of small
+    matrix calls, and on a small CPU shared with the OpenCL runtime's threads, OpenBLAS's
+    spinning workers made the hybrid fit several times slower.
     """
     t0 = time.perf_counter()
     if cfg is None:
@@ -524,16 +465,14 @@ class _Solution:
 
 
 def _fit_mc(fwd: "Forward", y, p0: dict, box: _Box, max_iter: int, log) -> _Solution:
-    """Levenberg-Marquardt directly on the photon pass."""
-    steps = np.array([_STEP_MC[k] for k in PARAMS])
-
+    """Least squares directly on the photon pass."""
     def resid(u):
         return fwd(_to_p(u))[0] - y
-    u, r, J, its, conv, h = least_squares_lm(resid, _to_u(p0), box.lo, box.hi, steps, max_iter, log)
-    hist = [{"params": _to_p(np.array(x["u"])), "rms": math.sqrt(x["cost"] / y.size)} for x in h]
+    res = solve(resid, _to_u(p0), box, _STEP_MC, max_iter, 1e-4, 0.1 * _STEP_MC.min(), log)
     note = ("photon pass, flat model (relief/papillae off), laterally infinite, "
-            "pencil beam, common random numbers; LM on it directly")
-    return _Solution(_to_p(u), r, J, its, conv, hist, {"forward": note})
+            "pencil beam, common random numbers; least squares on it directly")
+    return _Solution(_to_p(res.x), res.fun, res.jac, res.iterations, res.converged, res.history,
+                     {"forward": note})
 
 
 def _fit_hybrid(fwd: "Forward", y, p0: dict, R0, box: _Box, max_iter: int, log) -> _Solution:
@@ -541,12 +480,10 @@ def _fit_hybrid(fwd: "Forward", y, p0: dict, R0, box: _Box, max_iter: int, log) 
     each outer iteration, fitted until the parameters stop moving."""
     sur = Surrogate(fwd.model, fwd.wl)
     offset0 = calibrate_index(sur, p0, R0)
-    steps = np.array([_STEP_AD[k] for k in PARAMS])
     hist = [{"params": dict(p0), "rms": _rms(R0 - y), "surrogate_offset_rms": offset0}]
-    p, its, conv = _space_mapping(fwd, sur, y, p0, box, steps, max_iter, log, hist)
-    u = _to_u(p)
+    p, its, conv = _space_mapping(fwd, sur, y, p0, box, max_iter, log, hist)
     r = fwd(p)[0] - y
-    J = jacobian(lambda uu: sur(_to_p(uu)) - y, u, sur(p) - y, box.lo, box.hi, steps)
+    J = jacobian(lambda uu: sur(_to_p(uu)) - y, _to_u(p), box.hi, _STEP_AD)
     settings = {"forward": ("hybrid: adding-doubling surrogate (iadpython, one index "
                             f"n = {sur.n:g}, normal incidence, {sur.quad_pts} quadrature angles) "
                             "corrected per band by the photon pass (flat model, laterally "
@@ -571,7 +508,7 @@ def calibrate_index(sur: Surrogate, p0: dict, R0) -> float:
     return best[0]
 
 
-def _space_mapping(fwd: "Forward", sur: Surrogate, y, p0: dict, box: _Box, steps, max_iter: int,
+def _space_mapping(fwd: "Forward", sur: Surrogate, y, p0: dict, box: _Box, max_iter: int,
                    log, hist: list) -> tuple[dict, int, bool]:
     """The outer iterations of the hybrid fit (appending to ``hist``): the best parameters the
     photon pass saw, the iterations run, and whether they converged."""
@@ -586,7 +523,8 @@ def _space_mapping(fwd: "Forward", sur: Surrogate, y, p0: dict, box: _Box, steps
 
         def resid(uu, delta=delta):
             return sur(_to_p(uu)) + delta - y
-        un, _, _, _, _, _ = least_squares_lm(resid, u, box.lo, box.hi, steps, 60, None, tol=1e-10)
+        # to 1e-6 of the cost (u to ~1e-4, well inside the outer loop's 2e-3)
+        un = solve(resid, u, box, _STEP_AD, SURROGATE_ITERATIONS, 1e-6, 0.1 * _STEP_AD.min()).x
         moved = float(np.max(np.abs(un - u)))
         u, p = un, _to_p(un)
         Rn, _ = fwd(p)

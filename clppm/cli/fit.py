@@ -41,10 +41,10 @@ def add_parser(subparsers) -> None:
                    help="the measurement's specular component: included (SCI) or excluded (SCE)")
     p.add_argument("--seed", type=int, default=1, help="the common random numbers' seed")
     p.add_argument("--max-iter", type=int, default=6,
-                   help="outer iterations (hybrid: photon-pass evaluations - 1) or LM iterations (mc)")
+                   help="outer iterations (hybrid: photon-pass evaluations - 1) or least-squares iterations (mc)")
     p.add_argument("--forward", choices=("hybrid", "mc"), default="hybrid",
                    help="hybrid: adding-doubling surrogate corrected by the photon pass (default; "
-                        "needs iadpython); mc: Levenberg-Marquardt on the photon pass alone")
+                        "needs iadpython); mc: bounded least squares on the photon pass alone")
     p.add_argument("-q", "--quiet", action="store_true", help="no per-iteration lines")
     options.add_device(p)
     p.set_defaults(func=cmd_fit)
