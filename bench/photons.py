@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-MCML_SLAB = "mua=10,mus=90,g=0.75,n=1.0,d=0.02"
+from clppm.analysis.bench import MCML_SLAB  # noqa: E402
 SKIN_BAND_NM = 550.0
 SKIN_SIZE_MM = 2.0
 VOXEL_UM = 5.0
@@ -102,29 +102,14 @@ def open_all_devices(spec: str | None):
 
 # ----------------------------------------------------------------------------- clppm
 def bench_trace(dev, cfg, vol, n, label, repeats=3):
-    """Best of ``repeats`` timed traces of n photons (other passes of the same seed): on a
-    shared machine the interference only ever slows a run down, so the fastest run is the
-    estimate of the device's rate; the median is reported beside it."""
-    from clppm.integrators import photonpass
-    t0 = _now()
-    pp = photonpass.PhotonPass(dev, vol, cfg, seed=1)
-    pp.trace(min(n, 4096), pass_index=99)                  # build + first launch
-    setup = _now() - t0
-    times = []
-    for k in range(repeats):
-        t0 = _now()
-        arrs = pp.trace(n, pass_index=k)
-        times.append(_now() - t0)
-        if k == 0:
-            tot = arrs[0].sum(0)
-    dt = min(times)
-    rd = float(tot[1]) / (photonpass.W0 * n)
-    return {"case": label, "mode": "trace", "photons": n, "seconds": dt, "repeats": repeats,
-            "photons_per_s": n / dt, "photons_per_s_median": n / float(np.median(times)),
-            "setup_s": setup, "Rd": rd,
-            "A": float(tot[photonpass.NA:].sum()) / (photonpass.W0 * n)
-            if hasattr(photonpass, "NA") else None,
-            "specular": float(tot[0]) / (photonpass.W0 * n)}
+    """Best of ``repeats`` timed traces of n photons after a warm-up
+    (clppm.analysis.bench.trace_rate, what `clppm bench` runs), median beside it."""
+    from clppm.analysis import bench
+    r = bench.trace_rate(dev, cfg, vol, n, label, repeats)
+    return {"case": label, "mode": "trace", "photons": n, "seconds": r.rate.best_s,
+            "repeats": repeats, "photons_per_s": r.rate.per_s(),
+            "photons_per_s_median": r.rate.per_s(median=True), "setup_s": r.setup_s,
+            "Rd": r.Rd, "A": r.A, "specular": r.specular}
 
 
 def bench_store(dev, cfg, vol, target, passes, label):
