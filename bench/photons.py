@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-MCML_SLAB = "mua=10,mus=90,g=0.75,n=1.0,d=0.02"
+from clppm.analysis.bench import MCML_SLAB  # noqa: E402
 SKIN_BAND_NM = 550.0
 SKIN_SIZE_MM = 2.0
 VOXEL_UM = 5.0
@@ -101,13 +101,32 @@ def open_all_devices(spec: str | None):
 
 
 # ----------------------------------------------------------------------------- clppm
+def photon_pass(photonpass, dev, vol, cfg, **kw):
+    """The photon passes of ``cfg`` on ``vol``, in this checkout or an older one (whose
+    PhotonPass took the config itself)."""
+    return getattr(photonpass.PhotonPass, "of_config", photonpass.PhotonPass)(dev, vol, cfg, **kw)
+
+
 def bench_trace(dev, cfg, vol, n, label, repeats=3):
-    """Best of ``repeats`` timed traces of n photons (other passes of the same seed): on a
-    shared machine the interference only ever slows a run down, so the fastest run is the
-    estimate of the device's rate; the median is reported beside it."""
+    """Best of ``repeats`` timed traces of n photons after a warm-up (on a shared machine the
+    interference only ever slows a run down, so the fastest run is the estimate of the device's
+    rate; the median is reported beside it): clppm.analysis.bench.trace_rate, what `clppm bench`
+    runs, or for an older checkout without it the same measurement here."""
+    try:
+        from clppm.analysis import bench
+    except ImportError:
+        return _bench_trace_inline(dev, cfg, vol, n, label, repeats)
+    r = bench.trace_rate(dev, cfg, vol, n, label, repeats)
+    return {"case": label, "mode": "trace", "photons": n, "seconds": r.rate.best_s,
+            "repeats": repeats, "photons_per_s": r.rate.per_s(),
+            "photons_per_s_median": r.rate.per_s(median=True), "setup_s": r.setup_s,
+            "Rd": r.Rd, "A": r.A, "specular": r.specular}
+
+
+def _bench_trace_inline(dev, cfg, vol, n, label, repeats):
     from clppm.integrators import photonpass
     t0 = _now()
-    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, seed=1)
+    pp = photon_pass(photonpass, dev, vol, cfg, seed=1)
     pp.trace(min(n, 4096), pass_index=99)                  # build + first launch
     setup = _now() - t0
     times = []
@@ -131,7 +150,7 @@ def bench_store(dev, cfg, vol, target, passes, label):
     from clppm.integrators import photonpass
     t0 = _now()
     # the renderer's slack (progressive.py): a pass stops past the target, by up to one launch
-    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, capacity=int(target * 1.2) + 4096, seed=1)
+    pp = photon_pass(photonpass, dev, vol, cfg, capacity=int(target * 1.2) + 4096, seed=1)
     pp.run_pass(10_000, min(target, 20_000))               # build + warm-up (another pass)
     setup = _now() - t0
     emitted = stored = 0
@@ -383,7 +402,7 @@ def events_worker(spec: dict) -> dict:
             return {"counters": None}
         kw["counters"] = True
     target = spec["stored"]
-    pp = photonpass.PhotonPass.of_config(dev, vol, cfg, seed=1, bands=Bands.from_config(cfg),
+    pp = photon_pass(photonpass, dev, vol, cfg, seed=1, bands=Bands.from_config(cfg),
                                capacity=int(target * 1.2) + 4096, **kw)
     pp.set_storage(rc.storage, STORE_CONE_DEG, rc.store_scale, rc.store_min)
     pp.set_emission(rc.emission)

@@ -1,7 +1,7 @@
-"""Command line: clppm devices | config | trace | render | samples | compare | reflectance | fit.
+"""Command line: clppm devices | config | trace | render | samples | compare | reflectance | fit | bench.
 
 Every command is declared and reached here, one module each: :mod:`.render`, :mod:`.tools`
-(devices, config, trace, samples), :mod:`.compare`, :mod:`.reflectance`, :mod:`.fit`; what
+(devices, config, trace, samples), :mod:`.compare`, :mod:`.reflectance`, :mod:`.fit`, :mod:`.bench`; what
 they share is in :mod:`.options`.  The library modules know nothing of argparse.
 
 Every command takes ``--device`` (else ``PYOPENCL_CTX``, else the first GPU, else the
@@ -18,7 +18,7 @@ import signal
 import sys
 
 from ..config import ConfigError
-from . import compare, fit, reflectance, render, tools
+from . import bench, compare, fit, reflectance, render, tools
 from .options import ERROR_PREFIX, EXIT, METHODS_HELP, InputError, Parser
 
 def _versions() -> str:
@@ -66,6 +66,7 @@ examples:
   clppm config --example forearm > my.toml         a complete config to edit
   clppm config --schema                            every config key: type, default, range, meaning
   clppm trace --slab mua=10,mus=90,g=0.75,n=1.0,d=0.02
+  clppm bench --quick                              photons/ms and gather pairs/s on this device
   clppm COMMAND --help                             that command's options
 
 exit codes: 0 finished; 1 internal error; 2 bad input; 3 device error;
@@ -81,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="cmd", metavar="COMMAND", parser_class=Parser)
     tools.add_parsers(sub)
     render.add_parser(sub)
-    for mod in (compare, reflectance, fit):
+    for mod in (compare, reflectance, fit, bench):
         mod.add_parser(sub)
     return ap
 
