@@ -92,9 +92,9 @@ def test_extreme_inputs_finite(dev, tmp_path, case):
     ck = str(tmp_path / "x.ckpt.npz")
     res = entry.render(cfg, dev=dev, checkpoint_path=ck)
     S = res.spectral
-    assert np.all(np.isfinite(S)), f"{case}: non-finite spectral radiance"
+    # the film zeroes non-finite radiance and counts it: the count is the test, not the image
+    assert res.report["nonfinite_values_zeroed"] == 0, f"{case}: non-finite spectral radiance"
     assert np.all(S >= 0), f"{case}: negative spectral radiance {S.min()}"
-    assert np.all(np.isfinite(res.xyz)) and np.all(np.isfinite(res.rgb))
     assert math.isfinite(res.exposure) and res.exposure > 0
     # the raw device accumulators (before any clean-up in the image path)
     st = ckpt.load(ck)
@@ -143,8 +143,7 @@ def test_light_far_from_the_view_gives_black_not_nan(dev):
                   "camera.look_at_mm": [9.5, 9.5, 0.0], "camera.fov_deg": 2.0})
     res = entry.render(cfg, dev=dev)
     assert res.report["photons_stored"] > 0 and res.report["sample_points"] > 0
-    assert np.all(res.spectral == 0)
-    assert np.all(np.isfinite(res.rgb))
+    assert np.all(res.spectral == 0) and res.report["nonfinite_values_zeroed"] == 0
 
 
 def test_light_at_the_viewed_point_no_warning(dev):
@@ -162,7 +161,8 @@ def test_non_absorbing_medium(dev):
     except C.ConfigError as e:         # a clean refusal is acceptable too
         assert "render.photons" in str(e) or "mua" in str(e)
         return
-    assert np.all(np.isfinite(res.spectral)) and np.all(res.spectral >= 0)
+    assert res.report["nonfinite_values_zeroed"] == 0 and np.all(res.spectral >= 0)
+    assert res.spectral.max() > 0                     # scattering alone still lights the skin
 
 
 def test_a_render_whose_passes_stored_less_than_asked_says_so(dev, tmp_path, capsys):
@@ -411,10 +411,7 @@ def _lost_setup(monkeypatch, tmp_path, at=3):
 def test_device_lost_keeps_checkpoint(dev, monkeypatch, tmp_path, capsys):
     p, out, ck = _lost_setup(monkeypatch, tmp_path)
     capsys.readouterr()
-    try:
-        cli.main(["render", str(p), "-o", str(out), "-q"])
-    except Exception:                   # today the error escapes main (see the xfail below)
-        pass
+    assert cli.main(["render", str(p), "-o", str(out), "-q"]) == 3     # a device error
     st = ckpt.load(ck)
     assert st["pass_index"] == 2         # passes 1 and 2 finished; pass 3 was lost
     monkeypatch.undo()

@@ -6,7 +6,8 @@ hash is SHA-256 over the EXR's channels (names and float32 pixels), from the com
 user runs it.  The bytes depend on the OpenCL implementation, its version and the device (the
 same seed on the same device gives the same bytes, not across devices), so tests/data/identity.json
 holds one set per implementation, driver version and device; on a device without a stored set
-the tests skip and say so.  About a minute on 2 idle cores.
+the comparison with it skips and says so, and the equivalences that hold on any device (resumed
+or on two Dask workers = in one go) are checked all the same.  About a minute on 2 idle cores.
 
     python tests/test_identity.py            # hashes on PYOPENCL_CTX's device, against the stored
     python tests/test_identity.py --store    # store them for this device (on a tree known right)
@@ -86,30 +87,57 @@ def load_store() -> dict:
         return json.load(f)
 
 
+#: cases that must give the same bytes as each other on any device: a render stopped and
+#: resumed, or split over two Dask workers, is the render made in one go
+SAME = {"resumed and Dask": ("in-process", "resumed", "dask, 2 workers"),
+        "path tracer resumed": ("path tracer", "path tracer, resumed")}
+
+
+class Rendered:
+    """Each case's hash on the session's device, rendered once when first asked for."""
+
+    def __init__(self, spec: str, tmp: str):
+        self.spec, self.tmp, self.hashes = spec, tmp, {}
+
+    def __getitem__(self, case: str) -> str:
+        if case not in self.hashes:
+            if case.startswith("dask"):
+                pytest.importorskip("distributed")
+            self.hashes[case] = render_case(cases(self.tmp, self.spec)[case], self.spec)
+        return self.hashes[case]
+
+
+@pytest.fixture(scope="module")
+def rendered(dev, tmp_path_factory):
+    return Rendered(device_spec(dev.device), str(tmp_path_factory.mktemp("identity")))
+
+
 @pytest.fixture(scope="module")
 def stored(dev):
-    """(P:D, the stored hashes) of the session's device; skips where none are stored."""
+    """The stored hashes of the session's device, or None where none are stored."""
     from clppm.compute.device import describe
     key = implementation_key(describe(dev.device))
-    sets = {k: v for k, v in load_store().items() if not k.startswith("_")}
-    if key not in sets:
-        pytest.skip(f"no stored hashes for {key!r} (the bytes depend on the implementation and "
-                    f"device; stored: {'; '.join(sets)})")
-    return device_spec(dev.device), sets[key]
+    return {k: v for k, v in load_store().items() if not k.startswith("_")}.get(key)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("group", SAME)
+def test_equivalent_runs_give_the_same_bytes(rendered, group):
+    """On every device, stored hashes or not: the same seed gives the same bytes whether the
+    render ran in one go, was stopped and resumed, or ran on two Dask workers."""
+    first, *rest = SAME[group]
+    for case in rest:
+        assert rendered[case] == rendered[first], f"{case} differs from {first}"
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", CASES)
-def test_render_is_byte_identical_to_the_stored_hash(stored, case, tmp_path):
-    spec, hashes = stored
-    if case.startswith("dask"):
-        pytest.importorskip("distributed")
-    if case not in hashes:
-        pytest.skip(f"{case}: no stored hash on this device (its images changed on purpose since "
-                    f"its set was stored: python tests/test_identity.py --store there)")
-    runs = cases(str(tmp_path), spec)[case]
-    assert render_case(runs, spec) == hashes[case], (
-        f"{case}: the image's bytes changed (rendered with clppm render {' '.join(runs[-1])})")
+def test_render_is_byte_identical_to_the_stored_hash(rendered, stored, case):
+    if stored is None or case not in stored:
+        pytest.skip(f"{case}: no stored hash for this implementation and device (the bytes depend "
+                    "on both; test_equivalent_runs_give_the_same_bytes checks it here; python "
+                    "tests/test_identity.py --store stores a set)")
+    assert rendered[case] == stored[case], f"{case}: the image's bytes changed"
 
 
 def main(argv: list[str]) -> int:
