@@ -51,7 +51,8 @@ def render(req: RenderRequest | dict, **kw) -> RenderResult:
     driver.say(out.progress, f"building the volume and the eye pass ({cam.width}x{cam.height}, "
                              f"method {rs.method}) on {dev.name}...")
     sc = ppm.Pipeline.build(req, dev)
-    driver.say(out.progress, f"{sc.eye.npoints} sample points; " + (
+    tiles = f" in {sc.ntiles} tiles" if sc.ntiles > 1 else ""
+    driver.say(out.progress, f"{sc.npts_total} sample points{tiles}; " + (
         f"resuming {os.path.basename(req.resume)}..." if req.resume else "calibrating the first photon search..."))
     run = PPMRun.start(sc, run_identity(req, sc), req.resume, t_start, req.budget.on_pass)
     cad = driver.Cadence.of(rs, out.out, req.checkpoint, snapshot_every=req.budget.snapshot_every,
@@ -113,7 +114,7 @@ class PPMRun:
     def _restore(self, st: dict) -> None:
         sc = self.sc
         self.p, self.emitted, self.stored = st["pass_index"], list(st["stats"]["emitted"]), st["stats"]["stored"]
-        if sc.npts:
+        if sc.npts and not sc.global_radius:      # with the global radius R = R0 and N = 0 always
             self.points.R[:sc.npts].set(st["pt_R"].astype(np.float32))
             self.points.N[:sc.npts].set(st["pt_N"].astype(np.float32))
         self.total.pix.set(st["pix_acc"].reshape(-1))
@@ -145,7 +146,7 @@ class PPMRun:
         return pix + cpix, pairs + cpairs
 
     def save(self, path: str) -> None:
-        n, nb = self.sc.npts, self.sc.vol.nb
+        n, nb = self.sc.npts_total, self.sc.vol.nb
         stats = {"emitted": self.emitted, "stored": self.stored,
                  "first_search_mean": self.cal.first_search_mean}
         state = dict(pass_index=self.p, emitted_total=sum(self.emitted), store_zmin=self.cal.store_zmin,
@@ -153,8 +154,11 @@ class PPMRun:
                      timing=self.sc.timing)
         pix, pairs = self.total.host()
         cpix, cpairs = self.chunk.host()
-        ckpt.save(path, self.meta, state, dict(pt_R=self.points.R.get()[:n], pt_N=self.points.N.get()[:n],
-                                               R0=self.cal.R0, pix_acc=pix.reshape(-1, nb),
+        if self.sc.global_radius:             # R = R0 and N = 0 at every point, in any tile
+            pt_R, pt_N = self.cal.R0, np.zeros(n, np.float32)
+        else:
+            pt_R, pt_N = self.points.R.get()[:n], self.points.N.get()[:n]
+        ckpt.save(path, self.meta, state, dict(pt_R=pt_R, pt_N=pt_N, R0=self.cal.R0, pix_acc=pix.reshape(-1, nb),
                                                chunk_acc=cpix.reshape(-1, nb), pix_pairs=pairs + cpairs))
 
     def image(self, interrupted: bool) -> RenderResult:
@@ -171,7 +175,7 @@ class PPMRun:
 
 def run_identity(req: RenderRequest, sc: ppm.Pipeline) -> dict:
     """What a checkpoint of this PPM run must match to be resumed."""
-    eye = sc.eye
+    eye = sc.whole
     return req.checkpoint_identity(sc.dev.name, npoints=int(eye.npoints), npieces=int(eye.npieces),
                                    nrays=int(eye.nrays))
 
@@ -179,7 +183,7 @@ def run_identity(req: RenderRequest, sc: ppm.Pipeline) -> dict:
 def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, passes_done: int,
            timing: dict, stats: dict, t_start: float, interrupted: bool) -> RenderResult:
     """Pixel x band sums -> spectral radiance (the film does the rest) and the run report."""
-    cfg, vol, eye, pp, rc = sc.cfg, sc.vol, sc.eye, sc.pp, sc.rs    # cfg: the scene's config
+    cfg, vol, eye, pp, rc = sc.cfg, sc.vol, sc.whole, sc.pp, sc.rs    # cfg: the scene's config
     cam = eye.camera
     bands = pp.bands
     acc = pix.reshape(cam.height * cam.width, vol.nb)
@@ -196,7 +200,7 @@ def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, pa
         "photons_emitted": emitted_total, "photons_stored": stats["stored"],
         "stored_per_pass": rc.photons, "store_zmin_um": None if pp.p["store_zmin"][0] < -1e37
         else float(pp.p["store_zmin"][0]),
-        "sample_points": eye.npoints, "path_pieces": eye.npieces,
+        "sample_points": eye.npoints, "path_pieces": eye.npieces, "tiles": sc.ntiles,
         "eye_rays": eye.nrays, "eye_rays_hit": int(eye.ray_hit.sum()),
         "sample_points_per_ray_per_layer": {n: float(v) for n, v in zip(vol.names, per_layer)},
         "first_search_mean_photons": stats["first_search_mean"],
