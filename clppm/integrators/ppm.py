@@ -336,7 +336,7 @@ class Pipeline:
         for t in self._tile_order():
             t0 = time.perf_counter()
             self.tile_R0(cal, st, t)
-            self.timing["eye"] = self.timing.get("eye", 0.0) + time.perf_counter() - t0
+            self.timing["tiles"] = self.timing.get("tiles", 0.0) + time.perf_counter() - t0   # the eye passes
             if self.npts:
                 self.density_estimate(pg, st, acc, scale, pass_scale)
         info["radius_scale"] = scale
@@ -470,8 +470,9 @@ class Pipeline:
 
 #: automatic tiles: sample-point buffers of at most this share of the device's global memory ...
 TILE_MEMORY_SHARE = 8
-#: ... and at most this many bytes (on a CPU the device's memory is the host's)
-TILE_MEMORY_CAP = 512 * 2**20
+#: ... and at most this many bytes (on a CPU the device's memory is the host's, and a render there
+#: holds about 1 kB of host memory per loaded point: 128 MiB of tile buffers ~ 1 GB resident)
+TILE_MEMORY_CAP = 128 * 2**20
 
 
 def tile_bytes(points: int, pieces_per_point: float, beam: bool) -> int:
