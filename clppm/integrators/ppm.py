@@ -439,8 +439,8 @@ class Pipeline:
                              iters=CAL_RADIUS_ITERS)
             R0[a:b] = R.get()[:b - a]
             first = (-a) % stride                    # the tile's first point on the stride
-            pos.append((a + first, self.eye.pt_pos.get()[first:b - a:stride]))
-            dirs.append(self.eye.pt_dir.get()[first:b - a:stride])
+            pos.append((a + first, self.eye.pt_pos.get()[first:b - a:stride].copy()))
+            dirs.append(self.eye.pt_dir.get()[first:b - a:stride].copy())
         order = np.argsort([p[0] for p in pos], kind="stable")
         sub = {"stride": stride, "pos": np.concatenate([pos[i][1] for i in order]),
                "dir": np.concatenate([dirs[i] for i in order])}

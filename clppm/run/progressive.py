@@ -143,7 +143,9 @@ class PPMRun:
         """The image's sums: the closed chunks plus the open one (which stays open)."""
         pix, pairs = self.total.host()
         cpix, cpairs = self.chunk.host()
-        return pix + cpix, pairs + cpairs
+        pix += cpix                     # in place: at 1920x1080 a pixel x band array is 1.3 GB
+        pairs += cpairs
+        return pix, pairs
 
     def save(self, path: str) -> None:
         n, nb = self.sc.npts_total, self.sc.vol.nb
@@ -167,7 +169,7 @@ class PPMRun:
         pix, pairs = self.host_sums()
         return finish(sc, pix, int(pairs.sum()), sum(self.emitted), self.p, sc.timing,
                       {"stored": self.stored, "first_search_mean": self.cal.first_search_mean},
-                      self.t_start, interrupted)
+                      self.t_start, interrupted, own=True)
 
     def close(self) -> None:
         pass
@@ -181,17 +183,18 @@ def run_identity(req: RenderRequest, sc: ppm.Pipeline) -> dict:
 
 
 def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, passes_done: int,
-           timing: dict, stats: dict, t_start: float, interrupted: bool) -> RenderResult:
-    """Pixel x band sums -> spectral radiance (the film does the rest) and the run report."""
+           timing: dict, stats: dict, t_start: float, interrupted: bool, own: bool = False) -> RenderResult:
+    """Pixel x band sums -> spectral radiance (the film does the rest) and the run report;
+    ``own``: ``pix`` is the caller's to overwrite (no film-sized copy is made)."""
     cfg, vol, eye, pp, rc = sc.cfg, sc.vol, sc.whole, sc.pp, sc.rs    # cfg: the scene's config
     cam = eye.camera
     bands = pp.bands
-    acc = pix.reshape(cam.height * cam.width, vol.nb)
+    acc = (pix if own else pix.copy()).reshape(cam.height * cam.width, vol.nb)
     P = cfg["light"]["power_w"] * pp.power_fraction
     scale = P / max(passes_done if rc.radius == "global" else emitted_total, 1)
-    L = acc * (scale * 1e12 / bands.dl / cam.spp)
+    L = np.multiply(acc, scale * 1e12 / bands.dl / cam.spp, out=acc)    # in place (film-sized)
     if rc.specular:
-        L = L + specular_radiance(cfg, eye, bands)
+        add_specular(L, cfg, eye, bands)
     res = film.develop(L, cfg, cam, vol.wl, bands.spectrum)
     per_layer = eye.per_layer(vol.nl)
     res.report = {
@@ -212,6 +215,16 @@ def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, pa
         "units": film.UNITS,
     }
     return res
+
+
+def add_specular(L: np.ndarray, cfg: dict, eye, bands) -> None:
+    """L += specular_radiance, band by band (no second film-sized array)."""
+    cam = eye.camera
+    spec = eye.ray_spec.reshape(cam.height * cam.width, cam.spp).mean(1)
+    light = Light.from_config(cfg)
+    fac = light.irradiance_factor(light.power_w * bands.spectrum / bands.dl)
+    for b in range(L.shape[1]):
+        L[:, b] += spec * fac[b]
 
 
 def specular_radiance(cfg: dict, eye, bands) -> np.ndarray:
