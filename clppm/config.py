@@ -139,6 +139,10 @@ SCHEMA: dict[str, dict[str, F]] = {
         "chunk_passes": F("int", 4, lo=1, hi=10**6,
                           doc="passes summed per chunk before the chunk joins the total, here and "
                               "on distributed workers alike (part of the result's bits)"),
+        "tile_points": F("int", 0, lo=0, hi=2**32 - 1,
+                         doc="with the global radius: the most sample points on the device at a time "
+                             "(the eye pass and gather run in tiles of pixels; the same image); "
+                             "0: from the device's memory", picture="none"),
         "exposure": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e12,
                       doc="PNG scale; default: a white diffuser at the image centre = 1", picture="finish"),
         "estimator": F("choice", "beam", choices=("beam", "layer", "clip", "sphere"),

@@ -208,7 +208,7 @@ class Kernel:
         import pyopencl as cl
         self.kernel = kernel if kernel is not None else cl.Kernel(program, name)
         self.signature = signature(self.kernel.function_name)
-        clash = {"rows", "want"} & set(self.signature.names)
+        clash = {"rows", "want", "start"} & set(self.signature.names)
         if clash:
             raise ValueError(f"{self.name}: parameter {', '.join(sorted(clash))} clashes with a launch option")
 
@@ -221,12 +221,16 @@ class Kernel:
     def name(self) -> str:
         return self.signature.kernel
 
-    def __call__(self, queue, size: int, /, *, rows: int | None = None, want: int = 64, **args):
+    def __call__(self, queue, size: int, /, *, rows: int | None = None, want: int = 64, start: int = 0,
+                 **args):
         """Launch over ``size`` work items (``rows`` rows of them; ``want``: the local size
-        asked for); ``args`` are the kernel's parameters by name (a parameter may be named
-        ``size`` or ``queue``: these two are positional only)."""
+        asked for), the first one's global id ``start`` (a tile of a larger range); ``args``
+        are the kernel's parameters by name (a parameter may be named ``size`` or ``queue``:
+        these two are positional only)."""
         values = self.signature.bind(args)
-        return self.kernel(queue, *launch(self.kernel, queue, size, want, rows), *values)
+        g, ls = launch(self.kernel, queue, size, want, rows)
+        offset = None if not start else ((int(start),) if rows is None else (int(start), 0))
+        return self.kernel(queue, g, ls, *values, global_offset=offset)
 
 
 def kernels(dev, filename: str, names, defines: dict | None = None) -> dict:

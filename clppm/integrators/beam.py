@@ -91,6 +91,8 @@ def beam_cell_depth(eye) -> float | None:
     waves of a layer-conforming one) and cells as deep as the lateral R/2 (hundreds of um)
     would make every piece of a ray test the same photons: cells about one piece deep cut the
     candidates per pair (bench/gather.py) without changing which pairs are found."""
+    if eye.piece_extent is not None:         # the whole image's, over every tile
+        return max(eye.piece_extent, 1.0)
     if eye.geo is None or eye.npieces == 0:
         return None
     g = eye.geo.get()[:2 * eye.npieces]
@@ -242,9 +244,10 @@ class BeamGather:
     def points(self, st, acc, alpha: float) -> None:
         sc = self.pipe
         e = sc.eye
+        p0, p1 = sc.pixels
         self.kernels.gather_beam_points(
-            sc.dev.queue, sc.npix, ray_start=e.ray_start, pt_R=st.R, pt_N=st.N, pt_M=st.M,
-            pix_pairs=acc.pairs, npix=sc.npix, spp=e.camera.spp, alpha=alpha,
+            sc.dev.queue, p1 - p0, start=p0, ray_start=e.ray_start, pt_R=st.R, pt_N=st.N, pt_M=st.M,
+            pix_pairs=acc.pairs, npix=p1, spp=e.camera.spp, alpha=alpha,
             global_radius=int(sc.global_radius))
 
 
@@ -262,13 +265,14 @@ class GatherLayout:
         st.M.fill(0)
         sw = bg.weights16(grid, extra)
         pslab = bg.piece_slabs()             # launched before gather_beam is (the launch order)
+        p0, p1 = sc.pixels
         bg.kernels.gather_beam(
-            q, sc.npix, rows=bg.gclass, gp=grid.params, P=sc.pp.pbuf, iface=sc.vbuf.iface,
+            q, p1 - p0, rows=bg.gclass, start=p0, gp=grid.params, P=sc.pp.pbuf, iface=sc.vbuf.iface,
             cell_start=grid.cell_start, spos_w=grid.spos_w, sdir_b=grid.sdir_b,
             sslab=sslab, vlay=bg.vlay, sextra=extra, hgtab=sc.hgtab, optics=sc.vbuf.optics, hgc=bg.hgc,
             mutc=bg.mutc, sw16=sw, pslab=pslab, ray_start=e.ray_start, pt_pos=e.pt_pos,
             pt_piece=e.pt_piece, geo=e.geo, pt_R=st.R, pt_N=st.N, pt_M=st.M, pix_acc=acc.pix,
-            npix=sc.npix, spp=e.camera.spp, global_radius=int(sc.global_radius), radius_scale=scale,
+            npix=p1, spp=e.camera.spp, global_radius=int(sc.global_radius), radius_scale=scale,
             pass_scale=pass_scale)
 
 

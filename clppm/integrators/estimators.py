@@ -44,11 +44,12 @@ class SphereGather:
     def estimate(self, pg, extra, st, acc, alpha: float, scale: float, pass_scale: float) -> None:
         sc, grid = self.pipe, pg.grid
         e = sc.eye
+        p0, p1 = sc.pixels
         self.kernel(
-            sc.dev.queue, sc.npix, gp=grid.params, cell_start=grid.cell_start, spos_w=grid.spos_w,
+            sc.dev.queue, p1 - p0, start=p0, gp=grid.params, cell_start=grid.cell_start, spos_w=grid.spos_w,
             sdir_b=grid.sdir_b, sextra=extra, hgtab=sc.hgtab, optics=sc.vbuf.optics,
             ray_start=e.ray_start, pt_pos=e.pt_pos, pt_dir=e.pt_dir, pt_piece=e.pt_piece,
             pieces=e.pieces, pt_slab=e.pt_slab, layer_z=sc.layer_z, pt_R=st.R, pt_N=st.N,
-            pt_M=st.M, pix_acc=acc.pix, pix_pairs=acc.pairs, npix=sc.npix, spp=e.camera.spp,
+            pt_M=st.M, pix_acc=acc.pix, pix_pairs=acc.pairs, npix=p1, spp=e.camera.spp,
             alpha=alpha, global_radius=int(sc.global_radius), radius_scale=scale,
             pass_scale=pass_scale)

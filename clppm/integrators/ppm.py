@@ -138,6 +138,9 @@ class Pipeline:
     target: int                      # stored photons per pass
     capacity: int
     box: tuple                       # x0, y0, x1, y1, deepest sample point z, top z
+    tiles: eyepass.EyeTiles | None = None   # the image's pixels in tiles of sample points
+    whole: eyepass.EyeData | None = None    # the whole image's eye pass (totals, statistics)
+    tile: int = 0                    # the tile whose points are loaded (``eye``)
     gclass: int = 1                  # the beam gather's band classes (band_classes)
     estimator: SphereGather | BeamGather | None = None   # the density estimate, made by build
     timing: dict = field(default_factory=lambda: {k: 0.0 for k in STAGES})
@@ -158,7 +161,42 @@ class Pipeline:
 
     @property
     def npts(self) -> int:
+        """Sample points loaded (the current tile's)."""
         return self.eye.npoints
+
+    @property
+    def npts_total(self) -> int:
+        """Sample points of the whole image."""
+        return self.whole.npoints
+
+    @property
+    def ntiles(self) -> int:
+        return len(self.tiles.tiles)
+
+    @property
+    def pixels(self) -> tuple[int, int]:
+        """The loaded points' pixels: the first one and the end (a launch's start, its guard)."""
+        p1 = self.eye.pix1
+        return self.eye.pix0, self.npix if p1 is None else p1
+
+    def load_tile(self, t: int) -> None:
+        """Tile ``t``'s sample points on the device (nothing to do when they already are)."""
+        if t == self.tile:
+            return
+        w = self.whole
+        self.eye = self.tiles.load(t, self.eye)
+        self.eye.zmin, self.eye.grazing, self.eye.cone_deg, self.eye.piece_extent = (
+            w.zmin, w.grazing, w.cone_deg, w.piece_extent)
+        self.tile = t
+        if hasattr(self.estimator, "pslab"):
+            self.estimator.pslab = None          # the beam's per-piece depths: this tile's pieces
+
+    def tile_R0(self, cal: "Calibration", st: "PointState", t: int) -> None:
+        """Tile ``t`` loaded, its points' R0 in ``st`` (the global radius: R = R0 always)."""
+        self.load_tile(t)
+        if self.ntiles > 1 and self.npts:
+            a, b = self.tiles.point_range(t)
+            st.R[:self.npts].set(np.ascontiguousarray(cal.R0[a:b], np.float32))
 
     @property
     def global_radius(self) -> bool:
@@ -188,24 +226,29 @@ class Pipeline:
         nrays, target = cam.width * cam.height * cam.spp, int(rc.photons)
         check_alloc(dev, device_needs(cfg, vol, (nrays + 1) * 8 + nrays * 8, cam.width * cam.height, target))
         t0 = time.perf_counter()
-        eye = cls.eye_pass(req, dev, vol, vbuf)
+        tiles, whole, eye = cls.eye_pass(req, dev, vol, vbuf)
         timing["eye"] = time.perf_counter() - t0
         check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height, target))
-        pp = cls.photon_source(scene, dev, vbuf, eye)
+        pp = cls.photon_source(scene, dev, vbuf, whole)
         sc = cls(req=req, scene=scene, dev=dev, vol=vol, vbuf=vbuf, eye=eye, pp=pp, target=target,
-                 capacity=pp.capacity, gbufs=hashgrid.GridBuffers(dev), **cls._tables(req, dev, vol, eye, pp))
+                 capacity=pp.capacity, gbufs=hashgrid.GridBuffers(dev), tiles=tiles, whole=whole,
+                 tile=len(tiles.tiles) - 1, **cls._tables(req, dev, vol, whole, pp))
         sc.estimator = BeamGather(sc) if rc.estimator == "beam" else SphereGather(sc)
         sc.timing.update(timing)
         return sc
 
     @staticmethod
-    def eye_pass(req: RenderRequest, dev: Device, vol, vbuf) -> eyepass.EyeData:
-        """The eye pass: eye rays, sample points and path pieces (once per scene)."""
+    def eye_pass(req: RenderRequest, dev: Device, vol, vbuf) -> tuple:
+        """The eye pass: each ray's counts, the tiles, every tile loaded once for what the
+        whole image's points decide.  Returns the tiles, the whole image's EyeData and the
+        tile left loaded (with one tile: the whole image, loaded for the whole render)."""
         rc = req.settings
-        eye = eyepass.run(dev, vol, vbuf, req.scene, eyepass.scheme(rc.method, rc.spacing_um), rs=rc,
-                          cam=req.camera)
+        tiles = eyepass.EyeTiles.count(dev, vol, vbuf, req.scene, eyepass.scheme(rc.method, rc.spacing_um),
+                                       rs=rc, cam=req.camera)
+        tiles.plan(tile_points(req, dev, vol, tiles))
+        whole, eye = tiles.summarise()
         dev.queue.finish()
-        return eye
+        return tiles, whole, eye
 
     @staticmethod
     def photon_source(scene: Scene, dev: Device, vbuf, eye) -> photonpass.PhotonPass:
@@ -226,7 +269,7 @@ class Pipeline:
                                                     gclass=gclass))
         ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
         lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
-        zdeep = eye.zmin if eye.npoints else vol.z_top
+        zdeep = eye.zmin if eye.npoints else vol.z_top      # eye: the whole image's
         return dict(prg=prg, init_radius=Kernel(prg, "init_radius"), count_within=Kernel(prg, "count_within"),
                     hgtab=cl.Buffer(dev.ctx, ro, hostbuf=vol.hg_table()),
                     layer_z=cl.Buffer(dev.ctx, ro, hostbuf=np.ascontiguousarray(lz)), gclass=gclass,
@@ -291,9 +334,19 @@ class Pipeline:
             return info
         pg, scale = self.pass_grid(n, cal, st, p)
         pass_scale = 1.0 / max(info["emitted"], 1) if self.global_radius else 1.0
-        self.density_estimate(pg, st, acc, scale, pass_scale)
+        # the tiles' pixels are disjoint: each pixel's sum gets the same one term as untiled
+        for t in self._tile_order():
+            t0 = time.perf_counter()
+            self.tile_R0(cal, st, t)
+            self.timing["tiles"] = self.timing.get("tiles", 0.0) + time.perf_counter() - t0   # the eye passes
+            if self.npts:
+                self.density_estimate(pg, st, acc, scale, pass_scale)
         info["radius_scale"] = scale
         return info
+
+    def _tile_order(self) -> list:
+        """The tiles of a sweep, the loaded one first (one load fewer per pass)."""
+        return [self.tile] + [t for t in range(self.ntiles) if t != self.tile]
 
     def run_passes(self, cal: "Calibration", st: "PointState", passes, acc: "Accumulators",
                    tallies: photonpass.Tallies) -> list[dict]:
@@ -321,11 +374,14 @@ class Pipeline:
     def point_state(self, cal: "Calibration") -> "PointState":
         import pyopencl.array as cla
         q = self.dev.queue
-        n = max(self.npts, 1)
+        n = max(self.tiles.max_sizes()[0], 1)
         R = cla.zeros(q, n, np.float32)
-        if self.npts:
+        st = PointState(R=R, N=cla.zeros(q, n, np.float32), M=cla.zeros(q, n, np.uint32))
+        if self.ntiles == 1 and self.npts:
             R[:self.npts].set(np.ascontiguousarray(cal.R0, np.float32))
-        return PointState(R=R, N=cla.zeros(q, n, np.float32), M=cla.zeros(q, n, np.uint32))
+        elif self.npts:
+            self.tile_R0(cal, st, self.tile)
+        return st
 
     def apply(self, cal: "Calibration") -> None:
         """Apply the calibration to the photon pass (storage depth)."""
@@ -341,60 +397,125 @@ class Pipeline:
         reach are not stored afterwards: they could never be gathered.  The calibration pass
         stores a quarter of a pass's photons and looks for K/4 of them (the same radius, in
         expectation): with importance storage a pass is hundreds of thousands of paths."""
-        if self.npts == 0:
+        if self.npts_total == 0:
             return Calibration(R0=np.zeros(0, np.float32), store_zmin=None, first_search_mean=None)
         frac = CAL_FRACTION if self.target >= CAL_FRACTION_FROM else 1.0
         n_cal = int(math.ceil(self.target * frac))
         K = float(self.rs.initial_photons) * n_cal / self.target
         info = self.pp.run_pass(CAL_PASS, n_cal, tallies=photonpass.Tallies(self.vol.nb, self.vol.nl))
         n = min(info["stored"], self.capacity)
-        R, r_guess, rmax = self._first_radius(n, K)
-        mean_m = self._scale_radius(R, n, K)
-        R0 = R.get()
+        R0, sub = self._first_radius(n, K)
+        mean_m = self._scale_radius(R0, sub, n, K)
         # the beam's disc has no depth extent: nothing below the deepest piece is ever gathered,
         # but for the waves of the interfaces it measures depth along (layer-conforming depth)
         iface = self.vol.iface
         waves = float(np.max(iface[:, 2] - iface[:, 1])) if len(iface) else 0.0
-        reach = float(R0.max()) * 1.001 if (not self.beam or self.eye.grazing) else waves
+        reach = float(R0.max()) * 1.001 if (not self.beam or self.whole.grazing) else waves
         return Calibration(R0=R0, store_zmin=self.box[4] - reach - 1.0,
                            first_search_mean=mean_m / frac if mean_m > 0 else None)
 
-    def _first_radius(self, n: int, K: float):
+    def _first_radius(self, n: int, K: float) -> tuple[np.ndarray, dict]:
         """Per point, the radius holding K of the ``n`` calibration photons, from the grid's
-        cell counts (kernel init_radius), starting from the uniform-density guess."""
+        cell counts (kernel init_radius), starting from the uniform-density guess; tile by
+        tile (a point's radius depends on its own position only).  Returns the radii (host)
+        and the subsample of points whose exact counts set the global factor: every
+        ``stride``-th point of the image, their positions and directions (host)."""
         import pyopencl.array as cla
         x0, y0, x1, y1, zdeep, ztop = self.box
         vbox = (x1 - x0) * (y1 - y0) * (max(ztop - zdeep, 1.0) + 1.0)
         r_guess = (3 * K * vbox / (4 * math.pi * max(n, 1))) ** (1 / 3)
         r_guess = min(r_guess, 0.5 * max(x1 - x0, y1 - y0))
         rmax = 4.0 * r_guess
-        R = cla.zeros(self.dev.queue, self.npts, np.float32)
         grid = self.grid(n, r_guess, rmax)
-        self.init_radius(self.dev.queue, self.npts, gp=grid.params, cell_start=grid.cell_start,
-                         pt_pos=self.eye.pt_pos, pt_R=R, npts=self.npts, K=K, R0=r_guess, Rmax=rmax,
-                         iters=CAL_RADIUS_ITERS)
-        return R, r_guess, rmax
+        stride = max(1, self.npts_total // CAL_SUBSAMPLE)
+        R0 = np.zeros(self.npts_total, np.float32)
+        pos, dirs = [], []
+        R = cla.zeros(self.dev.queue, max(self.tiles.max_sizes()[0], 1), np.float32)
+        for t in self._tile_order():
+            self.load_tile(t)
+            a, b = self.tiles.point_range(t)
+            if a == b:
+                continue
+            self.init_radius(self.dev.queue, self.npts, gp=grid.params, cell_start=grid.cell_start,
+                             pt_pos=self.eye.pt_pos, pt_R=R, npts=self.npts, K=K, R0=r_guess, Rmax=rmax,
+                             iters=CAL_RADIUS_ITERS)
+            R0[a:b] = R.get()[:b - a]
+            first = (-a) % stride                    # the tile's first point on the stride
+            pos.append((a + first, self.eye.pt_pos.get()[first:b - a:stride].copy()))
+            dirs.append(self.eye.pt_dir.get()[first:b - a:stride].copy())
+        order = np.argsort([p[0] for p in pos], kind="stable")
+        sub = {"stride": stride, "pos": np.concatenate([pos[i][1] for i in order]),
+               "dir": np.concatenate([dirs[i] for i in order])}
+        return R0, sub
 
-    def _scale_radius(self, R, n: int, K: float) -> float:
-        """Scale R by one global factor (clamped per round) until exact counts on a subsample of
-        the points average K; returns the last mean count."""
+    def _scale_radius(self, R0: np.ndarray, sub: dict, n: int, K: float) -> float:
+        """Scale R0 (in place) by one global factor (clamped per round) until exact counts on
+        the subsample average K; returns the last mean count."""
         import pyopencl.array as cla
-        q, npts = self.dev.queue, self.npts
-        stride = max(1, npts // CAL_SUBSAMPLE)
-        ns = (npts + stride - 1) // stride
+        q, stride = self.dev.queue, sub["stride"]
+        ns = len(sub["pos"])
         cnt = cla.zeros(q, ns, np.uint32)
+        spos, sdir = cla.to_device(q, sub["pos"]), cla.to_device(q, sub["dir"])
         mean_m = 0.0
         for r in range(CAL_ROUNDS):
-            radii = R.get()
-            grid = self.grid(n, float(np.median(radii)), float(radii.max()))
+            grid = self.grid(n, float(np.median(R0)), float(R0.max()))
+            sR = cla.to_device(q, np.ascontiguousarray(R0[::stride]))
             self.count_within(q, ns, gp=grid.params, cell_start=grid.cell_start, spos_w=grid.spos_w,
-                              sdir_b=grid.sdir_b, pt_pos=self.eye.pt_pos, pt_dir=self.eye.pt_dir, pt_R=R,
-                              layer_z=self.layer_z, npts=npts, stride=stride, out=cnt)
+                              sdir_b=grid.sdir_b, pt_pos=spos, pt_dir=sdir, pt_R=sR,
+                              layer_z=self.layer_z, npts=ns, stride=1, out=cnt)
             mean_m = float(cnt.get().mean())
             if mean_m <= 0 or r == CAL_ROUNDS - 1:
                 break
-            R *= np.float32(min(max((K / mean_m) ** (1 / 3), CAL_CLAMP[0]), CAL_CLAMP[1]))
+            R0 *= np.float32(min(max((K / mean_m) ** (1 / 3), CAL_CLAMP[0]), CAL_CLAMP[1]))
         return mean_m
+
+
+#: automatic tiles: sample-point buffers of at most this share of the device's global memory ...
+TILE_MEMORY_SHARE = 8
+#: ... and at most this many bytes (on a CPU the device's memory is the host's, and a render there
+#: holds about 1 kB of host memory per loaded point: 128 MiB of tile buffers ~ 1 GB resident)
+TILE_MEMORY_CAP = 128 * 2**20
+
+
+def tile_bytes(points: int, pieces_per_point: float, beam: bool) -> int:
+    """Device bytes of a tile of ``points`` sample points: position, direction, piece index,
+    slab and R, N, M per point; per piece its length and layer, and for the beam its geometry
+    and layer-conforming depth."""
+    return int(points * (16 + 16 + 4 + 8 + 12 + pieces_per_point * (8 + (32 + 16 if beam else 0))))
+
+
+def tile_points(req: RenderRequest, dev: Device, vol, tiles: eyepass.EyeTiles) -> int | None:
+    """The most sample points a tile may hold (``render.tile_points``; 0: from the device's
+    memory); None: one tile.  Tiles need the global radius (with the per-point radius each
+    point's R and N live across passes) and the gather layout (the scatter's per-scene state
+    is built from all the points).  A ``render.tile_points`` whose tile cannot fit beside the
+    photon buffers is refused (ConfigError) before any point is stored."""
+    from .beam import choose_layout
+    from ..config import bands_per_path
+    rc = req.settings
+    beam, hero = rc.estimator == "beam", bands_per_path(req.scene)
+    if rc.radius != "global" or (beam and choose_layout(rc.layout, dev, vol.nb, band_classes(vol.nb, hero),
+                                                          hero) == "scatter"):
+        return None
+    npts = int(tiles.counts.sum(dtype=np.int64))
+    ppp = tiles.pcounts.sum(dtype=np.int64) / max(npts, 1)
+    info = dev.info()
+    want = int(getattr(rc, "tile_points", 0) or 0)
+    if want == 0:
+        budget = min(info["global_mem_bytes"] // TILE_MEMORY_SHARE, TILE_MEMORY_CAP, info["max_alloc_bytes"])
+        return max(int(budget // tile_bytes(1, ppp, beam)), 1)
+    need = tile_bytes(want, ppp, beam)
+    others = sum(v for k, v in device_needs(req.scene, vol, 0, tiles.npix, int(rc.photons)).items())
+    big = want * max(16, ppp * (32 if beam else 8))
+    if need + others > info["global_mem_bytes"] or big > info["max_alloc_bytes"]:
+        from ..config import ConfigError
+        raise ConfigError("config", "render.tile_points", want,
+                          f"a tile of {want} sample points needs {(need + others) / 2**20:.0f} MiB of device "
+                          f"memory with the photon buffers (largest buffer {big / 2**20:.0f} MiB) but device "
+                          f"'{dev.name}' has {info['global_mem_bytes'] / 2**20:.0f} MiB "
+                          f"({info['max_alloc_bytes'] / 2**20:.0f} MiB largest allocation); give fewer, "
+                          "or 0 (from the device's memory)")
+    return want
 
 
 def band_classes(nb: int, hero: int) -> int:

@@ -36,7 +36,8 @@ def open_run(req: RenderRequest, t_start: float) -> "PPMRun":
     driver.say(out.progress, f"building the volume and the eye pass ({cam.width}x{cam.height}, "
                              f"method {rs.method}) on {dev.name}...")
     sc = ppm.Pipeline.build(req, dev)
-    driver.say(out.progress, f"{sc.eye.npoints} sample points; " + (
+    tiles = f" in {sc.ntiles} tiles" if sc.ntiles > 1 else ""
+    driver.say(out.progress, f"{sc.npts_total} sample points{tiles}; " + (
         f"resuming {os.path.basename(req.resume)}..." if req.resume else "calibrating the first photon search..."))
     return PPMRun.start(sc, run_identity(req, sc), req.resume, t_start, req.budget.on_pass)
 
@@ -94,7 +95,7 @@ class PPMRun:
     def _restore(self, st: dict) -> None:
         sc = self.sc
         self.p, self.emitted, self.stored = st["pass_index"], list(st["stats"]["emitted"]), st["stats"]["stored"]
-        if sc.npts:
+        if sc.npts and not sc.global_radius:      # with the global radius R = R0 and N = 0 always
             self.points.R[:sc.npts].set(st["pt_R"].astype(np.float32))
             self.points.N[:sc.npts].set(st["pt_N"].astype(np.float32))
         self.total.pix.set(st["pix_acc"].reshape(-1))
@@ -123,10 +124,12 @@ class PPMRun:
         """The image's sums: the closed chunks plus the open one (which stays open)."""
         pix, pairs = self.total.host()
         cpix, cpairs = self.chunk.host()
-        return pix + cpix, pairs + cpairs
+        pix += cpix                     # in place: at 1920x1080 a pixel x band array is 1.3 GB
+        pairs += cpairs
+        return pix, pairs
 
     def save(self, path: str) -> None:
-        n, nb = self.sc.npts, self.sc.vol.nb
+        n, nb = self.sc.npts_total, self.sc.vol.nb
         stats = {"emitted": self.emitted, "stored": self.stored,
                  "first_search_mean": self.cal.first_search_mean}
         state = dict(pass_index=self.p, emitted_total=sum(self.emitted), store_zmin=self.cal.store_zmin,
@@ -134,8 +137,11 @@ class PPMRun:
                      timing=self.sc.timing)
         pix, pairs = self.total.host()
         cpix, cpairs = self.chunk.host()
-        ckpt.save(path, self.meta, state, dict(pt_R=self.points.R.get()[:n], pt_N=self.points.N.get()[:n],
-                                               R0=self.cal.R0, pix_acc=pix.reshape(-1, nb),
+        if self.sc.global_radius:             # R = R0 and N = 0 at every point, in any tile
+            pt_R, pt_N = self.cal.R0, np.zeros(n, np.float32)
+        else:
+            pt_R, pt_N = self.points.R.get()[:n], self.points.N.get()[:n]
+        ckpt.save(path, self.meta, state, dict(pt_R=pt_R, pt_N=pt_N, R0=self.cal.R0, pix_acc=pix.reshape(-1, nb),
                                                chunk_acc=cpix.reshape(-1, nb), pix_pairs=pairs + cpairs))
 
     def image(self, interrupted: bool) -> RenderResult:
@@ -144,7 +150,7 @@ class PPMRun:
         pix, pairs = self.host_sums()
         return finish(sc, pix, int(pairs.sum()), sum(self.emitted), self.p, sc.timing,
                       {"stored": self.stored, "first_search_mean": self.cal.first_search_mean},
-                      self.t_start, interrupted)
+                      self.t_start, interrupted, own=True)
 
     def close(self) -> None:
         pass
@@ -152,23 +158,24 @@ class PPMRun:
 
 def run_identity(req: RenderRequest, sc: ppm.Pipeline) -> dict:
     """What a checkpoint of this PPM run must match to be resumed."""
-    eye = sc.eye
+    eye = sc.whole
     return req.checkpoint_identity(sc.dev.name, npoints=int(eye.npoints), npieces=int(eye.npieces),
                                    nrays=int(eye.nrays))
 
 
 def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, passes_done: int,
-           timing: dict, stats: dict, t_start: float, interrupted: bool) -> RenderResult:
-    """Pixel x band sums -> spectral radiance (the film does the rest) and the run report."""
-    cfg, vol, eye, pp, rc = sc.cfg, sc.vol, sc.eye, sc.pp, sc.rs    # cfg: the scene's config
+           timing: dict, stats: dict, t_start: float, interrupted: bool, own: bool = False) -> RenderResult:
+    """Pixel x band sums -> spectral radiance (the film does the rest) and the run report;
+    ``own``: ``pix`` is the caller's to overwrite (no film-sized copy is made)."""
+    cfg, vol, eye, pp, rc = sc.cfg, sc.vol, sc.whole, sc.pp, sc.rs    # cfg: the scene's config
     cam = eye.camera
     bands = pp.bands
-    acc = pix.reshape(cam.height * cam.width, vol.nb)
+    acc = (pix if own else pix.copy()).reshape(cam.height * cam.width, vol.nb)
     P = cfg["light"]["power_w"] * pp.power_fraction
     scale = P / max(passes_done if rc.radius == "global" else emitted_total, 1)
-    L = acc * (scale * 1e12 / bands.dl / cam.spp)
+    L = np.multiply(acc, scale * 1e12 / bands.dl / cam.spp, out=acc)    # in place (film-sized)
     if rc.specular:
-        L = L + specular_radiance(sc.scene.light, eye, bands)
+        add_specular(L, sc.scene.light, eye, bands)
     res = film.develop(L, cam, vol.wl, bands.spectrum, sc.scene.light, rc.exposure)
     per_layer = eye.per_layer(vol.nl)
     res.report = {
@@ -177,7 +184,7 @@ def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, pa
         "photons_emitted": emitted_total, "photons_stored": stats["stored"],
         "stored_per_pass": rc.photons, "store_zmin_um": None if pp.p["store_zmin"][0] < -1e37
         else float(pp.p["store_zmin"][0]),
-        "sample_points": eye.npoints, "path_pieces": eye.npieces,
+        "sample_points": eye.npoints, "path_pieces": eye.npieces, "tiles": sc.ntiles,
         "eye_rays": eye.nrays, "eye_rays_hit": int(eye.ray_hit.sum()),
         "sample_points_per_ray_per_layer": {n: float(v) for n, v in zip(vol.names, per_layer)},
         "first_search_mean_photons": stats["first_search_mean"],
@@ -189,6 +196,15 @@ def finish(sc: ppm.Pipeline, pix: np.ndarray, pairs: int, emitted_total: int, pa
         "units": film.UNITS,
     }
     return res
+
+
+def add_specular(L: np.ndarray, light, eye, bands) -> None:
+    """L += specular_radiance, band by band (no second film-sized array)."""
+    cam = eye.camera
+    spec = eye.ray_spec.reshape(cam.height * cam.width, cam.spp).mean(1)
+    fac = light.irradiance_factor(light.power_w * bands.spectrum / bands.dl)
+    for b in range(L.shape[1]):
+        L[:, b] += spec * fac[b]
 
 
 def specular_radiance(light, eye, bands) -> np.ndarray:
