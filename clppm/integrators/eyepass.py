@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..compute import structs as S
-from ..config import RenderSettings, render_settings
-from ..scene.camera import Camera, from_config
+from ..scene.scene import Scene
+from ..scene.camera import Camera
 from ..scene.light import Light
 from ..compute.device import Device, DeviceError, check_alloc, kernel_defines, surface_fp64
 from ..compute.constants import EyeMode
@@ -123,12 +123,12 @@ TILE_ALIGN = 64
 
 
 def run(dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict,
-        sch: Scheme | None = None, max_points: int = 1 << 16, geometry: bool | None = None,
-        rs: RenderSettings | None = None, cam: Camera | None = None) -> EyeData:
-    """Eye rays, sample points and path pieces of the whole image; ``geometry`` (default: when
-    the estimator is the beam) also writes each piece's start and direction.  ``rs`` and
-    ``cam``: a render request's settings and camera (default: ``cfg``'s own)."""
-    tiles = EyeTiles.count(dev, vol, vbuf, cfg, sch, max_points, geometry, rs, cam)
+        sch: Scheme | None = None, max_points: int = 1 << 16, geometry: bool | None = None) -> EyeData:
+    """Eye rays, sample points and path pieces of the whole image of a config rendered with its
+    own values (on the model ``vol`` built from it): the tools' and tests' way in; a render
+    counts its :class:`EyeTiles` of its :class:`~clppm.scene.scene.Scene`.  ``geometry``
+    (default: when the estimator is the beam) also writes each piece's start and direction."""
+    tiles = EyeTiles.count(dev, vbuf, Scene.of_config(cfg, volume=vol), sch, max_points, geometry)
     tiles.plan(None)
     return tiles.summarise()[0]
 
@@ -155,14 +155,13 @@ class EyeTiles:
     ray_host: tuple = (None, None)   # ray_spec, ray_hit on the host (after summarise)
 
     @classmethod
-    def count(cls, dev: Device, vol: Volume, vbuf: VolumeBuffers, cfg: dict, sch: Scheme | None = None,
-              max_points: int = 1 << 16, geometry: bool | None = None, rs: RenderSettings | None = None,
-              cam: Camera | None = None) -> "EyeTiles":
-        rc = rs or render_settings(cfg)
+    def count(cls, dev: Device, vbuf: VolumeBuffers, scene: Scene, sch: Scheme | None = None,
+              max_points: int = 1 << 16, geometry: bool | None = None) -> "EyeTiles":
+        """Every ray's sample points and pieces counted (``sch``: default the scene's method)."""
+        vol, rc, cam = scene.volume, scene.settings, scene.camera
         sch = sch or scheme(rc.method, rc.spacing_um)
-        cam = cam or from_config(cfg["camera"])
         rates = layer_rates(vol, sch.stat) if sch.kind == "extinction" else np.zeros(vol.nl, np.float32)
-        eye = _EyeKernel(dev, vol, vbuf, eye_params(cfg, cam, sch, max_points, rc), rates, cam)
+        eye = _EyeKernel(dev, vol, vbuf, eye_params(scene, sch, max_points), rates, cam)
         counts, pcounts = eye.count()
         npoints, npieces = int(counts.sum(dtype=np.int64)), int(pcounts.sum(dtype=np.int64))
         if npoints >= 2**32 or npieces >= 2**32:
@@ -272,25 +271,23 @@ class EyeTiles:
         return whole, eye
 
 
-def eye_params(cfg: dict, cam: Camera, sch: Scheme, max_points: int,
-               rs: RenderSettings | None = None) -> np.ndarray:
-    """The kernel's ``EyeParams``: camera, sampling scheme, transmittance cut, voxels, light
-    (``rs``: the run's render settings, default ``cfg``'s)."""
-    rc = rs or render_settings(cfg)
+def eye_params(scene: Scene, sch: Scheme, max_points: int) -> np.ndarray:
+    """The kernel's ``EyeParams``: camera, sampling scheme, transmittance cut, voxels, light."""
+    rc, cam, model = scene.settings, scene.camera, scene.config["model"]
     e = np.zeros(1, S.EYE_DTYPE)
     e["cam"], e["spp"] = cam.struct(), cam.spp
     e["scheme"] = 0 if sch.kind == "equal" else 1
     e["spacing"] = sch.spacing if sch.kind == "equal" else 1.0
     e["od_cut"] = -math.log(rc.threshold) if rc.threshold > 0 else 1e30
     e["merge"] = 1 if rc.merge == "voxel" else 0
-    e["vox_dx"] = cfg["model"]["lateral_voxel_um"]
-    e["vox_dz"] = cfg["model"]["voxel_um"]
+    e["vox_dx"] = model["lateral_voxel_um"]
+    e["vox_dz"] = model["voxel_um"]
     e["max_points"] = max_points
     e["max_len"] = 1e5
     e["alpha"] = rc.roughness
     e["seed_lo"], e["seed_hi"] = S.split_seed(rc.seed)
     e["jitter"] = 1 if cam.spp > 1 else 0
-    light_fields(e, Light.from_config(cfg))
+    light_fields(e, scene.light)
     return e
 
 

@@ -217,16 +217,16 @@ class Pipeline:
         """Volume on the device, eye pass, photon and grid buffers, kernels, the estimator;
         memory checked first (``req``: a request, or a config rendered with its own values)."""
         req = req if isinstance(req, RenderRequest) else RenderRequest(req)
-        cfg, rc, cam = req.scene, req.settings, req.camera
         t0 = time.perf_counter()
         scene = Scene.of(req)
+        cfg, rc, cam = scene.config, scene.settings, scene.camera
         vol = scene.volume
         vbuf = volume.upload_volume(dev, vol)
         timing = {"volume": time.perf_counter() - t0}
         nrays, target = cam.width * cam.height * cam.spp, int(rc.photons)
         check_alloc(dev, device_needs(cfg, vol, (nrays + 1) * 8 + nrays * 8, cam.width * cam.height, target))
         t0 = time.perf_counter()
-        tiles, whole, eye = cls.eye_pass(req, dev, vol, vbuf)
+        tiles, whole, eye = cls.eye_pass(req, scene, dev, vbuf)
         timing["eye"] = time.perf_counter() - t0
         check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height, target))
         pp = cls.photon_source(scene, dev, vbuf, whole)
@@ -238,14 +238,13 @@ class Pipeline:
         return sc
 
     @staticmethod
-    def eye_pass(req: RenderRequest, dev: Device, vol, vbuf) -> tuple:
+    def eye_pass(req: RenderRequest, scene: Scene, dev: Device, vbuf) -> tuple:
         """The eye pass: each ray's counts, the tiles, every tile loaded once for what the
         whole image's points decide.  Returns the tiles, the whole image's EyeData and the
         tile left loaded (with one tile: the whole image, loaded for the whole render)."""
-        rc = req.settings
-        tiles = eyepass.EyeTiles.count(dev, vol, vbuf, req.scene, eyepass.scheme(rc.method, rc.spacing_um),
-                                       rs=rc, cam=req.camera)
-        tiles.plan(tile_points(req, dev, vol, tiles))
+        rc = scene.settings
+        tiles = eyepass.EyeTiles.count(dev, vbuf, scene, eyepass.scheme(rc.method, rc.spacing_um))
+        tiles.plan(tile_points(req, dev, scene.volume, tiles))
         whole, eye = tiles.summarise()
         dev.queue.finish()
         return tiles, whole, eye
