@@ -11,6 +11,7 @@
 #include "disc.h"
 #include "grid.h"
 
+#ifndef NO_VEC16
 /* exp_neg (common.h) on 16 lanes: both layouts' band math on one vector, the same bits per lane. */
 inline float16 exp_neg16(float16 x) {
     const float16 y = fmax(x, 0.0f) * 1.44269504088896f;
@@ -31,6 +32,7 @@ inline float16 native_rsqrt16(float16 q) {
 inline float16 rsqrt16(float16 q) {
     return (float16)(rsqrt(q.lo), rsqrt(q.hi));
 }
+#endif
 
 /* A photon of a layer-conforming layer is filed at the depth key phi_key of its fraction phi of
  * the layer (photon_keys); a piece queries the key range of its phi range. */

@@ -56,8 +56,8 @@
 /* The beam gather's band math on one vector of 16 lanes (9 used) when a photon carries the 9
  * bands of its class (the default: 81 bands, 9 per path): the same float operations per band
  * as the scalar loop, lane by lane (exp_neg16, kernels/beam.h, is exp_neg's expression), so the
- * same bits. */
-#if NBC == 9 && HERO_C == 9 
+ * same bits.  NO_VEC16 (a compiler that cannot pass 16-lane vectors): the scalar loop. */
+#if NBC == 9 && HERO_C == 9 && !defined(NO_VEC16)
 #define BAND16 1
 #endif
 

@@ -163,6 +163,19 @@ def _refused(capsys, work, ck, *extra):
     return lines[0]
 
 
+def test_global_radius_checkpoint_is_the_film_and_the_first_radii(work, good_ckpt):
+    """With the global radius a checkpoint holds the pixel x band sums (closed chunks and the open
+    one) and each sample point's R0 only: no per-point R and N; its size is those arrays' bytes
+    and a header, not a multiple of the sample points."""
+    st = ckpt.load(good_ckpt)
+    rep = json.loads((work / "good" / "g.json").read_text())
+    assert st["pt_R"].size == 0 and st["pt_N"].size == 0
+    npix, nb = st["pix_acc"].shape
+    assert st["R0"].shape == (rep["sample_points"],)
+    film = 2 * npix * nb * 8 + npix * 8               # pix_acc, chunk_acc (float64), pix_pairs
+    assert os.path.getsize(good_ckpt) <= film + 4 * rep["sample_points"] + 64 * 1024
+
+
 def test_resume_with_more_passes_is_accepted(work, good_ckpt, capsys):
     """The number of passes is not part of a checkpoint's identity."""
     rc, so, se = _cli(capsys, work / "skin.toml", "--resume", good_ckpt, "-o", work / "more" / "m.exr",

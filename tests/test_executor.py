@@ -155,7 +155,10 @@ def test_two_workers_in_the_scatter_layout_give_the_in_process_gather_bytes(work
     nine = C.load(str(work / "nine.toml"))
     gat, sca = (C.override(nine, "render", "layout", v) for v in ("gather", "scatter"))
     sc = ppm.Pipeline.build(sca, dev)
-    assert sc.estimator.layout.name == "scatter", beam.supports_scatter(dev, sc.vol.nb, sc.gclass, sc.pp.hero)
+    why = beam.supports_scatter(dev, sc.vol.nb, sc.gclass, sc.pp.hero)
+    if why:
+        pytest.skip(f"no scatter layout on {dev.name}: {why}")
+    assert sc.estimator.layout.name == "scatter"
     entry.render(gat, dev=dev, out=str(work / "nine_ref" / "g.exr"))
     entry.render_distributed(sca, client=client, out=str(work / "nine_two" / "s.exr"))
     assert (work / "nine_two" / "s.exr").read_bytes() == (work / "nine_ref" / "g.exr").read_bytes()

@@ -104,3 +104,23 @@ def test_resume_in_the_other_layout(dev, tmp_path):
     res = entry.render(_cfg("forearm.toml", "scatter", passes=2, chunk_passes=1), dev=dev,
                              out=str(tmp_path / "b.exr"), resume=ckpt.default_path(out))
     assert np.array_equal(np.asarray(full.spectral), np.asarray(res.spectral))
+
+
+def test_band_math_lane_by_lane_gives_the_16_lane_bits(dev, monkeypatch):
+    """Where wide_vectors is false (pip's PoCL on AVX-512 AMD CPUs) the beam gather builds its
+    band math lane by lane (NO_VEC16); that loop does the 16-lane path's float operations per
+    band, so the same passes give the same pixel sums, pairs and radii bit for bit.  On a device
+    whose compiler cannot pass 16-lane vectors only the lane-by-lane build runs: skipped."""
+    from clppm.compute import device
+    if not device.wide_vectors(dev.device):
+        pytest.skip(f"{dev.name}: no 16-lane vectors between functions (wide_vectors)")
+    cfg = _cfg("forearm.toml", "gather")
+    sw, w = _passes(dev, cfg, n=1)
+    assert "NO_VEC16" not in sw.estimator.defines()
+    for mod in (ppm, beam):
+        monkeypatch.setattr(mod, "wide_vectors", lambda d: False)
+    sn, n = _passes(dev, cfg, n=1)
+    assert sn.estimator.defines().get("NO_VEC16") == 1
+    assert w[1].sum() > 100 * sw.npix                      # not vacuous
+    for what, a, b in zip(("pixels", "pairs", "photons found", "R", "N"), w, n):
+        assert np.array_equal(a, b), what

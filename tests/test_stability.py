@@ -524,6 +524,61 @@ def test_squares_beyond_the_bound_only_when_shown():
     assert m["bias_lower_max"] > 0.02
 
 
+def _group_scene(rng, bias, img_noise, ref_noise, n, h=8, w=10):
+    """Seeds' square spectra of 4 bands in 3 50-nm groups (the last two bands one group) with a
+    per-group ``bias`` and per-image, per-square noise ``img_noise``, and a reference whose
+    halves have ``ref_noise``."""
+    from clppm.analysis.reference import Reference, RefSpec
+    bias = list(bias) + [bias[-1]]
+    truth = rng.uniform(0.2, 0.4, (h, w, 4))
+    halves = truth * (1 + ref_noise * np.sqrt(2) * rng.standard_normal((2, h, w, 4)))
+    ref = Reference(key="t", spec=RefSpec(integrator="pt", resolution=(w, h), block=1), xyz=halves.mean(0),
+                    rgb=halves.mean(0), halves_xyz=halves, spectral=halves.mean(0),
+                    wl=np.array([450.0, 500.0, 550.0, 560.0]), mask=np.ones((h, w), bool), exposure=1.0,
+                    error={}, halves_spectral=halves)
+    imgs = [truth * (1 + np.asarray(bias)) * (1 + img_noise * rng.standard_normal((h, w, 4))) for _ in range(n)]
+    return imgs, ref
+
+
+def test_band_group_confidence_covers_the_bias_at_its_level():
+    """Over 400 trials of 6 seeds with a known bias per group (0, +0.5 %, +3 %), each image's
+    group mean with 1 % noise and the reference's with 0.5 %: the 95 % interval holds the true
+    bias in 93-97 % of trials per group; the 3 % group is "beyond" 1 % in most trials and never
+    "within"; the unbiased group is never "beyond"."""
+    from clppm.analysis.metrics import band_group_confidence
+    rng = np.random.default_rng(11)
+    bias = [0.0, 0.005, 0.03]
+    hits = np.zeros(3)
+    verdicts = [[], [], []]
+    trials = 400
+    for _ in range(trials):
+        imgs, ref = _group_scene(rng, bias, 0.01 * np.sqrt(80), 0.005 * np.sqrt(80), 6)
+        g = band_group_confidence(imgs, ref)["groups"]
+        for j, (k, v) in enumerate(g.items()):
+            hits[j] += abs(v["error"] - bias[j]) <= v["half_width"]
+            verdicts[j].append(v["verdict"])
+    assert ((hits / trials > 0.93) & (hits / trials < 0.97)).all(), hits / trials
+    assert verdicts[2].count("beyond") > 0.9 * trials and "within" not in verdicts[2]
+    assert "beyond" not in verdicts[0]
+
+
+def test_band_group_confidence_decides_only_what_it_can():
+    """No bias and little noise: every group "within"; the same with 10x the noise: "open"
+    (the interval straddles the bound); one seed, or a reference without spectral halves,
+    refused."""
+    from clppm.analysis.metrics import band_group_confidence
+    rng = np.random.default_rng(12)
+    imgs, ref = _group_scene(rng, [0.0] * 3, 0.001 * np.sqrt(80), 0.0005 * np.sqrt(80), 8)
+    assert {v["verdict"] for v in band_group_confidence(imgs, ref)["groups"].values()} == {"within"}
+    imgs, ref = _group_scene(rng, [0.0] * 3, 0.02 * np.sqrt(80), 0.01 * np.sqrt(80), 8)
+    assert {v["verdict"] for v in band_group_confidence(imgs, ref)["groups"].values()} == {"open"}
+    with pytest.raises(ValueError):
+        band_group_confidence(imgs[:1], ref)
+    import dataclasses
+    with pytest.raises(ValueError):
+        band_group_confidence(imgs, dataclasses.replace(ref, halves_spectral=None))
+
+
 def test_reference_cached_and_keyed(dev, tmp_path):
     """Computed once, then loaded from the cache bit for bit; another parameter, another key;
     its own error estimate from the two halves is finite.  (A PPM reference, averaged over

@@ -230,3 +230,45 @@ def beyond(rel: np.ndarray, se: np.ndarray, bound: float, z: float = 3.0) -> dic
     return {"squares": int(e.size), "beyond": int((e > 0).sum()), "beyond_sig": int((e > z * se).sum()),
             "beyond_noise": float(chance), "bias_lower_max": float(np.max(np.abs(rel) - z * se)),
             "z": z, "bound": bound}
+
+
+#: the bound on the default mode's bias per 50-nm band group against the path tracer
+#: (bench/studies/band_bias.py states, at a confidence, whether each group keeps it)
+GROUP_BOUND = 0.01
+
+
+def band_group_confidence(spectra: list, ref, bound: float = GROUP_BOUND, level: float = 0.95) -> dict:
+    """Per 50-nm band group, the relative error of the mean skin radiance of ``spectra`` (renders
+    of one scheme with different seeds, each (h, w, NB) at the reference's squares) against
+    ``ref``, with a ``level`` confidence interval and a verdict against ``bound``.
+
+    The error's variance has two parts: the seeds' scatter of the group mean / n (n - 1 degrees
+    of freedom), and the reference's own, from its two halves square by square (its squares'
+    paths are independent: var of the mean = sum over skin squares of ((h1 - h2) / 2)^2 / n_sq^2,
+    n_sq - 1 degrees of freedom); the interval is Student's t at Welch-Satterthwaite's degrees of
+    freedom.  The verdict: ``within`` (the whole interval inside +-bound), ``beyond`` (the whole
+    interval outside) or ``open`` (more seeds or reference paths decide it)."""
+    from scipy import stats
+    if ref.halves_spectral is None:
+        raise ValueError("the reference has no spectral halves (made before they were kept): recompute it")
+    mask = ref.mask
+    n, nsq = len(spectra), int(mask.sum())
+    if n < 2:
+        raise ValueError("a confidence needs two seeds or more")
+    out = {}
+    for lo, hi, idx in band_groups(ref.wl):
+        x = np.array([np.asarray(s, float)[mask][:, idx].sum(1).mean() for s in spectra])
+        a, b = (np.asarray(h, float)[mask][:, idx].sum(1) for h in ref.halves_spectral)
+        R = 0.5 * (a.mean() + b.mean())
+        v_img = x.var(ddof=1) / n / R ** 2
+        v_ref = (x.mean() / R ** 2) ** 2 * float(np.sum(((a - b) / 2) ** 2)) / nsq ** 2
+        se = float(np.sqrt(v_img + v_ref))
+        dof = se ** 4 / (v_img ** 2 / (n - 1) + v_ref ** 2 / max(nsq - 1, 1))
+        e = float(x.mean() / R - 1)
+        half = float(stats.t.ppf(0.5 + level / 2, dof)) * se
+        verdict = "within" if abs(e) + half <= bound else ("beyond" if abs(e) - half > bound else "open")
+        out[f"{lo:.0f}-{hi:.0f}"] = {
+            "error": e, "half_width": half, "se": se, "se_seeds": float(np.sqrt(v_img)),
+            "se_reference": float(np.sqrt(v_ref)), "dof": float(dof), "verdict": verdict,
+            "one_image": [float(v / R - 1) for v in x]}
+    return {"level": level, "bound": bound, "seeds": n, "squares": nsq, "groups": out}

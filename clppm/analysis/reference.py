@@ -92,6 +92,7 @@ class Reference:
     cached: bool = False
     path: str = ""
     pixels_xyz: np.ndarray | None = None   # (2, H, W, 3) the halves at full resolution (per-pixel analyses)
+    halves_spectral: np.ndarray | None = None   # (2, h, w, NB) the halves per square (band groups' noise)
 
     @property
     def block(self) -> int:
@@ -180,7 +181,7 @@ def load_reference(cache_dir: str, key: str):
                      halves_xyz=arrays["halves_xyz"], spectral=arrays["spectral"], wl=arrays["wl"],
                      mask=arrays["mask"].astype(bool), exposure=float(meta["exposure"]),
                      error=meta["error"], info=meta.get("info", {}), cached=True, path=npz,
-                     pixels_xyz=arrays.get("pixels_xyz"))
+                     pixels_xyz=arrays.get("pixels_xyz"), halves_spectral=arrays.get("halves_spectral"))
 
 
 def _save(cache_dir: str, ref: Reference) -> None:
@@ -189,7 +190,8 @@ def _save(cache_dir: str, ref: Reference) -> None:
     tmp = npz + f".{os.getpid()}.tmp.npz"
     np.savez_compressed(tmp, xyz=ref.xyz, rgb=ref.rgb, halves_xyz=ref.halves_xyz,
                         spectral=ref.spectral.astype(np.float32), wl=ref.wl, mask=ref.mask,
-                        **({} if ref.pixels_xyz is None else {"pixels_xyz": ref.pixels_xyz}))
+                        **({} if ref.pixels_xyz is None else {"pixels_xyz": ref.pixels_xyz}),
+                        **({} if ref.halves_spectral is None else {"halves_spectral": ref.halves_spectral}))
     os.replace(tmp, npz)
     meta = {"key": ref.key, "spec": ref.spec.as_dict(), "exposure": ref.exposure, "error": ref.error,
             "info": ref.info}
@@ -279,7 +281,8 @@ def _mean_of_halves(key: str, spec: RefSpec, halves: list, mask) -> Reference:
     ref = Reference(key=key, spec=spec, xyz=h.mean(0), rgb=np.mean([block_mean(x.rgb, b) for x in halves], axis=0),
                     halves_xyz=h, spectral=np.mean(sp, axis=0).astype(np.float32),
                     wl=np.asarray(halves[0].wl), mask=mask, exposure=float(halves[0].exposure), error={},
-                    pixels_xyz=np.stack([x.xyz for x in halves]).astype(np.float32))
+                    pixels_xyz=np.stack([x.xyz for x in halves]).astype(np.float32),
+                    halves_spectral=np.stack(sp).astype(np.float32))
     ref.error = own_noise(ref, sp)
     return ref
 

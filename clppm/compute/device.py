@@ -244,6 +244,53 @@ def compiler_problem(dev) -> str | None:
     return _PROBED[key]
 
 
+_WIDE_SRC = ("float16 clppm_twice16(float16 a) { return a + a; }\n"
+             "__kernel void clppm_probe16(__global float16* a) "
+             "{ a[get_global_id(0)] = clppm_twice16(a[get_global_id(0)]); }\n")
+_WIDE: dict = {}
+
+
+def wide_vectors(dev) -> bool:
+    """Whether kernels may pass 16-lane vectors (float16, long16) between functions on ``dev``
+    (a pyopencl device).  pip's PoCL 3.0 on AMD Zen 4 compiles a kernel's front end for a CPU
+    without AVX-512 and its code for the host's AVX-512, and then aborts the process at a
+    kernel's first launch ("Cannot emit physreg copy instruction"); its compiler says so while
+    building ("... without 'avx512f' enabled changes the ABI").  Checked once per device and
+    process by building a probe that passes a float16 (its compiler chatter on stderr dropped):
+    no such warning and no failure, True.  Kernels then build without them (NO_VEC16)."""
+    key = _device_key(dev)
+    if key not in _WIDE:
+        cl = _cl()
+        import warnings
+        try:
+            with _stderr_dropped(), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                prg = cl.Program(cl.Context([dev]), _WIDE_SRC).build()
+            log = prg.get_build_info(dev, cl.program_build_info.LOG) or ""
+            _WIDE[key] = "changes the ABI" not in log
+        except cl.Error:
+            _WIDE[key] = False
+    return _WIDE[key]
+
+
+class _stderr_dropped:
+    """File descriptor 2 to /dev/null for a probe's build (PoCL's clang prints "1 warning
+    generated." there itself, past pyopencl)."""
+
+    def __enter__(self):
+        import sys
+        sys.stderr.flush()
+        self.saved = os.dup(2)
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 2)
+        os.close(null)
+
+    def __exit__(self, *exc):
+        os.dup2(self.saved, 2)
+        os.close(self.saved)
+        return False
+
+
 # Launches record here, per (device, kernel), what clppm asked of the device: the local size it
 # used and the kernel's limits (clppm devices --kernels prints them).
 LAUNCHED: dict[tuple, dict] = {}
@@ -373,7 +420,7 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
                    gclass: int | None = None, pt_fp64: bool | None = None,
                    count_candidates: bool = False, exact_rsqrt: bool = False,
                    photon_counters: bool = False, photon_plain_walk: bool = False,
-                   depth_roulette: bool = False) -> dict:
+                   depth_roulette: bool = False, vec16: bool = True) -> dict:
     """Every ``-D`` switch of clppm's kernels, assembled in this one place (as MCX-CL does).
 
     From the volume: NB bands, NL layers, FLAT (no relief or papillae: the flat code paths),
@@ -387,7 +434,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     EXACT_RSQRT (gather.cl: rsqrt for native_rsqrt, to compare layouts off PoCL to float rounding),
     PHOTON_COUNTERS (photon.cl: count events, crossings and loop steps, for bench/photons.py),
     PHOTON_PLAIN_WALK (photon.cl: the smooth walk of the other passes, tile by tile, for tests),
-    DEPTH_ROULETTE (photon.cl: render.depth_roulette_um's roulette below the storage depth)."""
+    DEPTH_ROULETTE (photon.cl: render.depth_roulette_um's roulette below the storage depth),
+    NO_VEC16 (gather.cl: the beam's band math lane by lane, where :func:`wide_vectors` is false)."""
     if vol is None:
         return {"NB": int(nb)} if nb is not None else {}
     d = {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}
@@ -413,6 +461,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
         d["PHOTON_PLAIN_WALK"] = 1
     if depth_roulette:
         d["DEPTH_ROULETTE"] = 1
+    if not vec16:
+        d["NO_VEC16"] = 1
     return d
 
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from ..compute.device import check_alloc, kernel_defines
+from ..compute.device import check_alloc, kernel_defines, wide_vectors
 from .estimators import PassGrid
 from ..compute.kernelcall import Kernel
 
@@ -107,6 +107,8 @@ def supports_scatter(dev, nb: int, gclass: int, hero: int) -> str | None:
         return "the device has no cl_khr_int64_base_atomics"
     if nb // max(gclass, 1) != 9 or hero != 9:
         return "the scatter layout needs 9 bands per path in classes of 9 (bands_per_path = 9)"
+    if not wide_vectors(dev.device):
+        return "the device's compiler cannot pass 16-lane vectors between functions (clppm.compute.device.wide_vectors)"
     return None
 
 
@@ -180,7 +182,8 @@ class BeamGather:
 
     def defines(self) -> dict:
         sc = self.pipe
-        return kernel_defines(sc.vol, hero=sc.pp.hero, estimator=sc.rs.estimator, gclass=self.gclass)
+        return kernel_defines(sc.vol, hero=sc.pp.hero, estimator=sc.rs.estimator, gclass=self.gclass,
+                              vec16=wide_vectors(sc.dev.device))
 
     # the grid stage -----------------------------------------------------------------------------
     def grid(self, n: int, radii_median: float, rmax: float) -> PassGrid:

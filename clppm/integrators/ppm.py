@@ -30,7 +30,7 @@ from .beam import BeamGather
 from .estimators import PassGrid, SphereGather
 from ..scene.scene import Scene
 from ..config import RenderSettings, render_settings
-from ..compute.device import Device, check_alloc, kernel_defines
+from ..compute.device import Device, check_alloc, kernel_defines, wide_vectors
 from ..compute.kernelcall import Kernel
 from ..request import RenderRequest
 
@@ -265,7 +265,7 @@ class Pipeline:
         import pyopencl as cl
         gclass = band_classes(vol.nb, pp.hero)
         prg = dev.build("gather.cl", kernel_defines(vol, hero=pp.hero, estimator=req.settings.estimator,
-                                                    gclass=gclass))
+                                                    gclass=gclass, vec16=wide_vectors(dev.device)))
         ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
         lz = np.stack([np.maximum(vol.iface[1:, 1], -1e30), vol.iface[:-1, 2]], -1).astype(np.float32)
         zdeep = eye.zmin if eye.npoints else vol.z_top      # eye: the whole image's

@@ -198,7 +198,9 @@ def _check_shapes(name: str, st: dict, meta: dict) -> None:
         npts = int(meta["npoints"])
     except (KeyError, TypeError, ValueError):
         return                              # not a render's identity: nothing to compare with
-    want = {"pt_R": (npts,), "pt_N": (npts,), "R0": (npts,), "pix_acc": (w * h, nb),
+    # with the global radius R = R0 and N = 0 at every point: no per-point state but R0
+    per_point = (0,) if meta["config"].get("render", {}).get("radius") == "global" else (npts,)
+    want = {"pt_R": per_point, "pt_N": per_point, "R0": (npts,), "pix_acc": (w * h, nb),
             "chunk_acc": (w * h, nb), "pix_pairs": (w * h,)}
     for k, shape in want.items():
         if tuple(st[k].shape) != shape:

@@ -381,9 +381,9 @@ class Reduction:
                      timing={**timing, **self.seconds},
                      held=[{"passes": r.passes, "emitted": r.emitted, "stored": r.stored,
                             "tallies": r.tallies, "seconds": r.seconds} for r in held])
-        zero = np.zeros_like(cal.R0)
+        none = np.zeros(0, np.float32)        # the global radius: no per-point state but R0
         open_pix = self.open_pix if self.open_pix is not None else np.zeros(self.pix.size)
-        ckpt.save(path, meta, state, dict(pt_R=cal.R0, pt_N=zero, R0=cal.R0, pix_acc=self.pix.reshape(-1, nb),
+        ckpt.save(path, meta, state, dict(pt_R=none, pt_N=none, R0=cal.R0, pix_acc=self.pix.reshape(-1, nb),
                                           chunk_acc=open_pix.reshape(-1, nb), pix_pairs=self.pairs,
                                           held_pix=np.stack([r.pix for r in held]) if held else None,
                                           held_pairs=np.stack([r.pairs for r in held]) if held else None))
@@ -479,12 +479,15 @@ class _Job:
         self.client.replicate([self.req_f, self.cal_f])    # on every worker: no pull toward one
         return red
 
-    def submit_chunk(self, passes: list, red: Reduction):
+    def submit_chunk(self, passes: list, red: Reduction, worker: str | None = None):
+        """Chunk ``passes`` as a task, placed on ``worker`` first (a loose restriction: an idle
+        worker may still steal it)."""
         start = None
         if red.open_pix is not None and passes[0] == red.next_pass:
             start = self.client.scatter(red.open_pix, hash=False)
         return self.client.submit(chunk_task, self.req_f, self.key, self.cal_f, self.cal_key, passes,
                                   start, key=f"clppm-chunk-{passes[0]}-{self.key}-{self.run}",
+                                  workers=None if worker is None else [worker], allow_other_workers=True,
                                   pure=False)
 
     def save(self, red: Reduction, path: str | None) -> None:
@@ -516,8 +519,13 @@ class DaskRun:
         self.report = {"engine": "dask.distributed", "where": where, "chunk_passes": job.k,
                        "workers": {a: {kk: w[kk] for kk in ("device", "type")} for a, w in workers.items()},
                        "chunks": [], "bytes_moved": 0}
-        self.futs = {job.submit_chunk(q, red): q for q in pieces(red.next_pass, job.n_passes, job.k)
-                     if not red.covers(q)}
+        # chunks dealt to the workers in turn: each device starts with a share (a worker still
+        # building its scene would otherwise find every chunk taken by one that has), and work
+        # stealing evens out the rest
+        todo = [q for q in pieces(red.next_pass, job.n_passes, job.k) if not red.covers(q)]
+        addrs = sorted(workers)
+        self.futs = {job.submit_chunk(q, red, addrs[i % len(addrs)] if addrs else None): q
+                     for i, q in enumerate(todo)}
         self.t0 = time.perf_counter()
 
     @property

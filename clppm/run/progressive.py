@@ -137,8 +137,8 @@ class PPMRun:
                      timing=self.sc.timing)
         pix, pairs = self.total.host()
         cpix, cpairs = self.chunk.host()
-        if self.sc.global_radius:             # R = R0 and N = 0 at every point, in any tile
-            pt_R, pt_N = self.cal.R0, np.zeros(n, np.float32)
+        if self.sc.global_radius:             # R = R0 and N = 0 at every point: R0 says it all
+            pt_R = pt_N = np.zeros(0, np.float32)
         else:
             pt_R, pt_N = self.points.R.get()[:n], self.points.N.get()[:n]
         ckpt.save(path, self.meta, state, dict(pt_R=pt_R, pt_N=pt_N, R0=self.cal.R0, pix_acc=pix.reshape(-1, nb),
