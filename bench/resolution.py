@@ -8,7 +8,10 @@ the photon, grid and gather stages' seconds (and the tiles' eye passes, when the
 tiles) over the passes; per pixel: that over the pixels.
 
     python bench/resolution.py [CONFIG] [--sizes 320x240,640x480,1920x1080] [--passes 2]
-                               [--photons 100000] [--root DIR] [--tile-points N]
+                               [--photons 100000] [--root DIR] [--tile-points N] [--outputs DIR]
+
+``--outputs``: each render also writes its EXR, PNG, report and checkpoint (their size is
+printed), so the peak includes the film's and the files' memory.
 
 Prints a markdown table; never asserts on time.
 """
@@ -31,14 +34,15 @@ except ImportError:
     from clppm.run.progressive import render      # an older one
 a = json.loads(sys.argv[1])
 cfg = C.load(a["config"])
-for k, v in (("radius", "global"), ("passes", a["passes"]), ("photons", a["photons"]),
-             ("checkpoint_every", 0)):
+for k, v in (("radius", "global"), ("passes", a["passes"]), ("photons", a["photons"])):
     cfg = C.override(cfg, "render", k, v)
+if not a.get("out"):
+    cfg = C.override(cfg, "render", "checkpoint_every", 0)
 if a.get("tile_points") is not None:
     cfg = C.override(cfg, "render", "tile_points", a["tile_points"])
 cfg = C.override(cfg, "camera", "resolution", a["size"])
 t0 = time.perf_counter()
-rep = render(cfg).report
+rep = render(cfg, **({"out": a["out"]} if a.get("out") else {})).report
 s = rep["seconds"]
 print(json.dumps({"points": rep["sample_points"], "tiles": rep.get("tiles", 1),
                   "pass_s": sum(s.get(k, 0.0) for k in ("photon", "grid", "gather", "tiles")),
@@ -47,9 +51,9 @@ print(json.dumps({"points": rep["sample_points"], "tiles": rep.get("tiles", 1),
 """
 
 
-def run_one(root: str, config: str, size, passes: int, photons: int, tile_points) -> dict:
+def run_one(root: str, config: str, size, passes: int, photons: int, tile_points, out=None) -> dict:
     arg = json.dumps({"config": config, "size": list(size), "passes": passes, "photons": photons,
-                      "tile_points": tile_points})
+                      "tile_points": tile_points, "out": out})
     env = dict(os.environ, PYTHONPATH=root)
     out = subprocess.run([sys.executable, "-c", CHILD, arg], cwd=root, env=env, capture_output=True,
                          text=True, check=False)
@@ -66,22 +70,26 @@ def main(argv=None) -> int:
     ap.add_argument("--photons", type=int, default=100_000)
     ap.add_argument("--root", default=ROOT, help="the checkout whose clppm renders")
     ap.add_argument("--tile-points", type=int, default=None, help="render.tile_points (default: the config's)")
+    ap.add_argument("--outputs", metavar="DIR", help="write each render's files (EXR, PNG, report, "
+                    "checkpoint) under DIR, as `clppm render -o DIR/WxH.exr` does (default: none)")
     a = ap.parse_args(argv)
     sizes = [tuple(int(v) for v in s.lower().split("x")) for s in a.sizes.split(",")]
     print(f"bench/resolution.py: {os.path.basename(a.config)}, {a.passes} passes, {a.photons:,} stored "
           f"photons/pass, clppm from {a.root}", flush=True)
     print("| pixels | resolution | sample points | tiles | peak RSS (GB) | s per pass | "
-          "us per pixel per pass | total s |")
-    print("|---:|---|---:|---:|---:|---:|---:|---:|")
+          "us per pixel per pass | total s |" + (" checkpoint MB |" if a.outputs else ""))
+    print("|---:|---|---:|---:|---:|---:|---:|---:|" + ("---:|" if a.outputs else ""))
     for w, h in sizes:
+        out = os.path.join(os.path.abspath(a.outputs), f"{w}x{h}.exr") if a.outputs else None
         r = run_one(os.path.abspath(a.root), os.path.abspath(a.config), (w, h), a.passes, a.photons,
-                    a.tile_points)
+                    a.tile_points, out)
         if "error" in r:
             print(f"| {w * h:,} | {w}x{h} | failed: {r['error']} |||||", flush=True)
             continue
         sp = r["pass_s"] / a.passes
         print(f"| {w * h:,} | {w}x{h} | {r['points']:,} | {r['tiles']} | {r['rss_bytes'] / 1e9:.2f} | "
-              f"{sp:.2f} | {1e6 * sp / (w * h):.2f} | {r['total_s']:.1f} |", flush=True)
+              f"{sp:.2f} | {1e6 * sp / (w * h):.2f} | {r['total_s']:.1f} |"
+              + (f" {os.path.getsize(out[:-4] + '.ckpt.npz') / 1e6:.0f} |" if out else ""), flush=True)
     return 0
 
 

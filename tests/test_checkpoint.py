@@ -165,14 +165,16 @@ def _refused(capsys, work, ck, *extra):
 
 def test_global_radius_checkpoint_is_the_film_and_the_first_radii(work, good_ckpt):
     """With the global radius a checkpoint holds the pixel x band sums (closed chunks and the open
-    one) and each sample point's R0 only: no per-point R and N; its size is those arrays' bytes
-    and a header, not a multiple of the sample points."""
+    one, each only once made) and each sample point's R0: no per-point R and N.  A finished
+    2-pass render (one chunk, closed) writes one pixel x band sum and an empty open chunk: the
+    file is that sum, the pair counts, R0 and a header."""
     st = ckpt.load(good_ckpt)
     rep = json.loads((work / "good" / "g.json").read_text())
     assert st["pt_R"].size == 0 and st["pt_N"].size == 0
     npix, nb = st["pix_acc"].shape
+    assert npix == 24 * 16 and st["chunk_acc"].shape == (0, nb)
     assert st["R0"].shape == (rep["sample_points"],)
-    film = 2 * npix * nb * 8 + npix * 8               # pix_acc, chunk_acc (float64), pix_pairs
+    film = npix * nb * 8 + npix * 8                   # pix_acc (float64), pix_pairs
     assert os.path.getsize(good_ckpt) <= film + 4 * rep["sample_points"] + 64 * 1024
 
 

@@ -65,7 +65,7 @@ def develop(L: np.ndarray, cam, wl, spectrum, light, exposure: float | None = No
     the white reference under ``light``), the white reference and the count of non-finite
     values (set to 0).  The film knows the camera, the bands and the light, not the integrator."""
     nonfinite = int(np.size(L) - np.count_nonzero(np.isfinite(L)))
-    L = np.nan_to_num(L, nan=0.0, posinf=0.0, neginf=0.0).reshape(cam.height, cam.width, len(wl))
+    L = np.nan_to_num(L, copy=False, nan=0.0, posinf=0.0, neginf=0.0).reshape(cam.height, cam.width, len(wl))
     xyz = tristimulus(L, wl)
     rgb = colorimetry.xyz_to_linear_srgb(xyz)
     Yw = float(tristimulus(white_reference(light, cam, wl, spectrum)[None, :], wl)[0, 1])
@@ -100,7 +100,7 @@ def write_image(out: str, res: RenderResult) -> None:
         hdr = {"clppm_report": json.dumps({k: res.report[k] for k in ("method", "scheme", "passes_done",
                                                                        "photons_emitted", "exposure")})}
         paths.write_atomic(out, lambda tmp: image.write_exr(
-            tmp, res.rgb.astype(np.float32), spectral=res.spectral.astype(np.float32), wl=res.wl, header=hdr))
+            tmp, res.rgb.astype(np.float32), spectral=res.spectral, wl=res.wl, header=hdr))   # planes made float32 one by one
     _write_png(files.get("png", out), res)
 
 

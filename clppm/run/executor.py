@@ -382,7 +382,7 @@ class Reduction:
                      held=[{"passes": r.passes, "emitted": r.emitted, "stored": r.stored,
                             "tallies": r.tallies, "seconds": r.seconds} for r in held])
         none = np.zeros(0, np.float32)        # the global radius: no per-point state but R0
-        open_pix = self.open_pix if self.open_pix is not None else np.zeros(self.pix.size)
+        open_pix = self.open_pix if self.open_pix is not None else np.zeros(0)   # none: written empty
         ckpt.save(path, meta, state, dict(pt_R=none, pt_N=none, R0=cal.R0, pix_acc=self.pix.reshape(-1, nb),
                                           chunk_acc=open_pix.reshape(-1, nb), pix_pairs=self.pairs,
                                           held_pix=np.stack([r.pix for r in held]) if held else None,
@@ -392,7 +392,10 @@ class Reduction:
     def load(cls, st: dict, name: str, k: int, n_passes: int) -> "Reduction":
         p = st["pass_index"]
         open_pix = st["chunk_acc"].reshape(-1).astype(np.float64) if np.any(st["chunk_acc"]) else None
-        red = cls(pix=st["pix_acc"].reshape(-1).astype(np.float64), pairs=st["pix_pairs"].astype(np.uint64),
+        pix = st["pix_acc"].reshape(-1).astype(np.float64)
+        if not pix.size:                     # an in-process checkpoint before its first chunk closed
+            pix = np.zeros(st["pix_pairs"].size * st["chunk_acc"].shape[-1])
+        red = cls(pix=pix, pairs=st["pix_pairs"].astype(np.uint64),
                   tallies=st["tallies"], next_pass=p, open_pix=open_pix, emitted=list(st["stats"]["emitted"]),
                   stored=int(st["stats"]["stored"]),
                   seconds={k_: float(st["timing"].get(k_, 0.0)) for k_ in ppm.STAGES})

@@ -50,8 +50,9 @@ class PPMRun:
     sc: ppm.Pipeline
     cal: ppm.Calibration
     points: ppm.PointState
-    total: ppm.Accumulators           # sum of the closed chunks, added in chunk order
-    chunk: ppm.Accumulators           # the open chunk
+    # pixel x band sums on the device, each made when first needed (at 1920x1080 one is 1.3 GB):
+    total: ppm.Accumulators | None    # sum of the closed chunks, added in chunk order
+    chunk: ppm.Accumulators | None    # the open chunk
     tallies: photonpass.Tallies
     meta: dict                        # what a checkpoint must match (run_identity)
     t_start: float
@@ -60,6 +61,7 @@ class PPMRun:
     emitted: list = field(default_factory=list)
     stored: int = 0
     resume_flags: str = "--resume"
+    closed: bool = False              # close() called: the next image() takes the sums off the device
 
     @property
     def passes_done(self) -> int:
@@ -84,9 +86,9 @@ class PPMRun:
             sc.timing["calibration"] = time.perf_counter() - t0
         else:
             cal = ppm.Calibration.from_checkpoint(st)
-        run = cls(sc=sc, cal=cal, points=sc.point_state(cal), total=ppm.Accumulators.zeros(sc),
-                  chunk=ppm.Accumulators.zeros(sc), tallies=photonpass.Tallies(sc.vol.nb, sc.vol.nl),
-                  meta=meta, t_start=t_start, on_pass=on_pass)
+        run = cls(sc=sc, cal=cal, points=sc.point_state(cal), total=None, chunk=None,
+                  tallies=photonpass.Tallies(sc.vol.nb, sc.vol.nl), meta=meta, t_start=t_start,
+                  on_pass=on_pass)
         if st is not None:
             run._restore(st)
         sc.apply(cal)
@@ -98,9 +100,15 @@ class PPMRun:
         if sc.npts and not sc.global_radius:      # with the global radius R = R0 and N = 0 always
             self.points.R[:sc.npts].set(st["pt_R"].astype(np.float32))
             self.points.N[:sc.npts].set(st["pt_N"].astype(np.float32))
-        self.total.pix.set(st["pix_acc"].reshape(-1))
-        self.chunk.pix.set(st["chunk_acc"].reshape(-1))
-        self.total.pairs.set(st["pix_pairs"])
+        # an empty or all-zero sum stays unmade: 0 + x is x, so the bits are the same
+        if np.any(st["pix_acc"]) or np.any(st["pix_pairs"]):
+            self.total = ppm.Accumulators.zeros(sc)
+            if st["pix_acc"].size:
+                self.total.pix.set(st["pix_acc"].reshape(-1))
+            self.total.pairs.set(st["pix_pairs"])
+        if np.any(st["chunk_acc"]):
+            self.chunk = ppm.Accumulators.zeros(sc)
+            self.chunk.pix.set(st["chunk_acc"].reshape(-1))
         self.tallies.counts = st["tallies"]
         self.tallies.emitted = st["tallies_emitted"]
         sc.timing.update({k: v for k, v in st["timing"].items() if k in ppm.STAGES + ("calibration",)})
@@ -109,6 +117,8 @@ class PPMRun:
         """Pass p into the open chunk (:meth:`clppm.integrators.ppm.Pipeline.run_passes`, as a Dask
         chunk runs it); the chunk closes every ``render.chunk_passes`` passes."""
         p = self.p
+        if self.chunk is None:
+            self.chunk = ppm.Accumulators.zeros(self.sc)
         info, = self.sc.run_passes(self.cal, self.points, [p], self.chunk, self.tallies)
         self.emitted.append(info["emitted"])
         self.stored += min(info["stored"], self.sc.capacity)
@@ -117,15 +127,32 @@ class PPMRun:
                              "emitted": info["emitted"], "radius_scale": info.get("radius_scale", 1.0)})
         self.p = p + 1
         if self.p % int(self.sc.rs.chunk_passes) == 0 or self.p == self.n_passes:
+            self.close_chunk()
+
+    def close_chunk(self) -> None:
+        """The open chunk joins the total (the first becomes it: 0 + x is x); a chunk is kept
+        for the next pass only while passes remain."""
+        if self.total is None:
+            self.total, self.chunk = self.chunk, None
+        else:
             self.total.add(self.chunk)
             self.chunk.clear()
+        if self.p >= self.n_passes:
+            self.chunk = None
+
+    def _sums(self) -> list:
+        return [a for a in (self.total, self.chunk) if a is not None]
 
     def host_sums(self) -> tuple[np.ndarray, np.ndarray]:
         """The image's sums: the closed chunks plus the open one (which stays open)."""
-        pix, pairs = self.total.host()
-        cpix, cpairs = self.chunk.host()
-        pix += cpix                     # in place: at 1920x1080 a pixel x band array is 1.3 GB
-        pairs += cpairs
+        parts = self._sums()
+        if not parts:
+            return np.zeros(self.sc.npix * self.sc.vol.nb), np.zeros(self.sc.npix, np.uint64)
+        pix, pairs = parts[0].host()
+        for a in parts[1:]:
+            cpix, cpairs = a.host()
+            pix += cpix                 # in place: at 1920x1080 a pixel x band array is 1.3 GB
+            pairs += cpairs
         return pix, pairs
 
     def save(self, path: str) -> None:
@@ -135,25 +162,35 @@ class PPMRun:
         state = dict(pass_index=self.p, emitted_total=sum(self.emitted), store_zmin=self.cal.store_zmin,
                      tallies=self.tallies.counts, tallies_emitted=self.tallies.emitted, stats=stats,
                      timing=self.sc.timing)
-        pix, pairs = self.total.host()
-        cpix, cpairs = self.chunk.host()
+        # a sum not made yet is written empty (zeros): the file is at most the two sums
+        none = np.zeros((0, nb))
+        pairs = np.zeros(self.sc.npix, np.uint64)
+        pix = cpix = none
+        if self.total is not None:
+            pix, tpairs = self.total.host()
+            pairs += tpairs
+        if self.chunk is not None:
+            cpix, cpairs = self.chunk.host()
+            pairs += cpairs
         if self.sc.global_radius:             # R = R0 and N = 0 at every point: R0 says it all
             pt_R = pt_N = np.zeros(0, np.float32)
         else:
             pt_R, pt_N = self.points.R.get()[:n], self.points.N.get()[:n]
         ckpt.save(path, self.meta, state, dict(pt_R=pt_R, pt_N=pt_N, R0=self.cal.R0, pix_acc=pix.reshape(-1, nb),
-                                               chunk_acc=cpix.reshape(-1, nb), pix_pairs=pairs + cpairs))
+                                               chunk_acc=cpix.reshape(-1, nb), pix_pairs=pairs))
 
     def image(self, interrupted: bool) -> RenderResult:
         """The image and run report of the passes done so far."""
         sc = self.sc
         pix, pairs = self.host_sums()
+        if self.closed:                 # the last image: the device's copies go before the film's work
+            self.total = self.chunk = None
         return finish(sc, pix, int(pairs.sum()), sum(self.emitted), self.p, sc.timing,
                       {"stored": self.stored, "first_search_mean": self.cal.first_search_mean},
                       self.t_start, interrupted, own=True)
 
     def close(self) -> None:
-        pass
+        self.closed = True
 
 
 def run_identity(req: RenderRequest, sc: ppm.Pipeline) -> dict:
