@@ -82,7 +82,17 @@ def common_report(cfg: dict, integrator: str, dev, passes_done: int, interrupted
             "config": json.loads(json.dumps(cfg, default=str)),
             "integrator": integrator, "device": dev.info(),
             "passes_done": passes_done, "passes_requested": render_settings(cfg).passes,
-            "interrupted": interrupted, "assumed": scene.notes(cfg)}
+            "interrupted": interrupted, "assumed": scene.notes(cfg),
+            "programs_built": programs_built()}
+
+
+def programs_built() -> dict:
+    """The programs this process built (or loaded from the binary caches) so far: count,
+    seconds, per kernel file (clppm.compute.programs.REGISTRY)."""
+    from ..compute.programs import REGISTRY
+    st = REGISTRY.stats
+    return {"count": st.programs, "seconds": st.seconds,
+            "by_file": {f: {"count": n, "seconds": s} for f, (n, s) in sorted(st.by_file.items())}}
 
 
 def sibling(out: str, suffix: str) -> str:

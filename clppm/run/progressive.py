@@ -9,6 +9,7 @@ A checkpoint is the pass index plus that state: photon pass p draws its random n
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass, field
@@ -61,7 +62,7 @@ class PPMRun:
     emitted: list = field(default_factory=list)
     stored: int = 0
     resume_flags: str = "--resume"
-    closed: bool = False              # close() called: the next image() takes the sums off the device
+    closed: bool = False              # close() called: the last image() works in the sums' own memory
 
     @property
     def passes_done(self) -> int:
@@ -144,10 +145,20 @@ class PPMRun:
         return [a for a in (self.total, self.chunk) if a is not None]
 
     def host_sums(self) -> tuple[np.ndarray, np.ndarray]:
-        """The image's sums: the closed chunks plus the open one (which stays open)."""
+        """The image's sums: the closed chunks plus the open one (which stays open).  After
+        close(), the first sum mapped and the others added into it: the caller's to overwrite,
+        on a CPU device the device's own memory (no film-sized copy)."""
         parts = self._sums()
         if not parts:
             return np.zeros(self.sc.npix * self.sc.vol.nb), np.zeros(self.sc.npix, np.uint64)
+        if self.closed:
+            pix = parts[0].pix.map_to_host()
+            pairs = parts[0].pairs.get()
+            for a in parts[1:]:
+                with mapped(a.pix) as cpix:
+                    pix += cpix
+                pairs += a.pairs.get()
+            return pix, pairs
         pix, pairs = parts[0].host()
         for a in parts[1:]:
             cpix, cpairs = a.host()
@@ -162,35 +173,45 @@ class PPMRun:
         state = dict(pass_index=self.p, emitted_total=sum(self.emitted), store_zmin=self.cal.store_zmin,
                      tallies=self.tallies.counts, tallies_emitted=self.tallies.emitted, stats=stats,
                      timing=self.sc.timing)
-        # a sum not made yet is written empty (zeros): the file is at most the two sums
-        none = np.zeros((0, nb))
         pairs = np.zeros(self.sc.npix, np.uint64)
-        pix = cpix = none
-        if self.total is not None:
-            pix, tpairs = self.total.host()
-            pairs += tpairs
-        if self.chunk is not None:
-            cpix, cpairs = self.chunk.host()
-            pairs += cpairs
+        for a in self._sums():
+            pairs += a.pairs.get()
         if self.sc.global_radius:             # R = R0 and N = 0 at every point: R0 says it all
             pt_R = pt_N = np.zeros(0, np.float32)
         else:
             pt_R, pt_N = self.points.R.get()[:n], self.points.N.get()[:n]
-        ckpt.save(path, self.meta, state, dict(pt_R=pt_R, pt_N=pt_N, R0=self.cal.R0, pix_acc=pix.reshape(-1, nb),
-                                               chunk_acc=cpix.reshape(-1, nb), pix_pairs=pairs))
+        # the sums written from maps of the device's buffers (on a CPU device no copy); a sum
+        # not made yet is written empty (zeros): the file is at most the two sums
+        with mapped(self.total, nb) as pix, mapped(self.chunk, nb) as cpix:
+            ckpt.save(path, self.meta, state, dict(pt_R=pt_R, pt_N=pt_N, R0=self.cal.R0, pix_acc=pix,
+                                                   chunk_acc=cpix, pix_pairs=pairs))
 
     def image(self, interrupted: bool) -> RenderResult:
         """The image and run report of the passes done so far."""
         sc = self.sc
         pix, pairs = self.host_sums()
-        if self.closed:                 # the last image: the device's copies go before the film's work
-            self.total = self.chunk = None
         return finish(sc, pix, int(pairs.sum()), sum(self.emitted), self.p, sc.timing,
                       {"stored": self.stored, "first_search_mean": self.cal.first_search_mean},
                       self.t_start, interrupted, own=True)
 
     def close(self) -> None:
         self.closed = True
+
+
+@contextlib.contextmanager
+def mapped(a, nb: int | None = None):
+    """A device array (or Accumulators' pix; None: an empty (0, nb) array) read through a map
+    while the block runs, as (-1, nb) rows with ``nb``: on a CPU device the device's own memory."""
+    import pyopencl as cl
+    if a is None:
+        yield np.zeros((0, nb))
+        return
+    arr = a.pix if isinstance(a, ppm.Accumulators) else a
+    h = arr.map_to_host(flags=cl.map_flags.READ)
+    try:
+        yield h if nb is None else h.reshape(-1, nb)
+    finally:
+        h.base.release()
 
 
 def run_identity(req: RenderRequest, sc: ppm.Pipeline) -> dict:
