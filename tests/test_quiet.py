@@ -58,3 +58,22 @@ def test_every_program_of_a_render_builds_without_compiler_warnings(dev, tmp_pat
     logs = [ln for ln in r.stderr.splitlines() if "CompilerWarning" not in ln]
     bad = [ln for ln in logs if "warning:" in ln.lower() or "error:" in ln.lower()]
     assert not bad, "\n".join(bad[:20])
+
+
+def test_a_second_render_loads_what_the_first_built(dev, tmp_path):
+    """The report's programs_built: a cold render builds the eye, photon and gather programs (and
+    the grid's), each once; a second render with the caches the first left builds the same
+    programs, each once, from the cached binaries, in less time."""
+    import json
+    env = _fresh_env(tmp_path, CLPPM_SELF_TEST="0")
+    built = []
+    for name in ("cold", "warm"):
+        r = _clppm(["render", "forearm", *SMALL, "--device", device_spec(dev.device), "-q",
+                    "-o", f"out/{name}.png"], env, tmp_path)
+        assert r.returncode == 0, r.stderr
+        built.append(json.loads((tmp_path / "out" / f"{name}.json").read_text())["programs_built"])
+    cold, warm = built
+    assert {"eye.cl", "photon.cl", "gather.cl"} <= set(cold["by_file"])
+    assert all(v["count"] == 1 for v in cold["by_file"].values()), cold
+    assert {f: v["count"] for f, v in warm["by_file"].items()} == {f: v["count"] for f, v in cold["by_file"].items()}
+    assert warm["seconds"] < cold["seconds"], (cold, warm)
