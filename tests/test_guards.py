@@ -474,3 +474,9 @@ def test_memory_check_counts_the_multi_band_photon_record():
     cap = int(cfgs[1]["render"]["photons"] * 1.2) + 4096
     assert n1["stored photons"] == 32 * cap and n9["stored photons"] == 64 * cap
     assert n9["sorted photons"] == 68 * cap
+    # the pixel x band sums: one while the render's passes fit in one chunk, else two
+    npix, nb = 100, len(vol.wl)
+    one = ppm.device_needs(C.override(cfgs[1], "render", "passes", 4), vol, 0, npix)["pixel accumulators"]
+    two = ppm.device_needs(C.override(cfgs[1], "render", "passes", 5), vol, 0, npix)["pixel accumulators"]
+    assert cfgs[1]["render"]["chunk_passes"] == 4
+    assert one == npix * nb * 8 + npix * 8 and two == 2 * one

@@ -109,13 +109,15 @@ class PointState:
 
 def device_needs(cfg: dict, vol: volume.Volume, eye_bytes: int, npix: int, photons: int | None = None) -> dict:
     """Device bytes of a render of ``cfg`` (``photons`` stored per pass; None: the config's)."""
-    capacity = photonpass.capacity_for(int(render_settings(cfg).photons if photons is None else photons))
+    rs = render_settings(cfg)
+    capacity = photonpass.capacity_for(int(rs.photons if photons is None else photons))
     from ..config import bands_per_path
     rec = 32 + 4 * (bands_per_path(cfg) - 1)                   # photon record bytes
+    sums = 1 if int(rs.passes) <= int(rs.chunk_passes) else 2   # the total, and an open chunk
     return {"stored photons": capacity * rec, "sorted photons": capacity * (rec + 4),
             "grid cells": 4 * (hashgrid.DEFAULT_MAX_CELLS + 1) * 2,
             "sample points": eye_bytes,
-            "pixel accumulators": 2 * (npix * vol.nb * 8 + npix * 8), **vol.device_bytes()}
+            "pixel accumulators": sums * (npix * vol.nb * 8 + npix * 8), **vol.device_bytes()}
 
 
 @dataclass
@@ -504,7 +506,7 @@ def tile_points(req: RenderRequest, dev: Device, vol, tiles: eyepass.EyeTiles) -
         budget = min(info["global_mem_bytes"] // TILE_MEMORY_SHARE, TILE_MEMORY_CAP, info["max_alloc_bytes"])
         return max(int(budget // tile_bytes(1, ppp, beam)), 1)
     need = tile_bytes(want, ppp, beam)
-    others = sum(v for k, v in device_needs(req.scene, vol, 0, tiles.npix, int(rc.photons)).items())
+    others = sum(device_needs(req.resolved(), vol, 0, tiles.npix, int(rc.photons)).values())
     big = want * max(16, ppp * (32 if beam else 8))
     if need + others > info["global_mem_bytes"] or big > info["max_alloc_bytes"]:
         from ..config import ConfigError
