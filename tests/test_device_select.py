@@ -49,3 +49,27 @@ def test_icd_register_writes_real_path_and_keeps_previous(tmp_path, monkeypatch)
 def test_icd_register_off_switch(monkeypatch):
     monkeypatch.setenv("CLPPM_NO_ICD", "1")
     assert icd.register() is None
+
+
+def test_link_duplicates_makes_identical_copies_one_file(tmp_path):
+    """Intel's wheels install libX.so, libX.so.1 and libX.so.1.2 as copies: the identical ones
+    become hard links to the fully versioned file, with the same bytes under every name; a copy
+    whose bytes differ, and a library of another name, stay as they are."""
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    body = os.urandom(4096)
+    for n in ("libfoo.so", "libfoo.so.1", "libfoo.so.1.2"):
+        (lib / n).write_bytes(body)
+    (lib / "libbar.so").write_bytes(body[:2048])
+    (lib / "libbar.so.3").write_bytes(body[:2047] + bytes([body[2047] ^ 1]))   # same size, other bytes
+    (lib / "libbaz.so").write_bytes(body)                                      # same bytes, other name
+    paths = [str(p) for p in lib.iterdir()]
+    assert icd.link_duplicates(paths) == 2 * 4096
+    ino = {n: os.stat(lib / n).st_ino for n in os.listdir(lib)}
+    assert ino["libfoo.so"] == ino["libfoo.so.1"] == ino["libfoo.so.1.2"]
+    assert len({ino["libbar.so"], ino["libbar.so.3"], ino["libbaz.so"], ino["libfoo.so"]}) == 4
+    for n in ("libfoo.so", "libfoo.so.1", "libfoo.so.1.2", "libbaz.so"):
+        assert (lib / n).read_bytes() == body
+    assert sorted(os.listdir(lib)) == sorted(["libfoo.so", "libfoo.so.1", "libfoo.so.1.2", "libbar.so",
+                                              "libbar.so.3", "libbaz.so"])     # no temporary left
+    assert icd.link_duplicates(paths) == 0                                     # done once

@@ -98,6 +98,76 @@ def _write_vendors(lib: str, previous: str, entries: dict[str, str]) -> str:
     return d
 
 
+#: the pip packages of Intel's CPU runtime (the ``clppm[intel]`` extra)
+INTEL_DISTS = ("intel-opencl-rt", "intel-cmplr-lib-rt", "tbb")
+
+
+def link_duplicates(paths: list[str]) -> int:
+    """Make byte-identical copies of one shared library a single file: ``paths`` grouped by the
+    name before ``.so`` and the size, every copy whose bytes equal the group's first file is
+    replaced by a hard link to it (atomically: a link under a temporary name, then renamed over
+    the copy; a running process keeps the file it mapped).  Returns the bytes freed.
+
+    Wheels cannot hold symbolic links, so Intel's runtime installs ``libX.so``, ``libX.so.1``
+    and ``libX.so.1.2.3`` as two or three copies of the same library: 324 MB of its 600 MB.
+    The files keep their names and bytes (pip's RECORD still matches; ``pip uninstall`` removes
+    every name), so nothing that loads them can tell."""
+    import filecmp
+    groups: dict = {}
+    for p in paths:
+        try:
+            st = os.lstat(p)
+        except OSError:
+            continue
+        name = os.path.basename(p)
+        if ".so" not in name or not os.path.isfile(p) or os.path.islink(p):
+            continue
+        groups.setdefault((os.path.dirname(p), name.split(".so")[0], st.st_size), []).append(p)
+    freed = 0
+    for (folder, _, size), files in groups.items():
+        first, *rest = sorted(files, key=len, reverse=True)     # the fully versioned name stays
+        for p in rest:
+            tmp = f"{p}.clppm-{os.getpid()}"
+            try:
+                if os.path.samefile(first, p) or not filecmp.cmp(first, p, shallow=False):
+                    continue
+                os.link(first, tmp)
+                os.replace(tmp, p)
+                freed += size
+            except OSError:                       # read-only, another file system: leave it
+                if os.path.lexists(tmp):
+                    os.remove(tmp)
+    return freed
+
+
+def _runtime_files() -> list[str]:
+    """The shared libraries that Intel's runtime's pip packages installed."""
+    from importlib import metadata
+    out = []
+    for dist in INTEL_DISTS:
+        try:
+            files = metadata.files(dist) or []
+        except Exception:             # not installed (PackageNotFoundError) or no RECORD
+            continue
+        out += [str(f.locate()) for f in files if ".so" in f.name]
+    return out
+
+
+def shrink_runtime(lib: str) -> None:
+    """Once per installed runtime (a marker in clppm's cache folder, keyed by the library's path,
+    size and time): :func:`link_duplicates` over its packages' libraries."""
+    try:
+        st = os.stat(lib)
+        key = hashlib.sha1(f"{lib}\0{st.st_size}\0{st.st_mtime_ns}".encode()).hexdigest()[:12]
+        marker = os.path.join(_cache_dir("linked"), key)
+        if os.path.exists(marker):
+            return
+        link_duplicates(_runtime_files())
+        open(marker, "w").close()
+    except OSError:
+        pass
+
+
 def register() -> str | None:
     """Point the ICD loader at the pip-installed Intel CPU runtime; the vendors folder, or None.
 
@@ -108,6 +178,7 @@ def register() -> str | None:
     lib = intel_cpu_library()
     if lib is None:
         return None
+    shrink_runtime(lib)
     previous = os.environ.get("OCL_ICD_VENDORS") or SYSTEM_VENDORS
     if not os.path.isdir(previous):                  # ocl-icd also takes a single .icd file
         return None if os.path.exists(previous) else _point(lib, previous, {})
