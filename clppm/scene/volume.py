@@ -184,22 +184,26 @@ def _worley_edges(xs, ys, spacing, seed, period=None):
     gy = np.arange(gy0, int(cy.max()) + 2, dtype=np.int64)[:, None]
     gx, gy = np.broadcast_arrays(gx, gy)
     PX, PY = _cell_points(gx, gy, sx, sy, key, ncx, ncy, period is not None)
-    x, y = xs[None, :], ys[:, None]
     shape = (len(ys), len(xs))
     f1, f2 = np.full(shape, np.inf), np.full(shape, np.inf)
-    d, t, closer = np.empty(shape), np.empty(shape), np.empty(shape, bool)
-    for ox in (-1, 0, 1):
-        ix = (cx + ox - gx0)[None, :]
-        for oy in (-1, 0, 1):
-            iy = (cy + oy - gy0)[:, None]
-            np.subtract(x, PX[iy, ix], out=d)
-            np.subtract(y, PY[iy, ix], out=t)
-            np.hypot(d, t, out=d)
-            # f2 = d < f1 ? f1 : min(f2, d); f1 = min(f1, d)
-            np.less(d, f1, out=closer)
-            np.minimum(f2, d, out=f2)
-            np.copyto(f2, f1, where=closer)
-            np.minimum(f1, d, out=f1)
+    d, closer = np.empty(shape), np.empty(shape, bool)
+    # rows of one cell row share their 3 x 3 cells' rows: x - px is one row of numbers for them
+    starts = np.flatnonzero(np.diff(cy)) + 1
+    for r0, r1 in zip(np.concatenate([[0], starts]), np.concatenate([starts, [len(ys)]])):
+        y = ys[r0:r1, None]
+        a1, a2, dd, cl = f1[r0:r1], f2[r0:r1], d[r0:r1], closer[r0:r1]
+        for ox in (-1, 0, 1):
+            ix = cx + ox - gx0
+            for oy in (-1, 0, 1):
+                iy = int(cy[r0]) + oy - gy0
+                dx = xs - PX[iy, ix]
+                np.subtract(y, PY[iy, ix][None, :], out=dd)
+                np.hypot(dx[None, :], dd, out=dd)
+                # f2 = d < f1 ? f1 : min(f2, d); f1 = min(f1, d)
+                np.less(dd, a1, out=cl)
+                np.minimum(a2, dd, out=a2)
+                np.copyto(a2, a1, where=cl)
+                np.minimum(a1, dd, out=a1)
     np.subtract(f2, f1, out=f2)
     return np.multiply(0.5, f2, out=f2)
 
