@@ -146,7 +146,7 @@ def test_two_workers_give_the_in_process_bytes(work, cfg, reference, client):
 def test_two_workers_over_tiles_give_the_in_process_tiled_bytes(work, cfg, dev, client):
     """A render of 2+ tiles (render.tile_points) on the cluster: each task is one tile over one
     chunk of passes, its worker holding that tile's points and sums alone; the EXR is the
-    in-process tiled render's, and the untiled one's, byte for byte."""
+    in-process tiled render's, and the untiled one's, byte for byte, also stopped and resumed."""
     small = C.override(C.override(cfg, "camera", "resolution", [48, 36]), "render", "passes", 3)
     small = C.override(small, "render", "checkpoint_every", 0)
     one = entry.render(small, dev=dev, out=str(work / "t1" / "one.exr"))
@@ -168,6 +168,16 @@ def test_two_workers_over_tiles_give_the_in_process_tiled_bytes(work, cfg, dev, 
     assert max(c["pixels"] for c in ex["chunks"]) < 48 * 36, "a piece returned the whole image's sums"
     assert res.report["gather_pairs"] == ref.report["gather_pairs"] > 0
     assert res.report["photons_emitted"] == ref.report["photons_emitted"]
+    # stopped after its first whole chunk (pieces of the other then in flight are dropped, not
+    # half-added) and resumed: the same bytes
+    out = work / "t3" / "s.exr"
+    stopped = entry.render_distributed(C.override(tiled, "render", "checkpoint_every", 1), client=client,
+                                       out=str(out), stop_after=1)
+    assert stopped.report["passes_done"] < 3
+    st = ckpt.load(ckpt.default_path(str(out)))
+    assert st["pass_index"] + sum(len(h["passes"]) for h in st["held"]) in (1, 2)
+    entry.render_distributed(tiled, client=client, out=str(work / "t3" / "r.exr"), resume=ckpt.default_path(str(out)))
+    assert (work / "t3" / "r.exr").read_bytes() == two
 
 
 def test_two_workers_in_the_scatter_layout_give_the_in_process_gather_bytes(work, dev, client):
