@@ -198,9 +198,10 @@ __kernel void gather(const GridParams gp,
                      __global float* pt_R,
                      __global float* pt_N,
                      __global uint* pt_M,                   /* photons found in this pass */
-                     __global double* pix_acc,              /* [npix*NB] */
-                     __global ulong* pix_pairs,             /* [npix] photon-point pairs found */
-                     const int npix, const int spp,
+                     __global double* pix_acc,              /* [(npix-acc_base)*NB] */
+                     __global ulong* pix_pairs,             /* [npix-acc_base] photon-point pairs found */
+                     const int npix, const int acc_base,    /* the first pixel the sums hold */
+                     const int spp,
                      const float alpha, const int global_radius, const float radius_scale,
                      const double pass_scale)
 {
@@ -241,9 +242,9 @@ __kernel void gather(const GridParams gp,
             pairs += M;
         }
     }
-    __global double* out = pix_acc + (size_t)pix * NB;
+    __global double* out = pix_acc + (size_t)(pix - acc_base) * NB;
     for (int b = 0; b < NB; ++b) out[b] += (double)accp[b] * pass_scale;
-    pix_pairs[pix] += pairs;
+    pix_pairs[pix - acc_base] += pairs;
 }
 
 /* Initial radius: the radius at which the first search finds K photons, estimated from the
@@ -640,8 +641,8 @@ __kernel void gather_beam(const GridParams gp,
                           __global float* pt_R,
                           __global float* pt_N,
                           volatile __global uint* pt_M,     /* zeroed; photons found, all classes */
-                          __global double* pix_acc,
-                          const int npix, const int spp,
+                          __global double* pix_acc,         /* [(npix-acc_base)*NB] */
+                          const int npix, const int acc_base, const int spp,
                           const int global_radius, const float radius_scale,
                           const double pass_scale)
 {
@@ -669,7 +670,7 @@ __kernel void gather_beam(const GridParams gp,
             if (M > 0u) atomic_add(&pt_M[i], M);    /* integers: the classes' order is immaterial */
         }
     }
-    __global double* out = pix_acc + (size_t)pix * NB + g;
+    __global double* out = pix_acc + (size_t)(pix - acc_base) * NB + g;
     for (int k = 0; k < NBC; ++k) out[GCLASS * k] += (double)accp[k] * pass_scale;
 }
 
@@ -677,8 +678,8 @@ __kernel void gather_beam(const GridParams gp,
  * (in 2-D: the disc's area shrinks as N grows) and the pixel's pair count. */
 __kernel void gather_beam_points(__global const uint* ray_start, __global float* pt_R,
                                  __global float* pt_N, __global const uint* pt_M,
-                                 __global ulong* pix_pairs, const int npix, const int spp,
-                                 const float alpha, const int global_radius)
+                                 __global ulong* pix_pairs, const int npix, const int acc_base,
+                                 const int spp, const float alpha, const int global_radius)
 {
     const int pix = get_global_id(0);
     if (pix >= npix) return;
@@ -695,5 +696,5 @@ __kernel void gather_beam_points(__global const uint* ray_start, __global float*
         }
         pairs += M;
     }
-    pix_pairs[pix] += pairs;
+    pix_pairs[pix - acc_base] += pairs;
 }

@@ -143,6 +143,43 @@ def test_two_workers_give_the_in_process_bytes(work, cfg, reference, client):
     assert st["pass_index"] == PASSES and not st["held"]
 
 
+def test_two_workers_over_tiles_give_the_in_process_tiled_bytes(work, cfg, dev, client):
+    """A render of 2+ tiles (render.tile_points) on the cluster: each task is one tile over one
+    chunk of passes, its worker holding that tile's points and sums alone; the EXR is the
+    in-process tiled render's, and the untiled one's, byte for byte, also stopped and resumed."""
+    small = C.override(C.override(cfg, "camera", "resolution", [48, 36]), "render", "passes", 3)
+    small = C.override(small, "render", "checkpoint_every", 0)
+    one = entry.render(small, dev=dev, out=str(work / "t1" / "one.exr"))
+    npts = one.report["sample_points"]
+    tiled = C.override(small, "render", "tile_points", max(npts // 3, 1))
+    ref = entry.render(tiled, dev=dev, out=str(work / "t1" / "ref.exr"))
+    ntiles = ref.report["tiles"]
+    assert ntiles >= 2, ntiles
+    res = entry.render_distributed(tiled, client=client, out=str(work / "t2" / "two.exr"))
+    two = (work / "t2" / "two.exr").read_bytes()
+    assert two == (work / "t1" / "ref.exr").read_bytes(), "2 workers over tiles: EXR differs from in-process"
+    assert two == (work / "t1" / "one.exr").read_bytes()
+    ex = res.report["executor"]
+    assert ex["tiles"] == ntiles == res.report["tiles"]
+    pieces = sorted((c["passes"][0], c["tile"]) for c in ex["chunks"])
+    assert pieces == [(p, t) for p in range(0, 3, K) for t in range(ntiles)], "a piece lost or counted twice"
+    assert max(c["points"] for c in ex["chunks"]) < npts, "a worker held every sample point"
+    assert sum(c["points"] for c in ex["chunks"] if c["passes"][0] == 0) == npts
+    assert max(c["pixels"] for c in ex["chunks"]) < 48 * 36, "a piece returned the whole image's sums"
+    assert res.report["gather_pairs"] == ref.report["gather_pairs"] > 0
+    assert res.report["photons_emitted"] == ref.report["photons_emitted"]
+    # stopped after its first whole chunk (pieces of the other then in flight are dropped, not
+    # half-added) and resumed: the same bytes
+    out = work / "t3" / "s.exr"
+    stopped = entry.render_distributed(C.override(tiled, "render", "checkpoint_every", 1), client=client,
+                                       out=str(out), stop_after=1)
+    assert stopped.report["passes_done"] < 3
+    st = ckpt.load(ckpt.default_path(str(out)))
+    assert st["pass_index"] + sum(len(h["passes"]) for h in st["held"]) in (1, 2)
+    entry.render_distributed(tiled, client=client, out=str(work / "t3" / "r.exr"), resume=ckpt.default_path(str(out)))
+    assert (work / "t3" / "r.exr").read_bytes() == two
+
+
 def test_two_workers_in_the_scatter_layout_give_the_in_process_gather_bytes(work, dev, client):
     """The atomic scatter layout (render.layout = "scatter", clppm/integrators/beam.py) on the cluster: the
     tiny scene with 9 bands, all carried by every path (the layout's condition), rendered by

@@ -23,7 +23,9 @@ def test_every_kernel_is_read_and_volume_args_expanded():
     assert [p.kind for p in eye.params[:2]] == ["buffer", "buffer"]
     g = {p.name: p for p in sigs["gather"].params}
     assert (g["gp"].kind, g["npix"].kind, g["pass_scale"].ctype) == ("struct", "scalar", "double")
-    assert len(sigs["gather_beam"].params) == 28
+    assert len(sigs["gather_beam"].params) == 29
+    for k in ("gather", "gather_beam", "gather_beam_points"):        # sums of a tile's pixels
+        assert sigs[k].names[sigs[k].names.index("npix") + 1] == "acc_base", k
 
 
 def test_parameter_declarations():

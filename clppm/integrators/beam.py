@@ -250,7 +250,7 @@ class BeamGather:
         p0, p1 = sc.pixels
         self.kernels.gather_beam_points(
             sc.dev.queue, p1 - p0, start=p0, ray_start=e.ray_start, pt_R=st.R, pt_N=st.N, pt_M=st.M,
-            pix_pairs=acc.pairs, npix=p1, spp=e.camera.spp, alpha=alpha,
+            pix_pairs=acc.pairs, npix=p1, acc_base=acc.base, spp=e.camera.spp, alpha=alpha,
             global_radius=int(sc.global_radius))
 
 
@@ -275,8 +275,8 @@ class GatherLayout:
             sslab=sslab, vlay=bg.vlay, sextra=extra, hgtab=sc.hgtab, optics=sc.vbuf.optics, hgc=bg.hgc,
             mutc=bg.mutc, sw16=sw, pslab=pslab, ray_start=e.ray_start, pt_pos=e.pt_pos,
             pt_piece=e.pt_piece, geo=e.geo, pt_R=st.R, pt_N=st.N, pt_M=st.M, pix_acc=acc.pix,
-            npix=p1, spp=e.camera.spp, global_radius=int(sc.global_radius), radius_scale=scale,
-            pass_scale=pass_scale)
+            npix=p1, acc_base=acc.base, spp=e.camera.spp, global_radius=int(sc.global_radius),
+            radius_scale=scale, pass_scale=pass_scale)
 
 
 class ScatterState:
@@ -370,6 +370,8 @@ class ScatterLayout:
         bg, sc = self.beam, self.beam.pipe
         q, e = sc.dev.queue, sc.eye
         pacc = sc.gbufs.get("pacc", max(sc.npts, 1) * sc.vol.nb, np.int64)
+        if acc.base != 0:
+            raise ValueError("the scatter layout writes every pixel: it needs the whole image's sums")
         pacc.fill(0)
         st.M.fill(0)
         if grid.n:

@@ -50,6 +50,6 @@ class SphereGather:
             sdir_b=grid.sdir_b, sextra=extra, hgtab=sc.hgtab, optics=sc.vbuf.optics,
             ray_start=e.ray_start, pt_pos=e.pt_pos, pt_dir=e.pt_dir, pt_piece=e.pt_piece,
             pieces=e.pieces, pt_slab=e.pt_slab, layer_z=sc.layer_z, pt_R=st.R, pt_N=st.N,
-            pt_M=st.M, pix_acc=acc.pix, pix_pairs=acc.pairs, npix=p1, spp=e.camera.spp,
+            pt_M=st.M, pix_acc=acc.pix, pix_pairs=acc.pairs, npix=p1, acc_base=acc.base, spp=e.camera.spp,
             alpha=alpha, global_radius=int(sc.global_radius), radius_scale=scale,
             pass_scale=pass_scale)

@@ -196,6 +196,16 @@ class EyeTiles:
         self.tiles = tiles
         return tiles
 
+    def use(self, plan: list) -> list:
+        """Tiles given as pixel ranges (another device's :meth:`plan` of the same image): they
+        must cover the pixels in order, each once."""
+        tiles = [(int(a), int(b)) for a, b in plan]
+        if (not tiles or tiles[0][0] != 0 or tiles[-1][1] != self.npix
+                or any(a >= b for a, b in tiles) or any(x[1] != y[0] for x, y in zip(tiles, tiles[1:]))):
+            raise ValueError(f"tiles {tiles[:3]}... do not cover the {self.npix} pixels in order")
+        self.tiles = tiles
+        return tiles
+
     def sizes(self, t: int) -> tuple[int, int]:
         """Sample points and pieces of tile ``t``."""
         r0, r1 = (p * self.camera.spp for p in self.tiles[t])

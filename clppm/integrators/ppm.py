@@ -64,6 +64,22 @@ class Calibration:
     R0: np.ndarray                   # (npts,) float32 initial radius per sample point (um)
     store_zmin: float | None         # photons below this z are never gathered (not stored)
     first_search_mean: float | None  # photons the first search finds per point, on average
+    # the whole image's median and largest R0 (they size every pass's grid), kept when R0 is
+    # left out (:meth:`head`: a distributed tile gets its own points' R0 apart)
+    r0_median: float | None = None
+    r0_max: float | None = None
+
+    def radii(self) -> tuple[float, float]:
+        """The whole image's median and largest R0."""
+        if self.r0_median is not None:
+            return self.r0_median, self.r0_max
+        return float(np.median(self.R0)), float(self.R0.max())
+
+    def head(self) -> "Calibration":
+        """This calibration without the per-point R0 (its median and maximum kept)."""
+        med, rmax = self.radii() if self.R0.size else (0.0, 0.0)
+        return Calibration(R0=np.zeros(0, np.float32), store_zmin=self.store_zmin,
+                           first_search_mean=self.first_search_mean, r0_median=med, r0_max=rmax)
 
     @classmethod
     def from_checkpoint(cls, st: dict) -> "Calibration":
@@ -74,16 +90,21 @@ class Calibration:
 
 @dataclass
 class Accumulators:
-    """Pixel x band radiance sums (float64) and photon-point pair counts, on the device."""
+    """Pixel x band radiance sums (float64) and photon-point pair counts, on the device: of the
+    whole image, or of one tile's pixels (``base``: the first pixel held; the gather kernels
+    write pixel ``pix`` at ``pix - base``)."""
 
     pix: object
     pairs: object
+    base: int = 0
 
     @classmethod
-    def zeros(cls, sc: "Pipeline") -> "Accumulators":
+    def zeros(cls, sc: "Pipeline", pixels: tuple[int, int] | None = None) -> "Accumulators":
+        """Zeroed sums of pixels ``pixels`` (first, end; default: every pixel)."""
         import pyopencl.array as cla
         q = sc.dev.queue
-        return cls(cla.zeros(q, sc.npix * sc.vol.nb, np.float64), cla.zeros(q, sc.npix, np.uint64))
+        p0, p1 = pixels if pixels is not None else (0, sc.npix)
+        return cls(cla.zeros(q, (p1 - p0) * sc.vol.nb, np.float64), cla.zeros(q, p1 - p0, np.uint64), base=p0)
 
     def clear(self) -> None:
         self.pix.fill(0)
@@ -145,6 +166,7 @@ class Pipeline:
     tile: int = 0                    # the tile whose points are loaded (``eye``)
     gclass: int = 1                  # the beam gather's band classes (band_classes)
     estimator: SphereGather | BeamGather | None = None   # the density estimate, made by build
+    tile_state: PointState | None = None    # run_tile's point state (a tile's R0; N and M unused)
     timing: dict = field(default_factory=lambda: {k: 0.0 for k in STAGES})
 
     @property
@@ -215,9 +237,11 @@ class Pipeline:
 
     # building ---------------------------------------------------------------------------------
     @classmethod
-    def build(cls, req: RenderRequest | dict, dev: Device) -> "Pipeline":
+    def build(cls, req: RenderRequest | dict, dev: Device, plan: list | None = None) -> "Pipeline":
         """Volume on the device, eye pass, photon and grid buffers, kernels, the estimator;
-        memory checked first (``req``: a request, or a config rendered with its own values)."""
+        memory checked first (``req``: a request, or a config rendered with its own values;
+        ``plan``: the tiles' pixel ranges to use, as another device planned them; default:
+        planned from this device's memory)."""
         req = req if isinstance(req, RenderRequest) else RenderRequest(req)
         t0 = time.perf_counter()
         scene = Scene.of(req)
@@ -228,7 +252,7 @@ class Pipeline:
         nrays, target = cam.width * cam.height * cam.spp, int(rc.photons)
         check_alloc(dev, device_needs(cfg, vol, (nrays + 1) * 8 + nrays * 8, cam.width * cam.height, target))
         t0 = time.perf_counter()
-        tiles, whole, eye = cls.eye_pass(req, scene, dev, vbuf)
+        tiles, whole, eye = cls.eye_pass(req, scene, dev, vbuf, plan)
         timing["eye"] = time.perf_counter() - t0
         check_alloc(dev, device_needs(cfg, vol, eye.device_bytes(), cam.width * cam.height, target))
         pp = cls.photon_source(scene, dev, vbuf, whole)
@@ -240,13 +264,16 @@ class Pipeline:
         return sc
 
     @staticmethod
-    def eye_pass(req: RenderRequest, scene: Scene, dev: Device, vbuf) -> tuple:
+    def eye_pass(req: RenderRequest, scene: Scene, dev: Device, vbuf, plan: list | None = None) -> tuple:
         """The eye pass: each ray's counts, the tiles, every tile loaded once for what the
         whole image's points decide.  Returns the tiles, the whole image's EyeData and the
         tile left loaded (with one tile: the whole image, loaded for the whole render)."""
         rc = scene.settings
         tiles = eyepass.EyeTiles.count(dev, vbuf, scene, eyepass.scheme(rc.method, rc.spacing_um))
-        tiles.plan(tile_points(req, dev, scene.volume, tiles))
+        if plan is None:
+            tiles.plan(tile_points(req, dev, scene.volume, tiles))
+        else:
+            tiles.use(plan)
         whole, eye = tiles.summarise()
         dev.queue.finish()
         return tiles, whole, eye
@@ -308,7 +335,8 @@ class Pipeline:
         t0 = time.perf_counter()
         if self.global_radius:
             scale = radius_scale(p, float(self.rs.alpha), self.dim)
-            med, rmax = float(np.median(cal.R0)) * scale, float(cal.R0.max()) * scale
+            med0, max0 = cal.radii()
+            med, rmax = med0 * scale, max0 * scale
         else:
             scale = 1.0
             radii = st.R.get()[:self.npts]
@@ -331,7 +359,7 @@ class Pipeline:
                  tallies: photonpass.Tallies) -> dict:
         """Photon pass p, grid, density estimate into ``acc``; returns the pass's counts."""
         info, n = self.photon_pass(p, tallies)
-        if self.npts == 0:
+        if self.npts_total == 0:
             return info
         pg, scale = self.pass_grid(n, cal, st, p)
         pass_scale = 1.0 / max(info["emitted"], 1) if self.global_radius else 1.0
@@ -345,31 +373,55 @@ class Pipeline:
         info["radius_scale"] = scale
         return info
 
+    def run_tile(self, cal: "Calibration", R0: np.ndarray, t: int, chunk: int, passes,
+                 start: np.ndarray | None = None) -> "ChunkResult":
+        """Passes of one chunk over tile ``t``'s pixels alone: a distributed render's piece, which
+        needs only that tile's sample points (``R0``: theirs; ``cal``: the calibration, its R0
+        not needed).  Each pass's photons and grid are the ones :meth:`run_pass` makes (pass p's
+        photons depend on p alone), the tile's gather adds into sums of its own pixels, from
+        zero or from ``start`` (the tile's part of the chunk's earlier sums): each pixel's sum
+        takes the in-process terms in the in-process order.  Its counts (tallies, emitted,
+        stored) are the chunk's, the same for every tile."""
+        import pyopencl.array as cla
+        self.load_tile(t)
+        pixels = self.tiles.tiles[t]
+        n_max = max(self.tiles.max_sizes()[0], 1)
+        if self.tile_state is None or self.tile_state.R.size < n_max:
+            q = self.dev.queue
+            self.tile_state = PointState(R=cla.zeros(q, n_max, np.float32), N=cla.zeros(q, n_max, np.float32),
+                                         M=cla.zeros(q, n_max, np.uint32))
+        st = self.tile_state
+        if self.npts:
+            st.R[:self.npts].set(np.ascontiguousarray(R0, np.float32))
+        acc = Accumulators.zeros(self, pixels)
+        if start is not None:
+            acc.pix.set(np.ascontiguousarray(start, np.float64))
+        tallies = photonpass.Tallies(self.vol.nb, self.vol.nl)
+        before = dict(self.timing)
+        infos = []
+        for p in passes:
+            info, n = self.photon_pass(p, tallies)
+            if self.npts:
+                pg, scale = self.pass_grid(n, cal, st, p)
+                pass_scale = 1.0 / max(info["emitted"], 1) if self.global_radius else 1.0
+                self.density_estimate(pg, st, acc, scale, pass_scale)
+            infos.append(info)
+        pix, pairs = acc.host()
+        return ChunkResult(chunk=chunk, passes=list(passes), pix=pix, pairs=pairs, tallies=tallies.counts,
+                           emitted=[i["emitted"] for i in infos],
+                           stored=sum(min(i["stored"], self.capacity) for i in infos),
+                           seconds={k: self.timing[k] - before.get(k, 0.0) for k in STAGES},
+                           tile=t, pix0=pixels[0])
+
     def _tile_order(self) -> list:
         """The tiles of a sweep, the loaded one first (one load fewer per pass)."""
         return [self.tile] + [t for t in range(self.ntiles) if t != self.tile]
 
     def run_passes(self, cal: "Calibration", st: "PointState", passes, acc: "Accumulators",
                    tallies: photonpass.Tallies) -> list[dict]:
-        """Passes ``passes`` added into ``acc`` (not cleared): the step of the in-process run (one
-        pass) and of a Dask chunk (its passes) alike.  Returns each pass's counts."""
+        """Passes ``passes`` added into ``acc`` (not cleared), every tile: the step of the
+        in-process run (one pass).  Returns each pass's counts."""
         return [self.run_pass(cal, st, p, acc, tallies) for p in passes]
-
-    def run_chunk(self, cal: "Calibration", st: "PointState", chunk: int, passes, acc: "Accumulators",
-                  start: np.ndarray | None = None) -> "ChunkResult":
-        """Passes of one chunk from zeroed accumulators, or from ``start`` (the sums of the chunk's
-        earlier passes that an in-process run's checkpoint holds); the sums come back to the host."""
-        acc.clear()
-        if start is not None:
-            acc.pix.set(np.ascontiguousarray(start, np.float64))
-        tallies = photonpass.Tallies(self.vol.nb, self.vol.nl)
-        before = dict(self.timing)
-        infos = self.run_passes(cal, st, passes, acc, tallies)
-        pix, pairs = acc.host()
-        return ChunkResult(chunk=chunk, passes=list(passes), pix=pix, pairs=pairs, tallies=tallies.counts,
-                           emitted=[i["emitted"] for i in infos],
-                           stored=sum(min(i["stored"], self.capacity) for i in infos),
-                           seconds={k: self.timing[k] - before.get(k, 0.0) for k in STAGES})
 
     # calibration and point state ----------------------------------------------------------------
     def point_state(self, cal: "Calibration") -> "PointState":
@@ -538,6 +590,8 @@ class ChunkResult:
     emitted: list                    # per pass
     stored: int
     seconds: dict
+    tile: int = 0                    # a tile's piece (Pipeline.run_tile): its tile and first pixel;
+    pix0: int = 0                    # pix and pairs then hold that tile's pixels only
 
 
 def chunk_passes(chunk: int, k: int, n_passes: int) -> range:

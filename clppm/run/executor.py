@@ -4,24 +4,33 @@ The engine is dask.distributed: ``--devices`` starts a local cluster with one wo
 per listed device, ``--scheduler`` (or ``CLPPM_SCHEDULER``) joins a running ``dask scheduler``
 with its ``dask worker``s.  Nothing here schedules, retries or moves data itself.
 
-Client (:func:`clppm.run.entry.render_distributed`): one worker builds the scene and calibrates (R0 per sample
-point, the storage depth); the request and the calibration then travel to the workers once, as
-task results the chunks depend on (a lost copy is recomputed, unlike scattered data).  Each
-task is one chunk of passes (:meth:`clppm.integrators.ppm.Pipeline.run_chunk`) and returns its
-sums.  The client adds the chunk sums in chunk order, holding chunks that arrive early
-(:class:`Reduction`), so the float64 total rounds exactly as in the in-process loop: the EXR
-is byte-identical to a render in this process (``clppm.run.entry.render``) with the same seed and ``render.chunk_passes`` on
-the same kind of device.  A chunk whose worker dies is rerun by Dask; since a chunk is a pure
-function of (request, calibration, passes), the rerun gives the same bits, and each chunk is
-added once, by its first pass.  Checkpoints hold the reduced sums, the held chunks and which
-passes they cover (:mod:`clppm.output.checkpoint`); they are in-process checkpoints too, and an
-in-process checkpoint taken inside a chunk resumes here by continuing that chunk from its sums
-(:meth:`clppm.integrators.ppm.Pipeline.run_chunk` from those sums).
+Client (:func:`clppm.run.entry.render_distributed`): one worker builds the scene, plans its
+tiles of sample points (``render.tile_points``) and calibrates (R0 per sample point, the
+storage depth); the request, the tiles and the calibration then travel to the workers once, as
+task results the pieces depend on (a lost copy is recomputed, unlike scattered data).  A task
+is one piece: one tile's pixels over one chunk of passes
+(:meth:`clppm.integrators.ppm.Pipeline.run_tile`).  It gets that tile's R0 alone, loads that
+tile's sample points alone, runs the chunk's photon passes (pass p's photons depend on p
+alone, so every tile sees the in-process photons) and returns the sums of the tile's pixels,
+so a worker never holds more points than the largest tile, nor more sums than a tile's, at
+any resolution.  The client joins a chunk's pieces once all have come (tiles are disjoint
+pixel ranges in order), and adds the chunk sums in chunk order, holding chunks that arrive
+early (:class:`Reduction`): per pixel the float64 total takes the same terms in the same order
+as the in-process loop, so the EXR is byte-identical to a render in this process
+(``clppm.run.entry.render``) with the same seed and ``render.chunk_passes`` on the same kind of
+device, with one tile or many.  A piece whose worker dies is rerun by Dask; since a piece is a
+pure function of (request, tiles, calibration, tile, passes), the rerun gives the same bits,
+and each piece is taken once.  Checkpoints hold the reduced sums, the whole chunks held and
+which passes they cover (:mod:`clppm.output.checkpoint`; a chunk with pieces missing is rerun
+after a resume); they are in-process checkpoints too, and an in-process checkpoint taken inside
+a chunk resumes here by continuing that chunk's tiles from its sums.
 
 Worker (:class:`ClppmWorker`, a ``WorkerPlugin``): the device is the one the worker process
-was started with (``PYOPENCL_CTX``, else clppm's default choice); the scene (volume, eye pass,
-buffers, kernels) is built once per scene key (``RenderRequest.scene_key``) and kept, one at a time.  A lock runs one chunk
-at a time per worker, whatever ``--nthreads`` says: a scene's buffers are not shared.
+was started with (``PYOPENCL_CTX``, else clppm's default choice); the scene (volume, eye pass
+counts, buffers, kernels) is built once per scene key (``RenderRequest.scene_key``) and tile
+plan and kept, one at a time.  The tiles are the calibrating worker's plan on every worker
+(another device's memory could plan others).  A lock runs one piece at a time per worker,
+whatever ``--nthreads`` says: a scene's buffers are not shared.
 
 Only ``render.radius = "global"`` distributes.  With the per-point radius ("ppm") pass p needs
 the R and N that passes 0..p-1 left at every point, so passes form one chain; independent
@@ -63,19 +72,16 @@ class ExecutorError(RuntimeError):
 # ----------------------------------------------------------------------------------- worker side
 @dataclass
 class _Loaded:
-    """A scene on a worker's device and what the current calibration put on it."""
+    """A scene on a worker's device and the calibration applied to it."""
 
     key: str
     sc: ppm.Pipeline
     cal_key: str | None = None
-    points: ppm.PointState | None = None
-    acc: ppm.Accumulators | None = None
 
     def calibrated(self, cal: ppm.Calibration, cal_key: str) -> "_Loaded":
+        """``cal`` applied (its storage depth; ``cal``: a head, without R0, will do)."""
         if self.cal_key != cal_key:
             self.sc.apply(cal)
-            self.points = self.sc.point_state(cal)
-            self.acc = self.acc or ppm.Accumulators.zeros(self.sc)
             self.cal_key = cal_key
         return self
 
@@ -90,12 +96,15 @@ class ClppmWorker(WorkerPlugin):
         self.lock = threading.Lock()
         self.loaded: _Loaded | None = None
 
-    def scene(self, req: RenderRequest, key: str, fresh: bool = False) -> _Loaded:
-        """The scene of ``req`` on this worker's device, built on first use (the lock is held)."""
+    def scene(self, req: RenderRequest, key: str, fresh: bool = False, plan: list | None = None) -> _Loaded:
+        """The scene of ``req`` on this worker's device, built on first use with the tiles
+        ``plan`` (None: planned here), the lock held."""
         from ..compute.device import open_device
-        if fresh or self.loaded is None or self.loaded.key != key:
+        ld = self.loaded
+        if (fresh or ld is None or ld.key != key
+                or (plan is not None and ld.sc.tiles.tiles != [tuple(t) for t in plan])):
             self.loaded = None           # free the previous scene's device memory first
-            self.loaded = _Loaded(key=key, sc=ppm.Pipeline.build(req, open_device(None)))
+            self.loaded = _Loaded(key=key, sc=ppm.Pipeline.build(req, open_device(None), plan=plan))
         return self.loaded
 
 
@@ -161,41 +170,46 @@ def scene_task(req: RenderRequest, key: str, calibrate: bool) -> dict:
         meta = progressive.run_identity(req, sc)
         timing = {k: v for k, v in sc.timing.items() if k not in ppm.STAGES}
         return {"meta": meta, "cal": cal, "timing": timing, "npix": sc.npix, "nb": sc.vol.nb,
-                "tallies": photonpass.Tallies(sc.vol.nb, sc.vol.nl).counts}
+                "tallies": photonpass.Tallies(sc.vol.nb, sc.vol.nl).counts, "tiles": list(sc.tiles.tiles),
+                "point_ranges": [sc.tiles.point_range(t) for t in range(sc.ntiles)]}
 
 
 @dataclass
 class ChunkDone:
-    """A chunk's result and where and how long it ran (the task's own wall time)."""
+    """A piece's result (one tile over one chunk) and where and how long it ran (the task's
+    own wall time)."""
 
     result: ppm.ChunkResult
     worker: str
     wall: float
+    points: int = 0                  # sample points the worker held for it (its tile's)
 
 
 @_worker_errors
-def chunk_task(req: RenderRequest, key: str, cal: ppm.Calibration, cal_key: str, passes: list,
-               start: np.ndarray | None = None) -> ChunkDone:
-    """One chunk of passes (``start``: the sums of the chunk's earlier passes, to continue)."""
+def tile_task(req: RenderRequest, key: str, plan: list, cal: ppm.Calibration, cal_key: str,
+              R0: np.ndarray, tile: int, passes: list, start: np.ndarray | None = None) -> ChunkDone:
+    """Tile ``tile`` over one chunk of passes (``cal``: the calibration's head; ``R0``: the
+    tile's points' radii; ``start``: the tile's part of the chunk's earlier sums, to continue)."""
     from distributed import get_worker
     plug = _plugin()
     with plug.lock:
         t0 = time.perf_counter()
-        ld = plug.scene(req, key).calibrated(cal, cal_key)
+        ld = plug.scene(req, key, plan=plan).calibrated(cal, cal_key)
         chunk = passes[0] // int(req.settings.chunk_passes)
-        res = ld.sc.run_chunk(cal, ld.points, chunk, passes, ld.acc, start)
-        return ChunkDone(result=res, worker=get_worker().address, wall=time.perf_counter() - t0)
+        res = ld.sc.run_tile(cal, R0, tile, chunk, passes, start)
+        return ChunkDone(result=res, worker=get_worker().address, wall=time.perf_counter() - t0,
+                         points=ld.sc.npts)
 
 
 @_worker_errors
-def finish_task(req: RenderRequest, key: str, cal: ppm.Calibration, cal_key: str, pix: np.ndarray,
-                pairs: int, emitted_total: int, passes_done: int, timing: dict, stats: dict,
-                elapsed: float, interrupted: bool):
+def finish_task(req: RenderRequest, key: str, plan: list, cal: ppm.Calibration, cal_key: str,
+                pix: np.ndarray, pairs: int, emitted_total: int, passes_done: int, timing: dict,
+                stats: dict, elapsed: float, interrupted: bool):
     """The image and report of the reduced sums (:func:`progressive.finish`, on a worker: it
     needs the scene's volume, eye pass and light spectrum)."""
     plug = _plugin()
     with plug.lock:
-        ld = plug.scene(req, key).calibrated(cal, cal_key)
+        ld = plug.scene(req, key, plan=plan).calibrated(cal, cal_key)
         return progressive.finish(ld.sc, pix, pairs, emitted_total, passes_done, timing, stats,
                                   time.perf_counter() - elapsed, interrupted)
 
@@ -327,9 +341,27 @@ def pieces(start: int, n_passes: int, k: int) -> list[list[int]]:
     return out
 
 
+def join(parts: dict) -> ppm.ChunkResult:
+    """A chunk's pieces (tile -> piece, every tile's) as the chunk: the tiles' sums side by side
+    (the tiles are the image's pixels in order), the chunk's counts (each piece has them) and
+    the seconds the pieces took together."""
+    first = parts[min(parts)]
+    if len(parts) == 1:
+        return first
+    order = [parts[t] for t in sorted(parts)]
+    seconds: dict = {}
+    for r in order:
+        for k, v in r.seconds.items():
+            seconds[k] = seconds.get(k, 0.0) + v
+    return ppm.ChunkResult(chunk=first.chunk, passes=first.passes, pix=np.concatenate([r.pix for r in order]),
+                           pairs=np.concatenate([r.pairs for r in order]), tallies=first.tallies,
+                           emitted=first.emitted, stored=first.stored, seconds=seconds)
+
+
 @dataclass
 class Reduction:
-    """The client's running sum: chunks added in pass order, early ones held until their turn."""
+    """The client's running sum: a chunk's tile pieces joined once all have come, chunks added in
+    pass order, early ones held until their turn."""
 
     pix: np.ndarray                  # float64 (npix * NB): chunks before ``next_pass``
     pairs: np.ndarray                # uint64 (npix)
@@ -341,16 +373,25 @@ class Reduction:
     emitted: list = field(default_factory=list)  # per pass, passes before next_pass
     stored: int = 0
     seconds: dict = field(default_factory=lambda: {k: 0.0 for k in ppm.STAGES})
+    ntiles: int = 1                  # pieces per chunk
+    parts: dict = field(default_factory=dict)    # first pass -> {tile: piece}: chunks not yet whole
 
     @classmethod
-    def empty(cls, npix: int, nb: int, tallies: list) -> "Reduction":
-        return cls(pix=np.zeros(npix * nb), pairs=np.zeros(npix, np.uint64), tallies=tallies)
+    def empty(cls, npix: int, nb: int, tallies: list, ntiles: int = 1) -> "Reduction":
+        return cls(pix=np.zeros(npix * nb), pairs=np.zeros(npix, np.uint64), tallies=tallies, ntiles=ntiles)
 
     def add(self, r: ppm.ChunkResult) -> None:
-        """Take a chunk (each once: a rerun's duplicate is ignored) and reduce what is in order."""
+        """Take a piece (each once: a rerun's duplicate is ignored); a chunk whose pieces have
+        all come is held, and what is in order is reduced."""
         if r.passes[0] < self.next_pass or r.passes[0] in self.held:
             return
-        self.held[r.passes[0]] = r
+        parts = self.parts.setdefault(r.passes[0], {})
+        if r.tile in parts:
+            return
+        parts[r.tile] = r
+        if len(parts) < self.ntiles:
+            return
+        self.held[r.passes[0]] = join(self.parts.pop(r.passes[0]))
         while self.next_pass in self.held:
             c = self.held.pop(self.next_pass)
             self.open_pix = None             # c continued it: its sums include the open ones
@@ -389,7 +430,7 @@ class Reduction:
                                           held_pairs=np.stack([r.pairs for r in held]) if held else None))
 
     @classmethod
-    def load(cls, st: dict, name: str, k: int, n_passes: int) -> "Reduction":
+    def load(cls, st: dict, name: str, k: int, n_passes: int, ntiles: int = 1) -> "Reduction":
         p = st["pass_index"]
         open_pix = st["chunk_acc"].reshape(-1).astype(np.float64) if np.any(st["chunk_acc"]) else None
         pix = st["pix_acc"].reshape(-1).astype(np.float64)
@@ -397,7 +438,7 @@ class Reduction:
             pix = np.zeros(st["pix_pairs"].size * st["chunk_acc"].shape[-1])
         red = cls(pix=pix, pairs=st["pix_pairs"].astype(np.uint64),
                   tallies=st["tallies"], next_pass=p, open_pix=open_pix, emitted=list(st["stats"]["emitted"]),
-                  stored=int(st["stats"]["stored"]),
+                  stored=int(st["stats"]["stored"]), ntiles=ntiles,
                   seconds={k_: float(st["timing"].get(k_, 0.0)) for k_ in ppm.STAGES})
         plan = {tuple(q) for q in pieces(p, n_passes, k)}
         for h, hp, hq in zip(st["held"], st.get("held_pix", []), st.get("held_pairs", [])):
@@ -438,9 +479,15 @@ class _Job:
     first: dict                      # scene_task's answer
     t_start: float
     cal: ppm.Calibration | None = None
-    cal_f: object = None
+    cal_f: object = None             # the calibration's head (no R0), on every worker
     cal_key: str = ""
+    r0_f: dict = field(default_factory=dict)    # tile -> its points' R0, made when first needed
     timing: dict = field(default_factory=dict)
+
+    @property
+    def tiles(self) -> list:
+        """The tiles' pixel ranges (the calibrating worker's plan)."""
+        return self.first["tiles"]
 
     @classmethod
     def start(cls, c, req: RenderRequest, t_start, workers) -> "_Job":
@@ -470,26 +517,37 @@ class _Job:
         if resume:
             st = ckpt.load(resume, self.meta)
             self.cal = ppm.Calibration.from_checkpoint(st)
-            red = Reduction.load(st, os.path.basename(resume), self.k, self.n_passes)
+            red = Reduction.load(st, os.path.basename(resume), self.k, self.n_passes, len(self.tiles))
             self.timing = {k: v for k, v in st["timing"].items() if k not in ppm.STAGES}
         else:
             self.cal = self.first["cal"]
-            red = Reduction.empty(self.first["npix"], self.first["nb"], self.first["tallies"])
+            red = Reduction.empty(self.first["npix"], self.first["nb"], self.first["tallies"], len(self.tiles))
             self.timing = dict(self.first["timing"])
         self.cal_key = cal_hash(self.cal)
-        self.cal_f = self.client.submit(_value, self.cal, key=f"clppm-cal-{self.cal_key}-{self.run}",
+        self.cal_f = self.client.submit(_value, self.cal.head(), key=f"clppm-cal-{self.cal_key}-{self.run}",
                                         pure=False)
         self.client.replicate([self.req_f, self.cal_f])    # on every worker: no pull toward one
         return red
 
-    def submit_chunk(self, passes: list, red: Reduction, worker: str | None = None):
-        """Chunk ``passes`` as a task, placed on ``worker`` first (a loose restriction: an idle
-        worker may still steal it)."""
+    def r0(self, t: int):
+        """Tile ``t``'s points' R0 as a task result (moved to the workers that load the tile)."""
+        if t not in self.r0_f:
+            a, b = self.first["point_ranges"][t]
+            self.r0_f[t] = self.client.submit(_value, np.ascontiguousarray(self.cal.R0[a:b]),
+                                              key=f"clppm-r0-{t}-{self.cal_key}-{self.run}", pure=False)
+        return self.r0_f[t]
+
+    def submit_piece(self, passes: list, t: int, red: Reduction, worker: str | None = None):
+        """Tile ``t`` over chunk ``passes`` as a task, placed on ``worker`` first (a loose
+        restriction: an idle worker may still steal it)."""
         start = None
         if red.open_pix is not None and passes[0] == red.next_pass:
-            start = self.client.scatter(red.open_pix, hash=False)
-        return self.client.submit(chunk_task, self.req_f, self.key, self.cal_f, self.cal_key, passes,
-                                  start, key=f"clppm-chunk-{passes[0]}-{self.key}-{self.run}",
+            p0, p1 = self.tiles[t]
+            nb = self.first["nb"]
+            start = self.client.scatter(red.open_pix[p0 * nb:p1 * nb], hash=False)
+        return self.client.submit(tile_task, self.req_f, self.key, self.tiles, self.cal_f, self.cal_key,
+                                  self.r0(t), t, passes, start,
+                                  key=f"clppm-chunk-{passes[0]}-{t}-{self.key}-{self.run}",
                                   workers=None if worker is None else [worker], allow_other_workers=True,
                                   pure=False)
 
@@ -502,16 +560,17 @@ class _Job:
         c = self.client
         pix_f = c.scatter(red.pix, hash=False)
         stats = {"stored": red.stored, "first_search_mean": self.cal.first_search_mean}
-        f = c.submit(finish_task, self.req_f, self.key, self.cal_f, self.cal_key, pix_f,
+        f = c.submit(finish_task, self.req_f, self.key, self.tiles, self.cal_f, self.cal_key, pix_f,
                      int(red.pairs.sum()), sum(red.emitted), red.next_pass, {**self.timing, **red.seconds},
                      stats, time.perf_counter() - self.t_start, interrupted, pure=False)
         return f.result()
 
 
 class DaskRun:
-    """A render on a cluster, as :func:`clppm.integrators.driver.drive` steps it: every chunk not
-    yet done is submitted at once; a step waits (at most half a second, so a signal is seen) for
-    chunks to finish and reduces them in pass order."""
+    """A render on a cluster, as :func:`clppm.integrators.driver.drive` steps it: every piece
+    (tile, chunk) of a chunk not yet done is submitted at once; a step waits (at most half a
+    second, so a signal is seen) for pieces to finish and reduces the whole chunks in pass
+    order."""
 
     resume_flags = "--resume"
 
@@ -522,13 +581,14 @@ class DaskRun:
         self.report = {"engine": "dask.distributed", "where": where, "chunk_passes": job.k,
                        "workers": {a: {kk: w[kk] for kk in ("device", "type")} for a, w in workers.items()},
                        "chunks": [], "bytes_moved": 0}
-        # chunks dealt to the workers in turn: each device starts with a share (a worker still
-        # building its scene would otherwise find every chunk taken by one that has), and work
+        # pieces dealt to the workers in turn: each device starts with a share (a worker still
+        # building its scene would otherwise find every piece taken by one that has), and work
         # stealing evens out the rest
-        todo = [q for q in pieces(red.next_pass, job.n_passes, job.k) if not red.covers(q)]
+        todo = [(q, t) for q in pieces(red.next_pass, job.n_passes, job.k) if not red.covers(q)
+                for t in range(len(job.tiles))]
         addrs = sorted(workers)
-        self.futs = {job.submit_chunk(q, red, addrs[i % len(addrs)] if addrs else None): q
-                     for i, q in enumerate(todo)}
+        self.futs = {job.submit_piece(q, t, red, addrs[i % len(addrs)] if addrs else None): (q, t)
+                     for i, (q, t) in enumerate(todo)}
         self.t0 = time.perf_counter()
 
     @property
@@ -542,11 +602,13 @@ class DaskRun:
         except TimeoutError:
             return
         for f in done:
-            q = self.futs.pop(f)
+            q, t = self.futs.pop(f)
             d = _result(f, q, self.ckpath)
             self.red.add(d.result)
             self.report["bytes_moved"] += d.result.pix.nbytes + d.result.pairs.nbytes
-            self.report["chunks"].append({"passes": [q[0], q[-1]], "worker": d.worker, "seconds": d.wall})
+            self.report["chunks"].append({"passes": [q[0], q[-1]], "tile": t, "worker": d.worker,
+                                          "seconds": d.wall, "points": d.points,
+                                          "pixels": int(d.result.pairs.size)})
             if self.on_chunk is not None:
                 self.on_chunk(d)
 
@@ -555,7 +617,7 @@ class DaskRun:
 
     def image(self, interrupted: bool) -> film.RenderResult:
         res = self.job.image(self.red, interrupted)
-        res.report["executor"] = dict(self.report, held_passes=sorted(self.red.held),
+        res.report["executor"] = dict(self.report, tiles=len(self.job.tiles), held_passes=sorted(self.red.held),
                                       passes_wall_s=time.perf_counter() - self.t0)
         return res
 

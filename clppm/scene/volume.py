@@ -154,34 +154,62 @@ def layer_optics(layers: list[dict], wl: np.ndarray, source: str = "<config>"):
 
 
 # ----------------------------------------------------------------------------- relief
-def _worley_edges(x, y, spacing, seed, period=None):
-    """Distance to the nearest edge of a jittered-grid Voronoi diagram ((F2-F1)/2)."""
+def _cell_points(gx, gy, sx, sy, key, ncx, ncy, periodic):
+    """The jittered feature point of each grid cell (gx, gy): hashed from the cell index (its
+    wrapped index where periodic), so any extent works."""
+    hx = gx % ncx if periodic else gx
+    hy = gy % ncy if periodic else gy
+    h = (hx * 73856093) ^ (hy * 19349663) ^ key
+    h = (h * 2654435761) & 0xFFFFFFFF
+    jx = (h & 0xFFFF) / 65536.0
+    jy = (h >> 16) / 65536.0
+    return (gx + 0.1 + 0.8 * jx) * sx, (gy + 0.1 + 0.8 * jy) * sy
+
+
+def _worley_edges(xs, ys, spacing, seed, period=None):
+    """Distance to the nearest edge of a jittered-grid Voronoi diagram ((F2-F1)/2) at the points
+    (ys[r], xs[c]), (len(ys), len(xs)).  The feature points are computed once per cell (not
+    per point), then each point's 3 x 3 cells are looked up: the same numbers as evaluating
+    them per point."""
     rng = np.random.default_rng(seed)
     ncx = max(1, int(round(period[0] / spacing))) if period else None
     ncy = max(1, int(round(period[1] / spacing))) if period else None
     sx = period[0] / ncx if period else spacing
     sy = period[1] / ncy if period else spacing
-    cx = np.floor(x / sx).astype(np.int64)
-    cy = np.floor(y / sy).astype(np.int64)
-    # one seed per grid cell, hashed from the cell index so any extent works
-    f1 = np.full(x.shape, np.inf); f2 = np.full(x.shape, np.inf)
+    cx = np.floor(xs / sx).astype(np.int64)
+    cy = np.floor(ys / sy).astype(np.int64)
     key = rng.integers(1, 2**31 - 1)
-    for ox in (-1, 0, 1):
-        for oy in (-1, 0, 1):
-            gx, gy = cx + ox, cy + oy
-            hx = gx % ncx if period else gx
-            hy = gy % ncy if period else gy
-            h = (hx * 73856093) ^ (hy * 19349663) ^ key
-            h = (h * 2654435761) & 0xFFFFFFFF
-            jx = (h & 0xFFFF) / 65536.0
-            jy = (h >> 16) / 65536.0
-            px = (gx + 0.1 + 0.8 * jx) * sx
-            py = (gy + 0.1 + 0.8 * jy) * sy
-            d = np.hypot(x - px, y - py)
-            nf1 = np.minimum(f1, d)
-            f2 = np.where(d < f1, f1, np.minimum(f2, d))
-            f1 = nf1
-    return 0.5 * (f2 - f1)
+    gx0, gy0 = int(cx.min()) - 1, int(cy.min()) - 1
+    gx = np.arange(gx0, int(cx.max()) + 2, dtype=np.int64)[None, :]
+    gy = np.arange(gy0, int(cy.max()) + 2, dtype=np.int64)[:, None]
+    gx, gy = np.broadcast_arrays(gx, gy)
+    PX, PY = _cell_points(gx, gy, sx, sy, key, ncx, ncy, period is not None)
+    shape = (len(ys), len(xs))
+    f1, f2 = np.full(shape, np.inf), np.full(shape, np.inf)
+    d, closer = np.empty(shape), np.empty(shape, bool)
+    # rows of one cell row share their 3 x 3 cells' rows: x - px is one row of numbers for them
+    starts = np.flatnonzero(np.diff(cy)) + 1
+    for r0, r1 in zip(np.concatenate([[0], starts]), np.concatenate([starts, [len(ys)]])):
+        y = ys[r0:r1, None]
+        a1, a2, dd, cl = f1[r0:r1], f2[r0:r1], d[r0:r1], closer[r0:r1]
+        for ox in (-1, 0, 1):
+            ix = cx + ox - gx0
+            for oy in (-1, 0, 1):
+                iy = int(cy[r0]) + oy - gy0
+                dx = xs - PX[iy, ix]
+                np.subtract(y, PY[iy, ix][None, :], out=dd)
+                np.hypot(dx[None, :], dd, out=dd)
+                # f2 = d < f1 ? f1 : min(f2, d); f1 = min(f1, d)
+                np.less(dd, a1, out=cl)
+                np.minimum(a2, dd, out=a2)
+                np.copyto(a2, a1, where=cl)
+                np.minimum(a1, dd, out=a1)
+    np.subtract(f2, f1, out=f2)
+    return np.multiply(0.5, f2, out=f2)
+
+
+#: rows of columns a relief task makes at once (its arrays stay in the cores' caches)
+RELIEF_ROWS = 16
 
 
 def generated_relief(nx, ny, dx, dy, depth, spacing, width, seed, periodic):
@@ -192,19 +220,19 @@ def generated_relief(nx, ny, dx, dy, depth, spacing, width, seed, periodic):
     h = np.zeros((ny, nx))
     xs = (np.arange(nx) + 0.5) * dx
     period = (nx * dx, ny * dy) if periodic else None
+
     def rows(j0):
-        j1 = min(ny, j0 + 256)
-        y = ((np.arange(j0, j1) + 0.5) * dy)[:, None] * np.ones((1, nx))
-        x = np.ones((j1 - j0, 1)) * xs[None, :]
-        e1 = _worley_edges(x, y, spacing, seed, period)
-        e2 = _worley_edges(x, y, spacing / 3.0, seed + 1, period)
+        j1 = min(ny, j0 + RELIEF_ROWS)
+        y = (np.arange(j0, j1) + 0.5) * dy
+        e1 = _worley_edges(xs, y, spacing, seed, period)
+        e2 = _worley_edges(xs, y, spacing / 3.0, seed + 1, period)
         h[j0:j1] = -depth * np.exp(-(e1 / (0.5 * width)) ** 2) \
                    - 0.4 * depth * np.exp(-(e2 / (0.4 * width)) ** 2)
 
     # blocks of rows are independent and numpy releases the GIL on them: one thread per core
     from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 8))) as ex:
-        list(ex.map(rows, range(0, ny, 256)))
+        list(ex.map(rows, range(0, ny, RELIEF_ROWS)))
     return h - h.max()
 
 
@@ -265,8 +293,99 @@ def _build_recent(key: str, cfg: dict, source: str) -> Volume:
     if key not in _recent:
         if len(_recent) >= _RECENT_MAX:
             _recent.pop(next(iter(_recent)))
-        _recent[key] = _build(cfg, source)
+        _recent[key] = _stored(key, cfg, source)
     return _recent[key]
+
+
+# ----------------------------------------------------------------------------- the volume store
+#: volumes of at least this many columns are kept on disk (smaller ones build in milliseconds)
+STORE_COLUMNS = 1 << 18
+#: volumes kept on disk, at most (the forearm's is about 70 MB)
+STORE_MAX = 4
+_VOLUME_ARRAYS = ("wl", "n", "thickness", "mua", "mus", "g", "iface", "heights", "smooth", "tiles")
+_code_digest: str | None = None
+
+
+def store_dir() -> str:
+    """Where built volumes persist: ``$XDG_CACHE_HOME/clppm/volumes`` (default ``~/.cache``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "clppm", "volumes")
+
+
+def _storing() -> bool:
+    """Volumes are kept unless ``CLPPM_NO_VOLUME_STORE`` is set."""
+    return not os.environ.get("CLPPM_NO_VOLUME_STORE")
+
+
+def _digest(key: str) -> str:
+    """The stored volume's name: its geometry and the code that builds it (the scene modules,
+    the config's defaults and numpy's version), so a changed builder never reads an old file."""
+    global _code_digest
+    import hashlib
+    if _code_digest is None:
+        h = hashlib.sha256(np.__version__.encode())
+        here = os.path.dirname(os.path.abspath(__file__))
+        data = os.path.join(os.path.dirname(here), "data")
+        files = [os.path.join(here, f) for f in sorted(os.listdir(here)) if f.endswith(".py")]
+        files += [os.path.join(os.path.dirname(here), "config.py")]
+        files += [os.path.join(data, f) for f in sorted(os.listdir(data)) if os.path.isfile(os.path.join(data, f))]
+        for f in files:
+            with open(f, "rb") as fh:
+                h.update(os.path.basename(f).encode() + fh.read())
+        _code_digest = h.hexdigest()
+    return hashlib.sha256((_code_digest + key).encode()).hexdigest()[:32]
+
+
+def _stored(key: str, cfg: dict, source: str) -> Volume:
+    """The volume of ``cfg``: read from the store when a run built it before (the forearm's
+    relief and smooth-surface bounds take seconds to build, tens of milliseconds to read),
+    else built (and, when large, stored).  A file that cannot be read is built again."""
+    if not _storing() or cfg["relief"]["kind"] == "file":     # a height map may change under its name
+        return _build(cfg, source)
+    path = os.path.join(store_dir(), _digest(key) + ".npz")
+    if os.path.exists(path):
+        try:
+            vol = _read(path)
+            os.utime(path)                      # the most recently used are kept
+            return vol
+        except Exception:                       # damaged or partly written: build it again
+            pass
+    vol = _build(cfg, source)
+    if vol.nx * vol.ny >= STORE_COLUMNS:
+        with contextlib.suppress(OSError):
+            _write(path, vol)
+    return vol
+
+
+def _write(path: str, vol: Volume) -> None:
+    """Store ``vol`` at ``path`` (written aside, then renamed: a reader sees all or nothing),
+    then drop all but the STORE_MAX most recently used."""
+    import tempfile
+    d = os.path.dirname(path)
+    os.makedirs(d, exist_ok=True)
+    meta = {k: getattr(vol, k) for k in ("names", "x0", "y0", "dx", "dy", "nx", "ny", "dz", "lateral",
+                                          "n_above", "n_below", "surface", "cell", "info")}
+    arrays = {k: getattr(vol, k) for k in _VOLUME_ARRAYS if getattr(vol, k) is not None}
+    fd, tmp = tempfile.mkstemp(dir=d, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, meta=np.array(json.dumps(meta)), **arrays)
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+    kept = sorted((e for e in os.scandir(d) if e.name.endswith(".npz")), key=lambda e: e.stat().st_mtime,
+                  reverse=True)
+    for e in kept[STORE_MAX:]:
+        with contextlib.suppress(OSError):
+            os.unlink(e.path)
+
+
+def _read(path: str) -> Volume:
+    with np.load(path, allow_pickle=False) as z:
+        meta = json.loads(str(z["meta"]))
+        arrays = {k: (z[k] if k in z.files else None) for k in _VOLUME_ARRAYS}
+    return Volume(**arrays, **meta)
 
 
 @contextlib.contextmanager
@@ -367,9 +486,8 @@ def _interfaces(layers: list, depth: np.ndarray, s, w, dz: float, quantize: bool
         for k in range(nl + 1):
             if np.ndim(z[k]):
                 fin = np.abs(z[k]) < BIG / 2
-                zk = z[k].copy()
-                zk[fin] = np.round(zk[fin] / dz) * dz
-                z[k] = zk
+                q = np.round(z[k] / dz) * dz
+                z[k] = q if fin.all() else np.where(fin, q, z[k])
             elif abs(z[k]) < BIG / 2:
                 z[k] = np.round(z[k] / dz) * dz
     for k in range(1, nl + 1):                     # layers never overlap
@@ -411,13 +529,14 @@ def _weights_bernstein(order: int) -> np.ndarray:
 def _wsum(weights, arrays) -> np.ndarray:
     """sum_a weights[a] arrays[a] in that order, skipping zero weights (half of the Catmull-Rom
     samples' Bernstein weights): the same numbers as the full sum up to the sign of a zero."""
-    out = None
+    out = tmp = None
     for w, a in zip(weights, arrays):
         if w != 0:
             if out is None:
-                out = w * a
+                out = np.multiply(w, a)
             else:
-                out += w * a
+                tmp = np.multiply(w, a, out=tmp)
+                out += tmp
     return out
 
 
@@ -445,6 +564,10 @@ def _tile_reduce(a: np.ndarray, fn) -> np.ndarray:
     return axis(axis(a, a.ndim - 1), a.ndim - 2)
 
 
+#: rows of columns smooth_tile_bounds takes at once (whole cells; its arrays stay in the cores' caches)
+TILE_ROWS = 8 * CELL
+
+
 def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> np.ndarray:
     """(nty, ntx, 4) float32 for one smooth surface (samples S, (ny, nx)): per tile of CELL x CELL
     columns its lowest and highest point, K >= max |h_xx|, |h_yy| plus max |h_xy| (per um), and
@@ -453,7 +576,7 @@ def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> n
     within the convex hull of its Bernstein coefficients), rounded outwards to float32: what
     kernels/smoothwalk.h's march needs to never pass a crossing."""
     def block(j0):                                              # tile rows in blocks (memory)
-        j1 = min(S.shape[0], j0 + 64 * CELL)
+        j1 = min(S.shape[0], j0 + TILE_ROWS)
         lo_r, hi_r = max(0, j0 - 2), min(S.shape[0], j1 + 2)    # the rows these patches use
         sub = S[lo_r:hi_r] if not periodic or (lo_r == 0 and hi_r == S.shape[0]) else None
         if sub is None:                                         # periodic: wrap whole rows in
@@ -496,7 +619,7 @@ def smooth_tile_bounds(S: np.ndarray, dx: float, dy: float, periodic: bool) -> n
     # blocks are independent and numpy releases the GIL on them: one thread per core
     from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 8))) as ex:
-        t = np.concatenate(list(ex.map(block, range(0, S.shape[0], 64 * CELL))), 0)
+        t = np.concatenate(list(ex.map(block, range(0, S.shape[0], TILE_ROWS))), 0)
     return _outwards(t)
 
 
