@@ -10,7 +10,8 @@
 * A scene without inclusions uploads the same optics bytes and builds without NINC (the README
   render's identity: tests/test_identity.py); an inclusion's material comes from the layers'
   chromophore spectra.
-* Bad input: one line naming the key and value, exit 2, before any work.
+* Bad input: one line naming the key and value, exit 2, before any work; a render of a scene
+  with inclusions is refused (only the photon pass sees them so far).
 """
 from __future__ import annotations
 
@@ -285,6 +286,24 @@ def test_missing_required_inclusion_key(tmp_path, capsys):
     p.write_text(_toml(raw))
     assert cli.main(["trace", str(p)]) == 2
     assert "inclusion[0].center_mm = None: missing required key" in capsys.readouterr().err
+
+
+def test_render_with_inclusion_refused(tmp_path, capsys):
+    from clppm.checks.tiny import tiny_config
+    raw = tomllib.loads(C.to_toml(tiny_config(size_mm=1.0)))
+    raw["inclusion"] = [{"kind": "vessel", "center_mm": [0.5, 0.5], "depth_um": 150.0}]
+    p = tmp_path / "vessel.toml"
+    p.write_text(_toml(raw))
+    out = tmp_path / "x.png"
+    for extra in ([], ["--integrator", "pt"]):
+        rc = cli.main(["render", str(p), "-o", str(out), "-q", *extra])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and len(err.splitlines()) == 1, err
+        assert "inclusion[0].kind = 'vessel'" in err and "photon pass only" in err, err
+        assert not out.exists()
+    import clppm
+    with pytest.raises(C.ConfigError, match=r"inclusion\[0\]"):
+        clppm.render(C.validate(raw, "vessel"))
 
 
 def _toml(raw: dict) -> str:

@@ -123,6 +123,18 @@ def problems(cfg: dict, source: str = "<config>") -> list[ConfigError]:
     return out
 
 
+def refuse_inclusions(cfg: dict, source: str = "<config>") -> None:
+    """Refuse to render a scene with ``[[inclusion]]`` tables: so far only the photon pass walks
+    through them (``clppm trace``, reflectance); the eye pass, the gathers and the path tracer
+    would see the layers alone, and the image would be wrong, not merely noisy."""
+    inc = cfg.get("inclusion") or []
+    if inc:
+        raise ConfigError(source, "inclusion[0].kind", inc[0]["kind"],
+                          "inclusions are traced by the photon pass only so far (clppm trace, "
+                          "clppm reflectance); the eye pass, gathers and path tracer do not see them "
+                          "yet, so a render would be wrong: remove the [[inclusion]] tables to render")
+
+
 def refuse(cfg: dict, source: str = "<config>") -> None:
     """Raise the first of :func:`problems` (the command line refuses such a scene)."""
     found = problems(cfg, source)
