@@ -555,9 +555,9 @@ def load(path: str) -> dict:
 
 
 def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
-    """A copy of ``cfg`` with one value changed by ``SECTION.KEY=VALUE`` or
-    ``layer.N.KEY=VALUE`` (N: index into the ``[[layer]]`` tables; VALUE in TOML syntax, a bare
-    word is a string), validated like the file's value.  ``cfg`` itself is left unchanged, as by
+    """A copy of ``cfg`` with one value changed by ``SECTION.KEY=VALUE``, ``layer.N.KEY=VALUE``
+    or ``inclusion.N.KEY=VALUE`` (N: index into the ``[[layer]]`` or ``[[inclusion]]`` tables;
+    VALUE in TOML syntax, a bare word is a string), validated like the file's value.  ``cfg`` itself is left unchanged, as by
     :func:`override`: ``cfg = set_item(cfg, "layer.0.n=1.45")``.  The same strings as
     ``clppm render --set``; raises :class:`ConfigError` for an unknown key or a bad value."""
     key_part = item.split("=", 1)[0].strip()
@@ -572,30 +572,38 @@ def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
         value = tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         value = text
-    if section == "layer":
+    if section in ("layer", "inclusion"):
         index, _, key = key.partition(".")
-        return override_layer(cfg, index, key, value, source)
+        return override_table(cfg, section, index, key, value, source)
     return override(cfg, section, key, value, source)
 
 
 def override_layer(cfg: dict, index, key: str, value: Any, source: str = "--set") -> dict:
     """Set ``layer[index].key`` (validated like the file's value)."""
-    n = len(cfg["layer"])
-    names = ", ".join(f"{i} {L['name']}" for i, L in enumerate(cfg["layer"]))
+    return override_table(cfg, "layer", index, key, value, source)
+
+
+def override_table(cfg: dict, kind: str, index, key: str, value: Any, source: str = "--set") -> dict:
+    """Set ``kind[index].key``, kind "layer" or "inclusion" (validated like the file's value)."""
+    schema = LAYER_SCHEMA if kind == "layer" else INCLUSION_SCHEMA
+    tables = cfg.get(kind, [])
+    n = len(tables)
+    names = ", ".join(f"{i} {t['name'] if kind == 'layer' else t['kind']}" for i, t in enumerate(tables))
     try:
         i = int(index)
     except ValueError:
         i = -1
     if not 0 <= i < n:
-        raise ConfigError(source, f"layer.{index}", value, f"no such layer: give an index 0..{n - 1} "
-                                                           f"({names})")
-    if key not in LAYER_SCHEMA:
-        near = difflib.get_close_matches(key, list(LAYER_SCHEMA), 1, 0.5)
-        raise ConfigError(source, f"layer.{i}.{_show_key(key) if key else '<key>'}", value,
+        raise ConfigError(source, f"{kind}.{index}", value,
+                          f"no such {kind}: give an index 0..{n - 1} ({names})" if n
+                          else f"no such {kind}: the config has no [[{kind}]] table")
+    if key not in schema:
+        near = difflib.get_close_matches(key, list(schema), 1, 0.5)
+        raise ConfigError(source, f"{kind}.{i}.{_show_key(key) if key else '<key>'}", value,
                           "unknown key" + (f" (did you mean '{near[0]}'?)" if near else "")
-                          + f"; valid keys: {', '.join(LAYER_SCHEMA)}")
+                          + f"; valid keys: {', '.join(schema)}")
     out = copy.deepcopy(cfg)
-    out["layer"][i][key] = _check(source, f"layer[{i}].{key}", value, LAYER_SCHEMA[key], ".")
+    out[kind][i][key] = _check(source, f"{kind}[{i}].{key}", value, schema[key], ".")
     _cross_checks(source, out)
     return out
 

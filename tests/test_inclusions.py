@@ -288,6 +288,29 @@ def test_missing_required_inclusion_key(tmp_path, capsys):
     assert "inclusion[0].center_mm = None: missing required key" in capsys.readouterr().err
 
 
+def test_set_item_reaches_an_inclusion():
+    cfg = slab_cfg()
+    out = C.set_item(cfg, "inclusion.0.radius_um=30")
+    assert out["inclusion"][0]["radius_um"] == 30.0 and cfg["inclusion"][0]["radius_um"] == 50.0
+    with pytest.raises(C.ConfigError, match=r"inclusion\[1\]\.melanin = 2.0: must be <= 1"):
+        C.set_item(cfg, "inclusion.1.melanin=2")
+    with pytest.raises(C.ConfigError, match=r"no such inclusion: give an index 0\.\.1"):
+        C.set_item(cfg, "inclusion.5.blood=0.5")
+    with pytest.raises(C.ConfigError, match=r"the config has no \[\[inclusion\]\] table"):
+        C.set_item(C.load("forearm"), "inclusion.0.blood=0.5")
+
+
+def test_trace_prints_each_inclusion(tmp_path, capsys):
+    p = tmp_path / "slab.toml"
+    p.write_text(_toml({k: v for k, v in SLAB.items()}))
+    assert cli.main(["trace", str(p), "--photons", "4000", "--json", str(tmp_path / "t.json")]) == 0
+    out = capsys.readouterr().out
+    assert "absorbed in inclusion[0] (vessel)" in out and "absorbed in inclusion[1] (ellipsoid)" in out
+    import json
+    rep = json.loads((tmp_path / "t.json").read_text())
+    assert set(rep["absorbed_per_inclusion"]) == {"inclusion[0]", "inclusion[1]"}
+
+
 def test_render_with_inclusion_refused(tmp_path, capsys):
     from clppm.checks.tiny import tiny_config
     raw = tomllib.loads(C.to_toml(tiny_config(size_mm=1.0)))
