@@ -6,7 +6,8 @@
  *
  * Materials by index: layer L's optics are the rows optics[L*NB + b]; inclusion i's are the rows
  * of material NL + i, appended after the layers' (NMAT = NL + NINC), and after all NMAT*NB rows
- * come INC_ROWS float4 per inclusion: (centre, 0), (Q_xx, Q_yy, Q_zz, 0), (Q_xy, Q_xz, Q_yz, 0).
+ * come INC_ROWS float4 per inclusion: (centre, lowest z), (Q_xx, Q_yy, Q_zz, highest z),
+ * (Q_xy, Q_xz, Q_yz, 0); the z range is +-BIG for a vessel whose axis is not level.
  * Where inclusions overlap, the first one's material holds (the lowest bit of Track.inside).
  * An inclusion takes the index of the layer it is in: there is no Fresnel at its surface, only a
  * change of absorption, scattering and anisotropy.
@@ -60,10 +61,15 @@ HOT int material_of(int L, int inside) {
 }
 
 /* Distance along d from p to the next crossing of an inclusion's surface (BIG if none), and
- * which inclusion (*which). */
-HOT float next_inclusion(__global const float4* optics, float3 p, float3 d, int inside, int* which) {
+ * which inclusion (*which).  A step ends at its layer's boundary at the latest, so an inclusion
+ * outside the depths zlo .. zhi of the layer (over all columns) cannot be crossed: skipped
+ * without its quadratic (a level vessel in the dermis costs the epidermis nothing). */
+HOT float next_inclusion(__global const float4* optics, float3 p, float3 d, int inside, float zlo, float zhi,
+                         int* which) {
     float best = BIG;
     for (int i = 0; i < NINC; ++i) {
+        __global const float4* r = optics + NMAT * NB + INC_ROWS * i;
+        if (!((inside >> i) & 1) && (r[0].w > zhi || r[1].w < zlo)) continue;
         const float3 k = inclusion_poly(optics, i, p, d);
         if (!(k.x > 0.0f)) continue;                        /* along a vessel's axis: no crossing */
         const float disc = k.y * k.y - 4.0f * k.x * k.z;

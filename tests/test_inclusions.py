@@ -281,6 +281,12 @@ def test_vessel_and_ellipsoid_geometry():
     ce = np.array([40.0, 20.0, -60.0])
     pts = ce + np.array([[79.0, 0, 0], [81.0, 0, 0], [0, 59.0, 0], [0, 61.0, 0], [0, 0, -29.0], [0, 0, 31.0]])
     assert e.contains(pts).tolist() == [True, False, True, False, True, False]
+    # the z ranges that let a step skip an inclusion out of its layer's depths
+    assert e.z_range() == pytest.approx((-90.0, -30.0))
+    assert v.z_range() == (-volume.BIG, volume.BIG)                  # a tilted vessel reaches every depth
+    level = volume.inclusion_of({**C.validate({**SLAB, "inclusion": [{**SLAB["inclusion"][0], "axis": [1.0, 1.0, 0.0]}]},
+                                             "x")["inclusion"][0]}, 0, vol.wl)
+    assert level.z_range() == pytest.approx((-180.0, -80.0))
 
 
 BAD = [

@@ -52,10 +52,26 @@ class Inclusion:
         w = np.asarray(p, float) - self.center
         return np.einsum("...i,ij,...j->...", w, self.Q, w) < 1.0
 
+    def z_range(self) -> tuple[float, float]:
+        """Lowest and highest z of the region (um; +-BIG for a vessel whose axis is not level):
+        the half-height of {w: w^T Q w < 1} along z is sqrt((Q^-1)_zz), for a level vessel its
+        radius."""
+        if self.kind == "vessel":
+            a = np.linalg.svd(self.Q)[2][-1]             # the axis: Q's null direction
+            if abs(a[2]) > 1e-12:
+                return -BIG, BIG
+            h = 1.0 / math.sqrt(float(np.max(np.linalg.eigvalsh(self.Q))))
+        else:
+            h = math.sqrt(float(np.linalg.inv(self.Q)[2, 2]))
+        return float(self.center[2]) - h, float(self.center[2]) + h
+
     def rows(self) -> np.ndarray:
-        """(INC_ROWS, 4) float32: the quadric as kernels/inclusion.h reads it."""
+        """(INC_ROWS, 4) float32: the quadric as kernels/inclusion.h reads it, with its z range
+        (widened by a float32 step or two) in the first two rows' w."""
         q = self.Q
-        return np.array([[*self.center, 0.0], [q[0, 0], q[1, 1], q[2, 2], 0.0],
+        lo, hi = self.z_range()
+        pad = 1e-3 + 1e-6 * max(abs(lo), abs(hi)) if max(abs(lo), abs(hi)) < BIG else 0.0
+        return np.array([[*self.center, lo - pad], [q[0, 0], q[1, 1], q[2, 2], hi + pad],
                          [q[0, 1], q[0, 2], q[1, 2], 0.0]], np.float32)
 
 
