@@ -189,6 +189,31 @@ def test_periodic_sides_wrap_into_an_inclusion(dev):
     assert got["A2"][0] > 0.02, got["A2"]
 
 
+@pytest.mark.once
+@pytest.mark.parametrize("carried", [3, 9])
+def test_hero_bands_unbiased_per_band_with_inclusions(dev, carried):
+    """The bands a path carries (spectral.h) through inclusions: their per-material flight and
+    collision factors (band table rows NL + i).  Every band's stored power per layer and direction
+    with C bands per path equals the one-band-per-path estimate within statistics (the check of
+    tests/test_spectral.py on its skin slab, with a vessel and an ellipsoid of melanin added)."""
+    from test_spectral import SKIN, photon_pass, stored_power, slab, z_scores
+    cfg = slab(SKIN)
+    raw = tomllib.loads(C.to_toml(cfg))
+    raw["inclusion"] = [{"kind": "vessel", "center_mm": [0.0, 0.0], "depth_um": 110.0, "axis": [0.0, 1.0, 0.0],
+                         "radius_um": 40.0, "blood": 0.8},
+                        {"kind": "ellipsoid", "center_mm": [0.03, 0.0], "depth_um": 40.0,
+                         "semi_axes_um": [60.0, 60.0, 15.0], "melanin": 0.2, "blood": 0.0}]
+    cfg = C.validate(raw, "skin slab with inclusions")
+    n, launches = 4000, 12
+    one = stored_power(photon_pass(dev, cfg, hero=1, seed=1), n * 3, launches, None)
+    many = stored_power(photon_pass(dev, cfg, hero=carried, seed=2), n, launches, None)
+    z, ok = z_scores(many, one)
+    assert ok.sum() >= 40
+    assert np.max(np.abs(z)) < 4.5, np.round(z, 1)
+    chi2 = float(np.mean(z * z))
+    assert 0.4 < chi2 < 2.5, chi2
+
+
 def test_trace_report_names_inclusions(dev):
     cfg = slab_cfg()
     vol = volume.build(cfg, "slab")
