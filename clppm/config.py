@@ -237,6 +237,8 @@ INCLUSION_SCHEMA: dict[str, F] = {
 }
 #: inclusions a scene may hold (the walk intersects every one at every step: photon.cl NINC)
 MAX_INCLUSIONS = 8
+#: the smallest radius or semi-axis (um): ten times kernels/inclusion.h INC_EPS
+MIN_INCLUSION_UM = 0.1
 
 #: [render] keys that never change the accumulated picture (``picture="none"`` in the schema):
 #: how long to run, how often to save, and the beam gather's layout (its layouts give the same
@@ -445,6 +447,13 @@ def _check_inclusions(src: str, cfg: dict) -> None:
                               f"outside the model (x, y in [0, {w:g}] x [0, {h:g}] mm)")
         if inc["kind"] == "vessel" and sum(c * c for c in inc["axis"]) == 0:
             raise ConfigError(src, f"{key}.axis", inc["axis"], "must not be zero")
+        sizes = [("radius_um", inc["radius_um"])] if inc["kind"] == "vessel" else \
+            [(f"semi_axes_um[{j}]", s) for j, s in enumerate(inc["semi_axes_um"])]
+        for name, size in sizes:
+            if size < MIN_INCLUSION_UM:
+                raise ConfigError(src, f"{key}.{name}", size,
+                                  f"must be >= {MIN_INCLUSION_UM:g} um (the walk resolves an inclusion's "
+                                  "surface to 0.01 um)")
         if (inc["mua"] is None) != (inc["mus"] is None):
             which = "mus" if inc["mus"] is None else "mua"
             raise ConfigError(src, f"{key}.{which}", None, "mua and mus override together (homogeneous material)")

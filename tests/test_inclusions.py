@@ -326,6 +326,9 @@ BAD = [
     ({"kind": "tube"}, "inclusion[0].kind = 'tube': must be one of vessel, ellipsoid"),
     ({"radius": 3.0}, "inclusion[0].radius = 3.0: unknown key (did you mean 'radius_um'?)"),
     ({"semi_axes_um": [10.0, 0.0, 5.0]}, "inclusion[0].semi_axes_um[1] = 0.0: must be > 0"),
+    ({"radius_um": 1e-300}, "inclusion[0].radius_um = 1e-300: must be >= 0.1 um"),
+    ({"kind": "ellipsoid", "semi_axes_um": [10.0, 5e-324, 5.0]},
+     "inclusion[0].semi_axes_um[1] = 5e-324: must be >= 0.1 um"),
 ]
 
 
@@ -405,3 +408,55 @@ def _toml(raw: dict) -> str:
             lines.append(f"[{sec}]")
             lines += [f"{k} = {C.toml_value(v)}" for k, v in t.items() if v is not None]
     return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------- fuzzing the tables
+def _inclusion_value():
+    from hypothesis import strategies as st
+    from test_config_fuzz import _edge_numbers, junk
+
+    @st.composite
+    def one(draw):
+        key = draw(st.sampled_from(list(C.INCLUSION_SCHEMA)))
+        f = C.INCLUSION_SCHEMA[key]
+        kind = draw(st.integers(0, 2))
+        if kind == 0:
+            v = draw(junk)
+        elif kind == 1 or f.kind not in ("vec2", "vec3"):
+            v = draw(st.sampled_from(_edge_numbers(f) + list(f.choices) + [0.05, 0.1, 1e-300]))
+        else:
+            n = {"vec2": 2, "vec3": 3}[f.kind]
+            v = draw(st.lists(st.one_of(st.sampled_from(_edge_numbers(f) + [0.05, 1e-300]), st.floats(-2e3, 2e3)),
+                              min_size=n, max_size=n))
+        return key, v
+    return one()
+
+
+def test_fuzzed_inclusion_is_valid_or_one_line_naming_it():
+    """One inclusion key set to an edge or junk value: a config whose inclusion builds (finite
+    quadric and optics), or one ConfigError naming that inclusion's key (or the key of the
+    cross-check it broke), on one line."""
+    from hypothesis import given, settings, HealthCheck
+    from test_config_fuzz import BASE
+
+    @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+    @given(_inclusion_value())
+    def check(kv):
+        key, v = kv
+        raw = {k: (list(x) if isinstance(x, list) else dict(x)) for k, x in BASE.items()}
+        kind = "ellipsoid" if key == "semi_axes_um" else "vessel"        # the key that kind reads
+        raw["inclusion"] = [{"kind": kind, "center_mm": [0.5, 0.5], "depth_um": 100.0, key: v}]
+        try:
+            cfg = C.validate(raw, "fuzz.toml")
+        except C.ConfigError as e:
+            msg = str(e)
+            assert "\n" not in msg and msg.startswith("fuzz.toml: inclusion"), msg
+            assert e.key.startswith(f"inclusion[0].{key}") or e.key.split(".")[-1] in (
+                "mua", "mus", "g", "a", "depth_um", "center_mm", "axis", "radius_um") or e.key == "inclusion", msg
+            return
+        vol = volume.build(cfg, "fuzz")
+        inc = vol.inclusions[0]
+        assert np.all(np.isfinite(inc.Q)) and np.all(np.isfinite(inc.rows()))
+        assert np.all(np.isfinite(vol.device_optics()))
+        assert C.validate(tomllib.loads(C.to_toml(cfg)), "fuzz.toml") == cfg
+    check()
