@@ -267,6 +267,33 @@ def test_energy_exact_flat(dev):
     assert _exact_balance(tot, vol.nmat) == n * W0
 
 
+def test_every_photon_build_balances_with_inclusions(dev):
+    """The photon pass's other builds with inclusions: importance storage with the bands a path
+    carries (the stored weights finite and positive), the depth roulette below the storage
+    depth, the event counters; the tallies' bookkeeping exact in each."""
+    import pyopencl as cl
+    from clppm.scene.bands import Bands
+    from clppm.scene.scene import Scene
+    cfg = slab_cfg()
+    vol = volume.build(cfg, "slab")
+    sc = Scene.of_config(cfg, volume=vol)
+    pp = photonpass.PhotonPass(dev, sc, capacity=60_000, bands=Bands.from_config(cfg, hero=3, sampling="power"))
+    pp.set_storage("importance", cone_deg=30.0, scale=10.0, qmin=0.05)
+    pp.set_storage_depth(-150.0, roulette_um=50.0)
+    tal = photonpass.Tallies(vol.nb, vol.nmat)
+    info = pp.run_pass(0, 20_000, tallies=tal)
+    assert info["stored"] >= 20_000 and tal.balance_error() == 0.0
+    w = np.empty((pp.capacity, 4), np.float32)
+    cl.enqueue_copy(dev.queue, w, pp.pos_w)
+    w = w[:info["stored"]]
+    assert np.all(np.isfinite(w)) and np.all(w[:, 3] > 0) and np.all(w[:, 2] >= -150.0)
+    counted = photonpass.PhotonPass(dev, sc, counters=True)
+    _, tot = photon_pass_fractions(dev, vol, cfg, 0, 5_000)
+    counted.trace(5_000)
+    assert counted.counts()["steps"] > 5_000
+    assert _exact_balance(tot, vol.nmat) == 5_000 * W0
+
+
 def _relief_cfg(surface: str) -> dict:
     from clppm.checks.tiny import tiny_config
     cfg = tiny_config(size_mm=1.0)
