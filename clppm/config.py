@@ -457,6 +457,8 @@ def _check_inclusions(src: str, cfg: dict) -> None:
         if (inc["mua"] is None) != (inc["mus"] is None):
             which = "mus" if inc["mus"] is None else "mua"
             raise ConfigError(src, f"{key}.{which}", None, "mua and mus override together (homogeneous material)")
+        if inc["scattering"] == "none" and inc["mus"] is None:
+            raise ConfigError(src, f"{key}.scattering", "none", "needs mua and mus (homogeneous material)")
         if inc["mua"] is not None and inc["g"] is None:
             raise ConfigError(src, f"{key}.g", None, "a homogeneous material (mua, mus) needs g")
         if inc["scattering"] == "powerlaw" and inc["mus"] is None and inc["a"] <= 0:
@@ -483,6 +485,8 @@ def _cross_checks(src: str, cfg: dict) -> None:
             which = "mus" if L["mus"] is None else "mua"
             raise ConfigError(src, f"layer[{i}].{which}", None,
                               "mua and mus override together (homogeneous layer)")
+        if L["scattering"] == "none" and L["mus"] is None:
+            raise ConfigError(src, f"layer[{i}].scattering", "none", "needs mua and mus (homogeneous layer)")
     m = cfg["model"]
     varying = cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0
     if m["lateral"] == "infinite" and varying:

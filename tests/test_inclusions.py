@@ -381,6 +381,7 @@ BAD = [
     ({"radius": 3.0}, "inclusion[0].radius = 3.0: unknown key (did you mean 'radius_um'?)"),
     ({"semi_axes_um": [10.0, 0.0, 5.0]}, "inclusion[0].semi_axes_um[1] = 0.0: must be > 0"),
     ({"radius_um": 1e-300}, "inclusion[0].radius_um = 1e-300: must be >= 0.1 um"),
+    ({"scattering": "none"}, "inclusion[0].scattering = 'none': needs mua and mus"),
     ({"kind": "ellipsoid", "semi_axes_um": [10.0, 5e-324, 5.0]},
      "inclusion[0].semi_axes_um[1] = 5e-324: must be >= 0.1 um"),
 ]
