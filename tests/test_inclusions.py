@@ -241,6 +241,64 @@ def test_hero_bands_unbiased_per_band_with_inclusions(dev, carried):
     assert 0.4 < chi2 < 2.5, chi2
 
 
+# ----------------------------------------------------------------------------- the path tracer
+#: a layer-wide ellipsoid across the junction of the path tracer tests' 1.5 / 1.34 / 1.4 stack
+#: (epidermis 40-120 um): 80-160 um deep, so it takes each layer's index where it is
+WIDE = {"kind": "ellipsoid", "center_mm": [2.0, 2.0], "depth_um": 120.0, "semi_axes_um": [1e5, 1e5, 40.0],
+        "mua": 40.0, "mus": 150.0, "g": 0.9, "scattering": "none"}
+
+
+def _with(cfg: dict, inclusions: list) -> dict:
+    raw = tomllib.loads(C.to_toml(cfg))
+    raw["inclusion"] = inclusions
+    return C.validate(raw, "pt scene")
+
+
+def _unscattered(n: list, mut: list, thick: list, n_above: float) -> float:
+    """Light reflected back out unscattered by the index steps of a laterally uniform stack
+    (incoherent adding, normal incidence; the last sub-layer semi-infinite), the surface's own
+    reflection removed: the photon pass counts it in Rd, the path tracer cannot see it."""
+    ns = [n_above] + n
+    r = [((a - b) / (a + b)) ** 2 for a, b in zip(ns[:-1], ns[1:])]
+    R = 0.0
+    for k in range(len(n) - 1, -1, -1):
+        t2 = math.exp(-2 * mut[k] * thick[k]) if math.isfinite(thick[k]) else 0.0
+        R = r[k] + (1 - r[k]) ** 2 * t2 * R / (1 - r[k] * t2 * R)
+    return R - r[0]
+
+
+def test_path_tracer_matches_the_photon_tally_through_an_inclusion(dev):
+    """The path tracer's walk and its light connections (each leg walked through the quadrics)
+    against the photon pass's exact exit tally, both through a layer-wide ellipsoid across an
+    index step (mu_t 190 against 105 and 100 /cm, g 0.9) under a point light 1 m above: the
+    cos-weighted mean radiance over the cone cos > 0.95 equals E R_cone / (pi (1 - c^2)) minus
+    the unscattered light of the internal index steps, within 3 sigma + 0.2 % (as
+    tests/test_pathtracer.py does without inclusions); without the ellipsoid the tally moves by
+    many times that."""
+    from clppm.run import entry
+    from test_pathtracer import E_FAR, LAYERED, _cone_average, scene
+    c = 0.95
+    fov = 2 * math.degrees(math.acos(c)) * 1.03
+    plain = scene(LAYERED, fov=fov, res=(32, 32), spp=64, passes=3)
+    cfg = _with(plain, [WIDE])
+    Lc, sec = _cone_average(entry.render_pt(cfg, dev=dev), fov, c)
+    k = E_FAR / (math.pi * (1 - c * c))
+    unsc = _unscattered([1.5, 1.34, 1.34, 1.4, 1.4], [160e-4, 105e-4, 190e-4, 190e-4, 100e-4],
+                        [40.0, 40.0, 40.0, 40.0, math.inf], 1.0)
+
+    def tally(cfg, photons, unscattered):
+        pp = photonpass.PhotonPass.of_config(dev, volume.build(cfg, "pt scene"), cfg)
+        pp.p["rcone_cos"] = c
+        rep = photonpass.trace_report(pp, photons, batches=10)
+        return k * (rep["Rd_cone"] - unscattered), k * rep["Rd_cone_se"]
+    ref, seref = tally(cfg, 3_000_000, unsc)
+    tol = 3 * math.hypot(sec, seref) + 0.002 * ref
+    assert abs(Lc - ref) < tol, (Lc, ref, sec, seref)
+    from test_pathtracer import _unscattered_reflectance
+    without, _ = tally(plain, 1_000_000, _unscattered_reflectance(volume.build(plain, "plain")))
+    assert abs(without - ref) > 10 * tol, (without, ref, tol)
+
+
 def test_trace_report_names_inclusions(dev):
     cfg = slab_cfg()
     vol = volume.build(cfg, "slab")
@@ -433,22 +491,35 @@ def test_trace_prints_each_inclusion(tmp_path, capsys):
     assert set(rep["absorbed_per_inclusion"]) == {"inclusion[0]", "inclusion[1]"}
 
 
-def test_render_with_inclusion_refused(tmp_path, capsys):
+def test_render_refused_where_a_pass_does_not_see_inclusions(tmp_path, capsys):
+    """PPM (its eye pass and gathers) and the path tracer through the relief or across periodic
+    sides do not see inclusions: one line naming the key, exit 2, no output; the path tracer on
+    flat layers renders."""
     from clppm.checks.tiny import tiny_config
     raw = tomllib.loads(C.to_toml(tiny_config(size_mm=1.0)))
     raw["inclusion"] = [{"kind": "vessel", "center_mm": [0.5, 0.5], "depth_um": 150.0}]
-    p = tmp_path / "vessel.toml"
-    p.write_text(_toml(raw))
+    flat = {**raw, "relief": {"kind": "flat"}, "papillae": {"amplitude_um": 0.0}}
+    periodic = {**flat, "model": {**flat["model"], "lateral": "periodic"}}
     out = tmp_path / "x.png"
-    for extra in ([], ["--integrator", "pt"]):
+    for scene_raw, extra, needles in [
+            (raw, [], ("inclusion[0].kind = 'vessel'", "--integrator pt")),
+            (flat, [], ("inclusion[0].kind = 'vessel'", "eye pass")),
+            (raw, ["--integrator", "pt"], ("relief.kind = 'generated'", "flat layers only")),
+            (periodic, ["--integrator", "pt"], ("model.lateral = 'periodic'", "periodic sides"))]:
+        p = tmp_path / "vessel.toml"
+        p.write_text(_toml(scene_raw))
         rc = cli.main(["render", str(p), "-o", str(out), "-q", *extra])
         err = capsys.readouterr().err.strip()
         assert rc == 2 and len(err.splitlines()) == 1, err
-        assert "inclusion[0].kind = 'vessel'" in err and "photon pass only" in err, err
+        assert all(n in err for n in needles), err
         assert not out.exists()
     import clppm
     with pytest.raises(C.ConfigError, match=r"inclusion\[0\]"):
         clppm.render(C.validate(raw, "vessel"))
+    p.write_text(_toml(flat))
+    assert cli.main(["render", str(p), "-o", str(out), "-q", "--integrator", "pt", "--passes", "1",
+                     "--resolution", "4x3"]) == 0
+    assert out.exists()
 
 
 def _toml(raw: dict) -> str:

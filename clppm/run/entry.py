@@ -98,7 +98,7 @@ def render(req: RenderRequest | dict, **kw) -> RenderResult:
     t_start = time.perf_counter()
     req = req if isinstance(req, RenderRequest) else RenderRequest.of(req, **kw)
     integ = integrator(req)
-    refuse_inclusions(req.resolved(), req.source)
+    refuse_inclusions(req.resolved(), req.source, req.integrator)
     integ.check(req)
     rs, out, b = req.settings, req.outputs, req.budget
     paths.check_outputs(out=out.out, checkpoint=req.checkpoint)
