@@ -522,6 +522,21 @@ def test_render_refused_where_a_pass_does_not_see_inclusions(tmp_path, capsys):
     assert out.exists()
 
 
+def test_shipped_forearm_vein(tmp_path, capsys):
+    """configs/forearm_vein.toml is configs/forearm_flat.toml with four inclusions and nothing
+    else; PPM refuses it in one line, the path tracer renders it."""
+    vein, flat = C.load("forearm_vein"), C.load("forearm_flat")
+    assert [i["kind"] for i in vein["inclusion"]] == ["vessel", "ellipsoid", "ellipsoid", "ellipsoid"]
+    assert {k: v for k, v in vein.items() if k != "inclusion"} == {
+        **flat, "model": {**flat["model"], "name": "forearm with a vein"}}
+    out = tmp_path / "v.png"
+    assert cli.main(["render", "forearm_vein", "-o", str(out), "-q"]) == 2
+    assert "inclusion[0].kind = 'vessel'" in capsys.readouterr().err
+    assert cli.main(["render", "forearm_vein", "-o", str(out), "-q", "--integrator", "pt",
+                     "--resolution", "4x3", "--passes", "1"]) == 0
+    assert out.exists()
+
+
 def _toml(raw: dict) -> str:
     """A raw config dict as TOML (sections, then the [[layer]] and [[inclusion]] tables)."""
     lines = []
