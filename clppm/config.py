@@ -214,6 +214,32 @@ LAYER_SCHEMA: dict[str, F] = {
     "mus": F("float", None, none_ok=True, lo=0, hi=1e6, doc="homogeneous override, cm^-1"),
 }
 
+#: the chromophore and scattering keys of a layer that an inclusion has too (its material)
+MATERIAL_KEYS = ("melanin", "blood", "saturation", "baseline", "scattering", "k", "a", "b", "g", "mua", "mus")
+
+INCLUSION_SCHEMA: dict[str, F] = {
+    "kind": F("choice", None, choices=("vessel", "ellipsoid"),
+              doc="vessel: an infinite circular cylinder (a blood vessel); ellipsoid: axis-aligned "
+                  "(required). Either is one material with the index of the layer around it: no "
+                  "Fresnel at its surface"),
+    "center_mm": F("vec2", None, lo=-1e4, hi=1e4,
+                   doc="lateral position of the centre, x and y (required; on the model)"),
+    "depth_um": F("float", None, lo=0, lo_open=True, hi=1e6,
+                  doc="depth of the centre below the mean skin surface (required; above the last "
+                      "layer's bottom)"),
+    "axis": F("vec3", [1.0, 0.0, 0.0], lo=-1, hi=1, doc="vessel: direction of its axis (not zero)"),
+    "radius_um": F("float", 50.0, lo=0, lo_open=True, hi=1e5, doc="vessel: radius"),
+    "semi_axes_um": F("vec3", [100.0, 100.0, 50.0], lo=0, lo_open=True, hi=1e5,
+                      doc="ellipsoid: semi-axes along x, y, z"),
+    **{k: (F("float", 1.0, lo=0, hi=1, doc="whole-blood volume fraction") if k == "blood"
+           else F("float", 0.7, lo=0, hi=1, doc="blood oxygen saturation") if k == "saturation"
+           else LAYER_SCHEMA[k]) for k in MATERIAL_KEYS},
+}
+#: inclusions a scene may hold (the walk intersects every one at every step: photon.cl NINC)
+MAX_INCLUSIONS = 8
+#: the smallest radius or semi-axis (um): ten times kernels/inclusion.h INC_EPS
+MIN_INCLUSION_UM = 0.1
+
 #: [render] keys that never change the accumulated picture (``picture="none"`` in the schema):
 #: how long to run, how often to save, and the beam gather's layout (its layouts give the same
 #: bytes, tests/test_layouts.py).  A checkpoint resumes, a worker's scene is reused, and a cached
@@ -375,7 +401,7 @@ def validate(raw: dict, source: str = "<config>", base_dir: str = ".") -> dict:
     """Validate a parsed TOML dict; return a complete config with defaults filled."""
     if not isinstance(raw, dict):
         raise ConfigError(source, "<top>", raw, "must be a table")
-    valid_top = list(SCHEMA) + ["layer"]
+    valid_top = list(SCHEMA) + ["layer", "inclusion"]
     for key in raw:
         if key not in valid_top:
             raise _unknown(source, "", key, valid_top, raw[key])
@@ -388,8 +414,55 @@ def validate(raw: dict, source: str = "<config>", base_dir: str = ".") -> dict:
         raise ConfigError(source, "layer", f"{len(layers)} layers", f"at most {MAX_LAYERS} layers")
     cfg["layer"] = [_section(source, f"layer[{i}]", t, LAYER_SCHEMA, base_dir)
                     for i, t in enumerate(layers)]
+    if "inclusion" in raw:
+        cfg["inclusion"] = _inclusions(source, raw["inclusion"], base_dir)
     _cross_checks(source, cfg)
     return cfg
+
+
+def _inclusions(src: str, tables, base_dir: str) -> list[dict]:
+    """The ``[[inclusion]]`` tables, validated one by one (present only when the file has them,
+    so a config without inclusions is the same dict as before they existed)."""
+    if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
+        raise ConfigError(src, "inclusion", tables, "must be [[inclusion]] tables")
+    if len(tables) > MAX_INCLUSIONS:
+        raise ConfigError(src, "inclusion", f"{len(tables)} inclusions", f"at most {MAX_INCLUSIONS}")
+    return [_section(src, f"inclusion[{i}]", t, INCLUSION_SCHEMA, base_dir) for i, t in enumerate(tables)]
+
+
+def _check_inclusions(src: str, cfg: dict) -> None:
+    """Each inclusion's centre inside the model (on its footprint unless the sides are infinite,
+    above the last layer's bottom), a vessel's axis not zero, a material's overrides paired."""
+    bottom = sum(L["thickness_um"] for L in cfg["layer"])
+    w, h = cfg["model"]["size_mm"]
+    bounded = cfg["model"]["lateral"] != "infinite"
+    for i, inc in enumerate(cfg.get("inclusion", [])):
+        key = f"inclusion[{i}]"
+        if inc["depth_um"] >= bottom:
+            raise ConfigError(src, f"{key}.depth_um", inc["depth_um"],
+                              f"the centre is below the model's bottom ({bottom:g} um deep)")
+        x, y = inc["center_mm"]
+        if bounded and not (0.0 <= x <= w and 0.0 <= y <= h):
+            raise ConfigError(src, f"{key}.center_mm", inc["center_mm"],
+                              f"outside the model (x, y in [0, {w:g}] x [0, {h:g}] mm)")
+        if inc["kind"] == "vessel" and sum(c * c for c in inc["axis"]) == 0:
+            raise ConfigError(src, f"{key}.axis", inc["axis"], "must not be zero")
+        sizes = [("radius_um", inc["radius_um"])] if inc["kind"] == "vessel" else \
+            [(f"semi_axes_um[{j}]", s) for j, s in enumerate(inc["semi_axes_um"])]
+        for name, size in sizes:
+            if size < MIN_INCLUSION_UM:
+                raise ConfigError(src, f"{key}.{name}", size,
+                                  f"must be >= {MIN_INCLUSION_UM:g} um (the walk resolves an inclusion's "
+                                  "surface to 0.01 um)")
+        if (inc["mua"] is None) != (inc["mus"] is None):
+            which = "mus" if inc["mus"] is None else "mua"
+            raise ConfigError(src, f"{key}.{which}", None, "mua and mus override together (homogeneous material)")
+        if inc["scattering"] == "none" and inc["mus"] is None:
+            raise ConfigError(src, f"{key}.scattering", "none", "needs mua and mus (homogeneous material)")
+        if inc["mua"] is not None and inc["g"] is None:
+            raise ConfigError(src, f"{key}.g", None, "a homogeneous material (mua, mus) needs g")
+        if inc["scattering"] == "powerlaw" and inc["mus"] is None and inc["a"] <= 0:
+            raise ConfigError(src, f"{key}.a", inc["a"], "powerlaw scattering needs a > 0")
 
 
 def _cross_checks(src: str, cfg: dict) -> None:
@@ -412,6 +485,8 @@ def _cross_checks(src: str, cfg: dict) -> None:
             which = "mus" if L["mus"] is None else "mua"
             raise ConfigError(src, f"layer[{i}].{which}", None,
                               "mua and mus override together (homogeneous layer)")
+        if L["scattering"] == "none" and L["mus"] is None:
+            raise ConfigError(src, f"layer[{i}].scattering", "none", "needs mua and mus (homogeneous layer)")
     m = cfg["model"]
     varying = cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0
     if m["lateral"] == "infinite" and varying:
@@ -462,6 +537,7 @@ def _cross_checks(src: str, cfg: dict) -> None:
     if cfg["render"]["initial_photons"] > cfg["render"]["photons"]:
         raise ConfigError(src, "render.initial_photons", cfg["render"]["initial_photons"],
                           "must not exceed render.photons")
+    _check_inclusions(src, cfg)
 
 
 def load(path: str) -> dict:
@@ -492,9 +568,9 @@ def load(path: str) -> dict:
 
 
 def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
-    """A copy of ``cfg`` with one value changed by ``SECTION.KEY=VALUE`` or
-    ``layer.N.KEY=VALUE`` (N: index into the ``[[layer]]`` tables; VALUE in TOML syntax, a bare
-    word is a string), validated like the file's value.  ``cfg`` itself is left unchanged, as by
+    """A copy of ``cfg`` with one value changed by ``SECTION.KEY=VALUE``, ``layer.N.KEY=VALUE``
+    or ``inclusion.N.KEY=VALUE`` (N: index into the ``[[layer]]`` or ``[[inclusion]]`` tables;
+    VALUE in TOML syntax, a bare word is a string), validated like the file's value.  ``cfg`` itself is left unchanged, as by
     :func:`override`: ``cfg = set_item(cfg, "layer.0.n=1.45")``.  The same strings as
     ``clppm render --set``; raises :class:`ConfigError` for an unknown key or a bad value."""
     key_part = item.split("=", 1)[0].strip()
@@ -509,30 +585,38 @@ def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
         value = tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         value = text
-    if section == "layer":
+    if section in ("layer", "inclusion"):
         index, _, key = key.partition(".")
-        return override_layer(cfg, index, key, value, source)
+        return override_table(cfg, section, index, key, value, source)
     return override(cfg, section, key, value, source)
 
 
 def override_layer(cfg: dict, index, key: str, value: Any, source: str = "--set") -> dict:
     """Set ``layer[index].key`` (validated like the file's value)."""
-    n = len(cfg["layer"])
-    names = ", ".join(f"{i} {L['name']}" for i, L in enumerate(cfg["layer"]))
+    return override_table(cfg, "layer", index, key, value, source)
+
+
+def override_table(cfg: dict, kind: str, index, key: str, value: Any, source: str = "--set") -> dict:
+    """Set ``kind[index].key``, kind "layer" or "inclusion" (validated like the file's value)."""
+    schema = LAYER_SCHEMA if kind == "layer" else INCLUSION_SCHEMA
+    tables = cfg.get(kind, [])
+    n = len(tables)
+    names = ", ".join(f"{i} {t['name'] if kind == 'layer' else t['kind']}" for i, t in enumerate(tables))
     try:
         i = int(index)
     except ValueError:
         i = -1
     if not 0 <= i < n:
-        raise ConfigError(source, f"layer.{index}", value, f"no such layer: give an index 0..{n - 1} "
-                                                           f"({names})")
-    if key not in LAYER_SCHEMA:
-        near = difflib.get_close_matches(key, list(LAYER_SCHEMA), 1, 0.5)
-        raise ConfigError(source, f"layer.{i}.{_show_key(key) if key else '<key>'}", value,
+        raise ConfigError(source, f"{kind}.{index}", value,
+                          f"no such {kind}: give an index 0..{n - 1} ({names})" if n
+                          else f"no such {kind}: the config has no [[{kind}]] table")
+    if key not in schema:
+        near = difflib.get_close_matches(key, list(schema), 1, 0.5)
+        raise ConfigError(source, f"{kind}.{i}.{_show_key(key) if key else '<key>'}", value,
                           "unknown key" + (f" (did you mean '{near[0]}'?)" if near else "")
-                          + f"; valid keys: {', '.join(LAYER_SCHEMA)}")
+                          + f"; valid keys: {', '.join(schema)}")
     out = copy.deepcopy(cfg)
-    out["layer"][i][key] = _check(source, f"layer[{i}].{key}", value, LAYER_SCHEMA[key], ".")
+    out[kind][i][key] = _check(source, f"{kind}[{i}].{key}", value, schema[key], ".")
     _cross_checks(source, out)
     return out
 
@@ -711,6 +795,8 @@ def to_toml(cfg: dict, header: str = "") -> str:
         lines += _toml_table(f"[{name}]", cfg.get(name, {}), schema)
     for L in cfg.get("layer", [{}]):
         lines += _toml_table("[[layer]]", L, LAYER_SCHEMA)
+    for inc in cfg.get("inclusion", []):
+        lines += _toml_table("[[inclusion]]", inc, INCLUSION_SCHEMA)
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -748,9 +834,9 @@ def _default_text(f: F) -> str:
 def schema_rows() -> list[tuple[str, str, str, str, str]]:
     """(key, type, default, range, meaning) of every config key, from :data:`SCHEMA`."""
     rows = []
-    for name, schema in list(SCHEMA.items()) + [("layer", LAYER_SCHEMA)]:
+    for name, schema in list(SCHEMA.items()) + [("layer", LAYER_SCHEMA), ("inclusion", INCLUSION_SCHEMA)]:
         for k, f in schema.items():
-            key = f"[[layer]].{k}" if name == "layer" else f"{name}.{k}"
+            key = f"[[{name}]].{k}" if name in ("layer", "inclusion") else f"{name}.{k}"
             rows.append((key, _type_name(f), _default_text(f), _range_text(f), f.doc))
     return rows
 
@@ -774,9 +860,11 @@ def schema_markdown() -> str:
            "first (at most 16). Every key is optional unless its default says *required*. Units: mm for "
            "scene-scale lengths, µm for skin-scale lengths, cm^-1 for optical coefficients, nm for "
            "wavelengths. `clppm config FILE` prints a file with every default filled in; "
-           "`--set SECTION.KEY=VALUE` / `--set layer.N.KEY=VALUE` changes one value on the command line.", ""]
-    for name, schema in list(SCHEMA.items()) + [("layer", LAYER_SCHEMA)]:
-        out += [f"## `[[layer]]`" if name == "layer" else f"## `[{name}]`", "",
+           "`--set SECTION.KEY=VALUE` / `--set layer.N.KEY=VALUE` changes one value on the command line. "
+           "Optional `[[inclusion]]` tables (at most 8) bury a vessel or an ellipsoid of chromophores of "
+           "its own in the layers (docs/method.md, Inclusions).", ""]
+    for name, schema in list(SCHEMA.items()) + [("layer", LAYER_SCHEMA), ("inclusion", INCLUSION_SCHEMA)]:
+        out += [f"## `[[{name}]]`" if name in ("layer", "inclusion") else f"## `[{name}]`", "",
                 "| key | type | default | range | meaning |", "|---|---|---|---|---|"]
         for k, f in schema.items():
             out.append(f"| `{k}` | {_type_name(f)} | `{_default_text(f)}` | {cell(_range_text(f))} "

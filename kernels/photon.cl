@@ -11,6 +11,7 @@
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #include "common.h"
 #include "spectral.h"
+#include "inclusion.h"
 #ifndef FLAT
 #include "surface.h"
 #endif
@@ -35,11 +36,11 @@ typedef struct {
 #define TRAP_UM 1e-3f
 #define W0L ((long)274877906944L)
 
-/* tally categories (per band); NC = T_ABS0 + NL */
+/* tally categories (per band); NC = T_ABS0 + NMAT: absorption per layer, then per inclusion */
 /* T_RCONE: the part of T_RD leaving within the cone cos(theta) > rcone_cos around the normal
  * (not a separate fate: it is excluded from the energy balance) */
 enum { T_SPEC = 0, T_RD, T_TT, T_LOST, T_RRGAIN, T_RRLOSS, T_MISS, T_RCONE, T_ABS0 };
-#define NC (T_ABS0 + NL)
+#define NC (T_ABS0 + NMAT)
 
 /* Event counters for bench/photons.py (-DPHOTON_COUNTERS; compiled out otherwise): per launch,
  * what the photons did, and per work item its loop steps (the host groups neighbouring work
@@ -311,12 +312,12 @@ HOT void cross_tile(Track* t, __constant const Params* P, int axis) {
  * hero band when it ends (one atomic per fate that occurred, not per event). */
 typedef struct {
     long spec, rd, tt, lost, gain, loss, rcone;
-    long absorbed[NL];
+    long absorbed[NMAT];        /* per material: the layers, then the inclusions */
 } Fates;
 
 HOT void fates_clear(Fates* f) {
     f->spec = f->rd = f->tt = f->lost = f->gain = f->loss = f->rcone = 0;
-    for (int i = 0; i < NL; ++i) f->absorbed[i] = 0;
+    for (int i = 0; i < NMAT; ++i) f->absorbed[i] = 0;
 }
 
 HOT void fates_flush(const Fates* f, __global long* tal) {
@@ -327,7 +328,7 @@ HOT void fates_flush(const Fates* f, __global long* tal) {
     if (f->gain) atom_add(tal + T_RRGAIN, f->gain);
     if (f->loss) atom_add(tal + T_RRLOSS, f->loss);
     if (f->rcone) atom_add(tal + T_RCONE, f->rcone);
-    for (int i = 0; i < NL; ++i)
+    for (int i = 0; i < NMAT; ++i)
         if (f->absorbed[i]) atom_add(tal + T_ABS0 + i, f->absorbed[i]);
 }
 
@@ -485,13 +486,13 @@ HOT void store_event(__constant const Params* P, const Track* t, Spectral* sw, l
     }
 }
 
-/* A new direction from the layer's Henyey-Greenstein phase function, then Russian roulette
- * below rr_threshold (survivors multiplied by rr_m, the gain and loss tallied). */
-HOT void scatter_photon(__constant const Params* P, float4 op, Track* t, Spectral* sw, long* W, Fates* f,
+/* A new direction from material m's Henyey-Greenstein phase function (op: its optics), then
+ * Russian roulette below rr_threshold (survivors multiplied by rr_m, the gain and loss tallied). */
+HOT void scatter_photon(__constant const Params* P, float4 op, int m, Track* t, Spectral* sw, long* W, Fates* f,
                         __global const float* logmu, Rng* rng) {
     float ct = hg_sample_cos_t(op.y, op.z, rng_u01(rng));
     t->dir = scatter_dir(t->dir, ct, rng_u01(rng));
-    sw_scatter(sw, logmu, t->L, ct);
+    sw_scatter(sw, logmu, m, ct);
     if (*W >= (long)(P->rr_threshold * W0F)) return;
     if (rng_u01(rng) * P->rr_m <= 1.0f) {
         long g2 = *W * (long)(P->rr_m) - *W;
@@ -528,30 +529,31 @@ HOT void deep_roulette(__constant const Params* P, const Track* t, Spectral* sw,
 #define deep_roulette(P, t, sw, W, f, planes, rng)
 #endif
 
-/* A collision after free path s: absorb by weight (the layer's albedo), store the event
- * inside the storage depth, scatter; then the next optical depth to travel. */
-HOT void collide(__constant const Params* P, float4 op, float s, Track* t, Spectral* sw, long* W, int b,
+/* A collision after free path s in material m (a layer or an inclusion; op its optics): absorb by
+ * weight (its albedo), store the event inside the storage depth, scatter; then the next optical
+ * depth to travel. */
+HOT void collide(__constant const Params* P, float4 op, int m, float s, Track* t, Spectral* sw, long* W, int b,
                  Fates* f, int* planes, float* tau, Rng* rng, Rng* srng, __global const float2* store_imp,
                  __global const float2* band_spi, __global const float4* optics,
                  __global const float* logmu, PhotonMap map, Counters* cnt) {
     COUNT(cnt, K_COLLISIONS);
     t->pos += s * t->dir;
-    sw_flight(sw, optics, logmu, t->L, op.w, s);
-    sw_collide(sw, logmu, t->L);
+    sw_flight(sw, optics, logmu, m, op.w, s);
+    sw_collide(sw, logmu, m);
     long dw = convert_long_rte((float)*W * op.x);
 #ifdef CLPPM_FAULT_WRONG                /* the self-test's tests only: a miscompiled absorption */
     dw = convert_long_rte((float)dw * 1.5f);
 #endif
     dw = dw < 0 ? 0 : (dw > *W ? *W : dw);
-    f->absorbed[t->L] += dw; *W -= dw;
+    f->absorbed[m] += dw; *W -= dw;
     if (*W > 0 && op.x < 1.0f) {
         if (map.capacity > 0u && t->pos.z > P->store_zmin)
             store_event(P, t, sw, *W, b, srng, store_imp, band_spi, optics, logmu, map, cnt);
-        scatter_photon(P, op, t, sw, W, f, logmu, rng);
+        scatter_photon(P, op, m, t, sw, W, f, logmu, rng);
         deep_roulette(P, t, sw, W, f, planes, rng);
     } else if (*W > 0) {
         /* pure absorber reached here only when mus = 0 and mua > 0: all absorbed */
-        f->absorbed[t->L] += *W; *W = 0;
+        f->absorbed[m] += *W; *W = 0;
     }
     *tau = neg_log_u01(rng_u01(rng));
 }
@@ -560,7 +562,13 @@ HOT void collide(__constant const Params* P, float4 op, float s, Track* t, Spect
  * back in: returns 1), out of the bottom, or on in layer L2. */
 HOT int enter_layer(Track* t, int L2, long* W, Fates* f, VOLUME_ARGS, __global const float* smooth,
                     Rng* rng, Counters* cnt) {
-    if (L2 < 0 && reenter(t, VOLUME_PASS, smooth, rng)) { COUNT(cnt, K_REENTER); return 1; }
+    if (L2 < 0 && reenter(t, VOLUME_PASS, smooth, rng)) {
+        COUNT(cnt, K_REENTER);
+#if NINC > 0
+        t->inside = inclusion_mask(optics, t->pos);         /* back in somewhere else */
+#endif
+        return 1;
+    }
     if (L2 < 0) { f->rd += *W; if (t->dir.z > P->rcone_cos) f->rcone += *W; *W = 0; return 0; }
     if (L2 >= NL) { f->tt += *W; *W = 0; return 0; }
     t->L = L2;
@@ -692,6 +700,9 @@ __kernel void photon_pass(const PhotonLaunch launch,
             if (t.L < 0) COUNT(&cnt, K_MISSED); else COUNT(&cnt, K_ENTERED);
 #endif
             live = t.L >= 0;
+#if NINC > 0
+            t.inside = live ? inclusion_mask(optics, t.pos) : 0;
+#endif
             events = 0;
             planes = 0;
             still = 0;
@@ -700,22 +711,29 @@ __kernel void photon_pass(const PhotonLaunch launch,
         }
         if (++events > P->max_events) { f.lost += W; W = 0; continue; }
         COUNT(&cnt, K_STEPS);
-        const float4 op = optics[t.L * NB + b];     /* mua/mut, g, 1/(2g), mut in um^-1 */
+        const int m = MATERIAL(&t);                 /* the layer, or the inclusion the photon is in */
+        const float4 op = optics[m * NB + b];       /* mua/mut, g, 1/(2g), mut in um^-1 */
         const float mut = op.w;
         int ev;
         const float s = mut > 0.0f ? tau / mut : BIG;
 #ifdef FLAT
-        const float db = next_boundary(&t, P, iface, heights, s, &ev);
+        float db = next_boundary(&t, P, iface, heights, s, &ev);
 #else
         float plane = 0.0f;
         int2 tile;
-        const float db = photon_boundary(&t, VOLUME_PASS, tile_z, s, &ev, &plane, &tile);
+        float db = photon_boundary(&t, VOLUME_PASS, tile_z, s, &ev, &plane, &tile);
 #ifdef SMOOTH_SURFACE
         if (tile.x >= 0) { t.ix = tile.x * SMOOTH_CELL; t.iy = tile.y * SMOOTH_CELL; }
 #endif
 #endif
+#if NINC > 0
+        int inc = -1;                                /* an inclusion's surface before the boundary */
+        const float dinc = next_inclusion(optics, t.pos, t.dir, t.inside, IF_ZMIN(t.L + 1), IF_ZMAX(t.L), &inc);
+        const int at_inc = dinc <= db;
+        if (at_inc) db = dinc;
+#endif
         if (s < db) {
-            collide(P, op, s, &t, &sw, &W, b, &f, &planes, &tau, &rng, &srng, store_imp, band_spi, optics, logmu,
+            collide(P, op, m, s, &t, &sw, &W, b, &f, &planes, &tau, &rng, &srng, store_imp, band_spi, optics, logmu,
                     map, &cnt);
             continue;
         }
@@ -723,8 +741,11 @@ __kernel void photon_pass(const PhotonLaunch launch,
         still = db < TRAP_UM ? still + 1 : 0;
         if (still > TRAPPED_STEPS) { f.lost += W; W = 0; continue; }
         t.pos += db * t.dir;
-        sw_flight(&sw, optics, logmu, t.L, mut, db);
+        sw_flight(&sw, optics, logmu, m, mut, db);
         if (mut > 0.0f) { tau -= db * mut; tau = tau > 0.0f ? tau : 0.0f; }
+#if NINC > 0
+        if (at_inc) { t.inside ^= 1 << inc; locate_column(&t, P); continue; }   /* into or out of it */
+#endif
         if (ev == EV_NONE) { f.lost += W; W = 0; continue; }   /* semi-infinite, direction flat */
         if (ev == EV_TOP || ev == EV_BOTTOM) {
             if (cross_interface(ev == EV_TOP, &t, &W, &f, VOLUME_PASS, smooth, &rng, &cnt)) events++;
@@ -736,6 +757,9 @@ __kernel void photon_pass(const PhotonLaunch launch,
         if (ev == EV_TILE_X || ev == EV_TILE_Y) { COUNT(&cnt, K_TILE); cross_tile(&t, P, ev == EV_TILE_Y); continue; }
 #endif
         cross_lateral(ev, &t, &W, &f, VOLUME_PASS, smooth, &rng, &cnt);
+#if NINC > 0
+        if (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y) t.inside = inclusion_mask(optics, t.pos);  /* wrapped */
+#endif
     }
 #ifdef PHOTON_COUNTERS
     for (int k = 0; k < K_NCOUNT; ++k)

@@ -48,6 +48,7 @@
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable      /* the accumulators are double (as gather.cl) */
 #include "common.h"
 #include "camera.h"
+#include "inclusion.h"
 
 #ifdef PT_FP64
 #define REL_TOL 1e-15
@@ -272,6 +273,42 @@ inline float connect(const Chain* ch, float2 v, int Lv, float2 lpos, float2 shif
     if (!(G > 0) || !isfinite((float)G)) return 0.0f;
     return (float)G * F * exp(-(float)od) / ch->wsel;
 }
+
+#if NINC > 0
+/* The optical depth that inclusions add to a flat chain's attenuation in band b: the chain's
+ * legs from the vertex (x, y, zv; inclusion bits inside) back toward the light, each a straight
+ * line in one layer k at horizontal slowness p (sin = p / n_k along (ux, uy), the light's
+ * horizontal direction from the vertex) up or down to its event's interface, walked through the
+ * quadrics as a flight is (next_inclusion), with mu_t of the inclusion instead of the layer's
+ * where the leg is inside one.  Scalars only across the call (Intel's float3 miscompilation,
+ * connect). */
+inline float chain_inclusion_od(const Chain* ch, float x, float y, float zv, int inside, float ux, float uy,
+                                float p, int b, __constant const float4* iface,
+                                __constant const float* layer_n, __global const float4* optics) {
+    float3 pos = (float3)(x, y, zv);
+    int up = ch->up;
+    float od = 0.0f;
+    for (int e = 0; e < ch->ne; ++e) {
+        const int i = ch->ev[e] & 255, k = (ch->ev[e] >> 8) & 255, refl = ch->ev[e] >> 16;
+        const float sk = p / layer_n[k], ck = sqrt(fmax(0.0f, 1.0f - sk * sk));
+        const float3 d = (float3)(sk * ux, sk * uy, up ? ck : -ck);
+        const float len = ck > 0.0f ? fabs(IF_Z(i) - pos.z) / ck : 0.0f;
+        const float mut_k = optics[k * NB + b].w;
+        float done = 0.0f;
+        for (int guard = 0; guard < 2 * NINC + 2 && done < len; ++guard) {
+            int which = -1;
+            const float s = fmin(next_inclusion(optics, pos + done * d, d, inside, -BIG, BIG, &which), len - done);
+            if (inside) od += (optics[material_of(k, inside) * NB + b].w - mut_k) * s;
+            done += s;
+            if (done < len && which >= 0) inside ^= 1 << which;
+        }
+        pos += len * d;
+        pos.z = IF_Z(i);
+        if (refl) up = !up;
+    }
+    return od;
+}
+#endif
 
 #ifndef FLAT
 #include "mnee.h"
@@ -652,8 +689,17 @@ HOT float connect_light(const Track* t, float g, float3 lpos, int nimg, int b, R
                 const float2 sh = (float2)((float)ix * P->xw, (float)iy * P->yw);
                 float3 dl;
                 real pp, G;
-                const float f = connect(&ch, t->pos.xy, t->L, lpos.xy - sh, sh, b,
-                                        P, layer_n, optics, &dl, &pp, &G);
+                float f = connect(&ch, t->pos.xy, t->L, lpos.xy - sh, sh, b,
+                                  P, layer_n, optics, &dl, &pp, &G);
+#if NINC > 0
+                if (f > 0.0f) {                 /* the inclusions on the chain's legs */
+                    const float2 u = (lpos.xy - sh) - t->pos.xy;
+                    const float ru = length(u);
+                    f *= exp(-chain_inclusion_od(&ch, t->pos.x, t->pos.y, t->pos.z, t->inside,
+                                                 ru > 0.0f ? u.x / ru : 1.0f, ru > 0.0f ? u.y / ru : 0.0f,
+                                                 (float)pp, b, iface, layer_n, optics));
+                }
+#endif
                 if (f > 0.0f) c += f * hg_eval(g, -dot(dl, t->dir));
             }
     }
@@ -726,11 +772,17 @@ HOT void pt_walk(Track* t, float beta, int b, float3 lpos, int nimg, Rng* rng, R
     float tau = neg_log_u01(rng_u01(rng));
     int nv = 0;
     while (beta > 0.0f) {
-        const float4 op = optics[t->L * NB + b];  /* mua/mut, g, 1/(2g), mut */
+        const float4 op = optics[MATERIAL(t) * NB + b];  /* mua/mut, g, 1/(2g), mut: the layer's or an inclusion's */
         const float mut = op.w;
         int ev;
         const float sfl = mut > 0.0f ? tau / mut : BIG;
-        const float db = next_boundary(t, P, iface, heights, sfl, &ev);
+        float db = next_boundary(t, P, iface, heights, sfl, &ev);
+#if NINC > 0
+        int inc = -1;                   /* an inclusion's surface before the boundary (photon.cl) */
+        const float dinc = next_inclusion(optics, t->pos, t->dir, t->inside, IF_ZMIN(t->L + 1), IF_ZMAX(t->L), &inc);
+        const int at_inc = dinc <= db;
+        if (at_inc) db = dinc;
+#endif
         if (sfl < db) {
             /* ---- scattering vertex */
             t->pos += sfl * t->dir;
@@ -751,6 +803,9 @@ HOT void pt_walk(Track* t, float beta, int b, float3 lpos, int nimg, Rng* rng, R
         /* ---- boundary */
         t->pos += db * t->dir;
         if (mut > 0.0f) tau = fmax(tau - db * mut, 0.0f);
+#if NINC > 0
+        if (at_inc) { t->inside ^= 1 << inc; locate_column(t, P); continue; }
+#endif
 #ifndef FLAT
         if (!pt_boundary(t, ev, &beta, rng, VOLUME_PASS, smooth)) break;
 #else
@@ -782,6 +837,9 @@ HOT float pt_sample(uint pix, int s, int b, int nimg, __constant const PtParams*
     float3 gn;
     if (hit_surface(&t, P, iface, heights, &gn)) {
         const float beta = pt_enter_surface(&t, gn, lpos, &value, E, P, iface, layer_n, smooth);
+#if NINC > 0
+        t.inside = inclusion_mask(optics, t.pos);
+#endif
         pt_walk(&t, beta, b, lpos, nimg, &rng, &mrng, &value, E, chain, VOLUME_PASS, smooth, st);
     }
     return value;

@@ -72,13 +72,15 @@ inline void sw_init(Spectral* w, int h) {
 #endif
 }
 
-/* The band table (photonpass.py band_table): [NL*NB] log mu_t, [NL*NB] log albedo (1 - mu_a/mu_t,
- * at least e^-10000: none without scattering), [NL*HERO_STEP] the largest albedo over the bands a path of each hero class
- * h mod HERO_STEP carries, [NL*NB] pairs (A, B) = (1 + g^2, 2 g) (1 - g^2)^(-2/3) (sw_scatter). */
+/* The band table (photonpass.py band_table), per material (the NL layers, then the inclusions:
+ * NMAT, volume.h; "layer" L below is a material): [NMAT*NB] log mu_t, [NMAT*NB] log albedo
+ * (1 - mu_a/mu_t, at least e^-10000: none without scattering), [NMAT*HERO_STEP] the largest albedo
+ * over the bands a path of each hero class h mod HERO_STEP carries, [NMAT*NB] pairs
+ * (A, B) = (1 + g^2, 2 g) (1 - g^2)^(-2/3) (sw_scatter). */
 #define TAB_LOGMU(L, b) tab[(L) * NB + (b)]
-#define TAB_LOGALB(L, b) tab[NL * NB + (L) * NB + (b)]
-#define TAB_MAXALB(L, h) tab[2 * NL * NB + (L) * HERO_STEP + (h) % HERO_STEP]
-#define TAB_HG(L, b) vload2((L) * NB + (b), tab + 2 * NL * NB + NL * HERO_STEP)
+#define TAB_LOGALB(L, b) tab[NMAT * NB + (L) * NB + (b)]
+#define TAB_MAXALB(L, h) tab[2 * NMAT * NB + (L) * HERO_STEP + (h) % HERO_STEP]
+#define TAB_HG(L, b) vload2((L) * NB + (b), tab + 2 * NMAT * NB + NMAT * HERO_STEP)
 
 /* Lazy per-band work.  Within one layer the per-band factors of a flight and of a collision are
  * constants, so a path keeps only its length and its collisions in the current layer (two

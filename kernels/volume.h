@@ -3,6 +3,7 @@
  *
  * Compile-time switches (-D):
  *   NB    number of wavelength bands          NL   number of layers
+ *   NINC  number of inclusions (inclusion.h; 0 or absent: none, the code compiled out)
  *   FLAT  every interface is a plane (no per-column heights, no lateral stepping)
  *   SMOOTH_SURFACE, NVAR  the walks cross the smooth surfaces themselves (smoothwalk.h), not the
  *         voxel staircase; NVAR varying interfaces
@@ -38,6 +39,12 @@
 #ifndef NL
 #error "NL (number of layers) must be defined"
 #endif
+
+#ifndef NINC
+#define NINC 0
+#endif
+/* materials: the NL layers, then one per inclusion (rows of optics and of the band table) */
+#define NMAT (NL + NINC)
 
 #define PI_F 3.14159265358979f
 
@@ -350,6 +357,9 @@ typedef struct {
     float3 pos, dir;
     int L;          /* current layer */
     int ix, iy;     /* current column (unused with FLAT and lateral infinite) */
+#if NINC > 0
+    int inside;     /* bit i: inside inclusion i (inclusion.h) */
+#endif
 } Track;
 
 enum { EV_NONE = 0, EV_TOP, EV_BOTTOM, EV_WALL_X, EV_WALL_Y, EV_ZONE, EV_DOMAIN_X, EV_DOMAIN_Y };

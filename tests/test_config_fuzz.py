@@ -328,6 +328,7 @@ def test_typo_examples(path, bad, expect):
     (lambda r: r.update(layer=[{}]), "layer[0].name"),
     (lambda r: r.update(render="fast"), "render"),
     (lambda r: r["camera"].update(resolution=[16384, 16384], spp=8), "camera.spp"),  # > 2^31 rays
+    (lambda r: r["layer"][0].update(scattering="none"), "layer[0].scattering"),      # no mua, mus: no optics
 ])
 def test_known_bad_configs(mut, key):
     raw = copy.deepcopy(BASE)

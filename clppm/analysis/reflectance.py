@@ -166,7 +166,7 @@ def trace_bands(dev, vol, mcfg: dict, photons: int, batches: int = 10,
         raise ConfigError("command line", "--photons", photons, "must be >= 2")
     batches = max(2, min(int(batches), int(photons)))
     pp = photonpass.PhotonPass.of_config(dev, vol, mcfg)
-    nb, nl = vol.nb, vol.nl
+    nb, nl = vol.nb, vol.nmat                        # absorbed in the layers and the inclusions
     cats = list(photonpass.CATEGORIES)
     ix = {c: cats.index(c) for c in ("specular", "diffuse", "transmitted", "lost", "rr_gain",
                                       "rr_loss", "missed")}

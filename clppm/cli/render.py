@@ -70,6 +70,7 @@ def _check_render_paths(a, cfg):
     if a.resume and a.force:
         raise ConfigError("command line", "--force", True, "conflicts with --resume (--resume continues "
                           "the checkpoint, --force starts over): give one of them")
+    scene.refuse_inclusions(cfg, os.path.basename(a.config), a.integrator)
     paths.check_render_output(a.output)
     paths.check_inputs_not_outputs(a.output, CONFIG=config.find(a.config),
                                    **{"relief.file": cfg["relief"]["file"], "--resume": a.resume})

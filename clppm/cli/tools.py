@@ -90,6 +90,9 @@ def cmd_trace(a) -> int:
         print(f"  {k:9s} {rep[k]:.6f} ± {rep[k + '_se']:.6f}")
     print(f"  lost {rep['lost']:.6f}  missed {rep['missed']:.6f}  roulette net {rep['roulette_net']:+.2e}"
           f"  energy balance error {rep['energy_balance_error']:.1e}")
+    for i, (name, v) in enumerate(rep.get("absorbed_per_inclusion", {}).items()):
+        print(f"  absorbed in {name} ({cfg['inclusion'][i]['kind']}) {v:.6f} ± "
+              f"{rep['absorbed_per_inclusion_se'][name]:.6f}")
     if len(vol.wl) > 1 and a.bands:
         print("  band    Rd       Tt       A")
         for wl, r in rep["per_band"].items():

@@ -423,7 +423,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
                    depth_roulette: bool = False, vec16: bool = True) -> dict:
     """Every ``-D`` switch of clppm's kernels, assembled in this one place (as MCX-CL does).
 
-    From the volume: NB bands, NL layers, FLAT (no relief or papillae: the flat code paths),
+    From the volume: NB bands, NL layers, NINC inclusions (when there are any: kernels/inclusion.h),
+    FLAT (no relief or papillae: the flat code paths),
     SMOOTH_SURFACE and NVAR (model.surface = "smooth": the walk on the smooth surfaces, smoothwalk.h);
     ``nb`` alone (no volume): the photon grid's kernels (hashgrid.cl).  HERO_C: bands a photon
     path carries, when more than one (spectral.h).  FAST_MATH: the compiler's relaxed math,
@@ -443,6 +444,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
         d["SMOOTH_SURFACE"] = 1                  # kernels/smoothwalk.h
         d["NVAR"] = int(vol.heights.shape[0])
         d["SMOOTH_CELL"] = int(vol.cell)
+    if getattr(vol, "ninc", 0):
+        d["NINC"] = int(vol.ninc)                 # kernels/inclusion.h; 0 (absent): compiled out
     if hero > 1:
         d["HERO_C"] = int(hero)
     if estimator is not None:

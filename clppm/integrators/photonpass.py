@@ -23,7 +23,7 @@ from ..scene.light import Light
 from ..scene.scene import Scene
 from ..compute.device import Device, kernel_defines, launch, surface_fp64
 from ..compute.kernelcall import Kernel
-from ..scene.volume import Volume, VolumeBuffers, upload_volume, volume_params
+from ..scene.volume import Volume, VolumeBuffers, optics_rows, upload_volume, volume_params
 
 W0 = 2 ** 38
 CATEGORIES = ["specular", "diffuse", "transmitted", "lost", "rr_gain", "rr_loss", "missed",
@@ -106,18 +106,21 @@ def tile_bounds(vol: Volume, tile: int = TILE) -> np.ndarray:
 
 
 def band_table(vol: Volume, hero: int) -> np.ndarray:
-    """float32 (spectral.h): per layer and band log mu_t, then log albedo (at least -1e4: 0 for mu_s = 0), then per
+    """float32 (spectral.h): per material (the layers, then the inclusions) and band log mu_t, then log albedo (at least -1e4: 0 for mu_s = 0), then per
     layer and hero class (h mod NB/hero) the largest albedo over the bands such a path carries, then per layer and
     band the phase-function pair (1 + g^2, 2 g) (1 - g^2)^(-2/3) of sw_scatter."""
+    mua, mus, g64 = vol.material_optics()     # the layers, then the inclusions (spectral.h NMAT)
+    mut, nm = mua + mus, vol.nmat
     with np.errstate(divide="ignore", invalid="ignore"):
-        logmu = np.log(np.maximum(vol.mut, 1e-30))
-        alb = np.where(vol.mut > 0, 1.0 - vol.mua / np.where(vol.mut > 0, vol.mut, 1.0), 0.0)
+        logmu = np.log(np.maximum(mut, 1e-30))
+        alb = np.where(mut > 0, 1.0 - mua / np.where(mut > 0, mut, 1.0), 0.0)
         logalb = np.maximum(np.log(np.maximum(alb, 1e-300)), -1e4)   # exp_neg gives 0 (mu_s = 0)
     # the kernel's albedo is 1 - optics.x in float32: bound that one
-    alb32 = 1.0 - vol.optics_table().reshape(vol.nl, vol.nb, 4)[:, :, 0].astype(np.float64)
+    opt = optics_rows(mua, mus, g64).reshape(nm, vol.nb, 4)
+    alb32 = 1.0 - opt[:, :, 0].astype(np.float64)
     step = vol.nb // hero
-    maxalb = np.max(np.maximum(alb, alb32).reshape(vol.nl, hero, step), axis=1)
-    g = np.clip(vol.optics_table().reshape(vol.nl, vol.nb, 4)[:, :, 1].astype(np.float64), -0.999999, 0.999999)
+    maxalb = np.max(np.maximum(alb, alb32).reshape(nm, hero, step), axis=1)
+    g = np.clip(opt[:, :, 1].astype(np.float64), -0.999999, 0.999999)
     c = (1.0 - g * g) ** (-2.0 / 3.0)
     hg = np.stack([(1.0 + g * g) * c, 2.0 * g * c], axis=-1)
     return np.ascontiguousarray(np.concatenate([logmu.ravel(), logalb.ravel(), maxalb.ravel() * (1 + 1e-6),
@@ -269,7 +272,7 @@ class PhotonPass:
         if sd is not None:
             p["store_zmin"] = -sd
         self.p = p
-        self.nc = len(CATEGORIES) + vol.nl
+        self.nc = len(CATEGORIES) + vol.nmat     # absorption per layer, then per inclusion
         self.tally_host = np.zeros((vol.nb, self.nc), np.int64)
         self.tally_buf = cl.Buffer(dev.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=self.tally_host)
         self.count_buf = cl.Buffer(dev.ctx, mf.READ_WRITE, 8)      # stored events, photons taken
@@ -278,7 +281,7 @@ class PhotonPass:
         self.pos_w = cl.Buffer(dev.ctx, mf.READ_WRITE, 16 * cap)
         self.dir_b = cl.Buffer(dev.ctx, mf.READ_WRITE, 16 * cap)
         self.extra = cl.Buffer(dev.ctx, mf.READ_WRITE, 4 * max(cap * (self.hero - 1), 1))
-        self.tallies = Tallies(vol.nb, vol.nl)
+        self.tallies = Tallies(vol.nb, vol.nmat)
         self.pbuf = cl.Buffer(dev.ctx, mf.READ_ONLY, S.PARAMS_DTYPE.itemsize)
         self._uploaded = b""                  # the Params bytes on the device
         self.truncated = False
@@ -480,8 +483,9 @@ def trace_report(pp: PhotonPass, n_photons: int, batches: int = 10) -> dict:
     share = pp.emission_share
     mean, se = mean * share, se * share
     mean[6] += 1.0 - share
-    nl = pp.vol.nl
-    names = CATEGORIES + [f"absorbed[{n}]" for n in pp.vol.names]
+    nl = pp.vol.nmat                       # absorbing materials: the layers, then the inclusions
+    inc_names = [f"inclusion[{i}]" for i in range(pp.vol.ninc)]
+    names = CATEGORIES + [f"absorbed[{n}]" for n in pp.vol.names + inc_names]
     band_tot = sum(a.astype(object) for a in arrs)
     # per band, as fraction of the photons emitted in that band (expected count for D65)
     per_band = {}
@@ -510,7 +514,10 @@ def trace_report(pp: PhotonPass, n_photons: int, batches: int = 10) -> dict:
         "energy_balance_error": abs(total_bal - W0 * n_photons) / (W0 * n_photons),
         "Rd_cone": float(mean[7]), "Rd_cone_se": float(se[7]),
         "rcone_cos": float(pp.p["rcone_cos"][0]),
-        "absorbed_per_layer": {n: float(v) for n, v in zip(pp.vol.names, mean[NA:])},
+        "absorbed_per_layer": {n: float(v) for n, v in zip(pp.vol.names, mean[NA:NA + pp.vol.nl])},
+        **({"absorbed_per_inclusion": {n: float(v) for n, v in zip(inc_names, mean[NA + pp.vol.nl:])},
+            "absorbed_per_inclusion_se": {n: float(v) for n, v in zip(inc_names, se[NA + pp.vol.nl:])}}
+           if inc_names else {}),
         "per_band": per_band,
         "categories": dict(zip(names, map(float, mean))),
     }

@@ -22,7 +22,7 @@ from ..output import checkpoint as ckpt
 from ..output import paths
 from ..output.film import RenderResult
 from ..request import RenderRequest
-from ..scene.scene import warn_scene
+from ..scene.scene import refuse_inclusions, warn_scene
 
 
 class Integrator(Protocol):
@@ -98,6 +98,7 @@ def render(req: RenderRequest | dict, **kw) -> RenderResult:
     t_start = time.perf_counter()
     req = req if isinstance(req, RenderRequest) else RenderRequest.of(req, **kw)
     integ = integrator(req)
+    refuse_inclusions(req.resolved(), req.source, req.integrator)
     integ.check(req)
     rs, out, b = req.settings, req.outputs, req.budget
     paths.check_outputs(out=out.out, checkpoint=req.checkpoint)

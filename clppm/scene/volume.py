@@ -27,6 +27,83 @@ BIG = 1e30
 CELL = 4
 
 
+#: float4 rows of one inclusion's quadric after the material rows of the kernels' optics buffer
+#: (kernels/inclusion.h): the centre, then the diagonal, then the off-diagonal of Q
+INC_ROWS = 3
+
+
+@dataclass(frozen=True)
+class Inclusion:
+    """A region of its own material inside the layers: the points p (um) with
+    (p - centre)^T Q (p - centre) < 1.  A vessel of radius r along the unit axis a has
+    Q = (I - a a^T) / r^2 (a cylinder, unbounded along a), an ellipsoid of semi-axes s
+    Q = diag(1 / s^2).  Its material (mua, mus, g: (NB,), um^-1) comes from its chromophores by
+    the layers' spectra; it takes the index of the layer around it (no Fresnel at its surface)."""
+
+    kind: str
+    center: np.ndarray              # (3,) um
+    Q: np.ndarray                   # (3, 3) um^-2, symmetric
+    mua: np.ndarray
+    mus: np.ndarray
+    g: np.ndarray
+
+    def contains(self, p: np.ndarray) -> np.ndarray:
+        """Whether each point of ``p`` (..., 3) um lies inside (the kernels' test, in float64)."""
+        w = np.asarray(p, float) - self.center
+        return np.einsum("...i,ij,...j->...", w, self.Q, w) < 1.0
+
+    def z_range(self) -> tuple[float, float]:
+        """Lowest and highest z of the region (um; +-BIG for a vessel whose axis is not level):
+        the half-height of {w: w^T Q w < 1} along z is sqrt((Q^-1)_zz), for a level vessel its
+        radius."""
+        if self.kind == "vessel":
+            a = np.linalg.svd(self.Q)[2][-1]             # the axis: Q's null direction
+            if abs(a[2]) > 1e-12:
+                return -BIG, BIG
+            h = 1.0 / math.sqrt(float(np.max(np.linalg.eigvalsh(self.Q))))
+        else:
+            h = math.sqrt(float(np.linalg.inv(self.Q)[2, 2]))
+        return float(self.center[2]) - h, float(self.center[2]) + h
+
+    def rows(self) -> np.ndarray:
+        """(INC_ROWS, 4) float32: the quadric as kernels/inclusion.h reads it, with its z range
+        (widened by a float32 step or two) in the first two rows' w."""
+        q = self.Q
+        lo, hi = self.z_range()
+        pad = 1e-3 + 1e-6 * max(abs(lo), abs(hi)) if max(abs(lo), abs(hi)) < BIG else 0.0
+        return np.array([[*self.center, lo - pad], [q[0, 0], q[1, 1], q[2, 2], hi + pad],
+                         [q[0, 1], q[0, 2], q[1, 2], 0.0]], np.float32)
+
+
+def inclusion_of(table: dict, index: int, wl: np.ndarray, source: str = "<config>") -> Inclusion:
+    """The :class:`Inclusion` of a validated ``[[inclusion]]`` table (config lengths: mm
+    laterally, um in depth; the material as a layer's, from the same chromophore spectra)."""
+    c = np.array([table["center_mm"][0] * 1000.0, table["center_mm"][1] * 1000.0, -table["depth_um"]])
+    if table["kind"] == "vessel":
+        a = np.asarray(table["axis"], float)
+        a = a / np.linalg.norm(a)
+        Q = (np.eye(3) - np.outer(a, a)) / table["radius_um"] ** 2
+    else:
+        Q = np.diag(1.0 / np.asarray(table["semi_axes_um"], float) ** 2)
+    mat = {**{k: table[k] for k in ("melanin", "blood", "saturation", "baseline", "scattering",
+                                     "k", "a", "b", "g", "mua", "mus")},
+           "name": f"inclusion[{index}]", "thickness_um": 1.0, "n": 1.4, "bottom": "flat"}
+    mua, mus, g = layer_optics([mat], wl, source)
+    return Inclusion(kind=table["kind"], center=c, Q=Q, mua=mua[0] * 1e-4, mus=mus[0] * 1e-4, g=g[0])
+
+
+def optics_rows(mua: np.ndarray, mus: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(rows*NB, 4) float32 from (rows, NB) arrays (um^-1): the absorbed fraction of a collision
+    mua/mut (0 where mut = 0), g, 1/(2g) (0 where |g| < 1e-4: isotropic), mut in um^-1.  Per
+    collision the photon pass then needs one division (in the HG inversion) instead of three."""
+    mut = mua + mus
+    with np.errstate(divide="ignore", invalid="ignore"):
+        afrac = np.where(mut > 0, mua / np.where(mut > 0, mut, 1.0), 0.0)
+        inv2g = np.where(np.abs(g) >= 1e-4, 0.5 / np.where(g == 0, 1.0, g), 0.0)
+    t = np.stack([afrac, g, inv2g, mut], axis=-1)
+    return np.ascontiguousarray(t.reshape(-1, 4), dtype=np.float32)
+
+
 @dataclass
 class Volume:
     wl: np.ndarray                  # band centres, nm
@@ -61,6 +138,8 @@ class Volume:
     # highest point and a curvature bound of each smooth surface (smooth_tile_bounds)
     tiles: np.ndarray | None = None
     cell: int = CELL
+    # [[inclusion]]: regions of their own material (materials NL .. NL + NINC - 1 of the kernels)
+    inclusions: list = field(default_factory=list)
 
     @property
     def nl(self) -> int:
@@ -82,17 +161,34 @@ class Volume:
     def mut(self) -> np.ndarray:
         return self.mua + self.mus
 
+    @property
+    def ninc(self) -> int:
+        return len(self.inclusions)
+
+    @property
+    def nmat(self) -> int:
+        """Materials: the NL layers, then one per inclusion."""
+        return self.nl + self.ninc
+
     def optics_table(self) -> np.ndarray:
-        """(NL*NB, 4) float32, the kernels' ``optics``: the absorbed fraction of a collision
-        mua/mut (0 where mut = 0), g, 1/(2g) (0 where |g| < 1e-4: isotropic), mut in um^-1.
-        Per collision the photon pass then needs one division (in the HG inversion) instead
-        of three."""
-        mut = self.mua + self.mus
-        with np.errstate(divide="ignore", invalid="ignore"):
-            afrac = np.where(mut > 0, self.mua / np.where(mut > 0, mut, 1.0), 0.0)
-            inv2g = np.where(np.abs(self.g) >= 1e-4, 0.5 / np.where(self.g == 0, 1.0, self.g), 0.0)
-        t = np.stack([afrac, self.g, inv2g, mut], axis=-1)
-        return np.ascontiguousarray(t.reshape(-1, 4), dtype=np.float32)
+        """(NL*NB, 4) float32: the layers' rows of the kernels' ``optics`` (:func:`optics_rows`)."""
+        return optics_rows(self.mua, self.mus, self.g)
+
+    def material_optics(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(mua, mus, g), (NMAT, NB) um^-1: the layers', then the inclusions'."""
+        if not self.inclusions:
+            return self.mua, self.mus, self.g
+        return tuple(np.concatenate([getattr(self, k), np.stack([getattr(i, k) for i in self.inclusions])])
+                     for k in ("mua", "mus", "g"))
+
+    def device_optics(self) -> np.ndarray:
+        """The kernels' ``optics`` buffer: (NMAT*NB, 4) material rows, then INC_ROWS rows per
+        inclusion (kernels/inclusion.h); the layers' table alone when there is no inclusion, so a
+        uniform scene uploads the same bytes as before inclusions existed."""
+        if not self.inclusions:
+            return self.optics_table()
+        return np.ascontiguousarray(np.concatenate([optics_rows(*self.material_optics())]
+                                                   + [i.rows() for i in self.inclusions]), np.float32)
 
     def hg_table(self) -> np.ndarray:
         """(NL*NB, 4) float32, the gathers' ``hgtab``: per layer and band 1 + g^2, 2g,
@@ -118,11 +214,11 @@ class Volume:
     def device_bytes(self) -> dict[str, int]:
         if self.smooth_walk:          # one buffer: the samples, then the tiles' bounds
             return {"smooth surfaces": int(self.smooth.nbytes) + int(self.tiles.nbytes),
-                    "layer optics": int(self.optics_table().nbytes), "interfaces": int(self.iface.nbytes)}
+                    "layer optics": int(self.device_optics().nbytes), "interfaces": int(self.iface.nbytes)}
         return {
             "interface heights": int(self.heights.nbytes),
             "smooth surfaces": int(self.smooth.nbytes) if self.smooth is not None else 0,
-            "layer optics": int(self.optics_table().nbytes),
+            "layer optics": int(self.device_optics().nbytes),
             "interfaces": int(self.iface.nbytes),
         }
 
@@ -274,8 +370,10 @@ _memo: dict | None = None      # every volume built, while memoised() is active
 
 
 def geometry_key(cfg: dict) -> str:
-    """The key a volume is kept under: its config sections, as sorted JSON."""
-    return json.dumps({k: cfg.get(k) for k in GEOMETRY_SECTIONS}, sort_keys=True, default=str)
+    """The key a volume is kept under: its config sections (and its inclusions, when it has
+    any), as sorted JSON."""
+    secs = GEOMETRY_SECTIONS + (("inclusion",) if cfg.get("inclusion") else ())
+    return json.dumps({k: cfg.get(k) for k in secs}, sort_keys=True, default=str)
 
 
 def build(cfg: dict, source: str = "<config>") -> Volume:
@@ -700,7 +798,8 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
                  x0=0.0, y0=0.0, dx=dx, dy=dy, nx=nx, ny=ny,
                  dz=dz, lateral=m["lateral"], n_above=m["n_outside"], n_below=m["n_below"],
                  smooth=np.ascontiguousarray(np.stack(svar), np.float32) if svar else None,
-                 surface=m["surface"], tiles=tiles)
+                 surface=m["surface"], tiles=tiles,
+                 inclusions=[inclusion_of(t, i, wl, source) for i, t in enumerate(cfg.get("inclusion", []))])
     vol.info = {"columns": [nx, ny], "varying_interfaces": int(np.sum(iface[:, 3] >= 0)), "surface_rows": len(svar),
                 "absent_layers": [layers[k]["name"] for k in absent],
                 "device_bytes": sum(vol.device_bytes().values())}
@@ -754,9 +853,9 @@ def upload_volume(dev, vol: Volume) -> VolumeBuffers:
         # one buffer for both: the smooth surfaces' samples, then the tiles' bounds (smoothwalk.h)
         packed = buf(np.concatenate([vol.smooth.ravel(), vol.tiles.ravel()]).astype(np.float32))
         return VolumeBuffers(iface=buf(iface.astype(np.float32)), layer_n=buf(vol.n.astype(np.float32)),
-                             optics=buf(vol.optics_table()), heights=packed, smooth=packed)
+                             optics=buf(vol.device_optics()), heights=packed, smooth=packed)
     return VolumeBuffers(iface=buf(iface.astype(np.float32)),
                          layer_n=buf(vol.n.astype(np.float32)),
-                         optics=buf(vol.optics_table()),
+                         optics=buf(vol.device_optics()),
                          heights=buf(vol.heights.astype(np.float32)),
                          smooth=buf((vol.smooth if vol.smooth is not None else np.zeros(1)).astype(np.float32)))
