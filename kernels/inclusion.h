@@ -7,7 +7,8 @@
  * Materials by index: layer L's optics are the rows optics[L*NB + b]; inclusion i's are the rows
  * of material NL + i, appended after the layers' (NMAT = NL + NINC), and after all NMAT*NB rows
  * come INC_ROWS float4 per inclusion: (centre, lowest z), (Q_xx, Q_yy, Q_zz, highest z),
- * (Q_xy, Q_xz, Q_yz, 0); the z range is +-BIG for a vessel whose axis is not level.
+ * (Q_xy, Q_xz, Q_yz, 0), (lowest x, highest x, lowest y, highest y): the bounding box, +-BIG
+ * along an axis a vessel's axis follows.
  * Where inclusions overlap, the first one's material holds (the lowest bit of Track.inside).
  * An inclusion takes the index of the layer it is in: there is no Fresnel at its surface, only a
  * change of absorption, scattering and anisotropy.
@@ -30,7 +31,7 @@
 
 #include "volume.h"
 
-#define INC_ROWS 3
+#define INC_ROWS 4
 /* um: float32 positions of a few mm carry ~5e-4 um of rounding */
 #define INC_EPS 1e-2f
 
@@ -60,16 +61,28 @@ HOT int material_of(int L, int inside) {
     return inside ? NL + (31 - clz(inside & -inside)) : L;
 }
 
-/* Distance along d from p to the next crossing of an inclusion's surface (BIG if none), and
- * which inclusion (*which).  A step ends at its layer's boundary at the latest, so an inclusion
- * outside the depths zlo .. zhi of the layer (over all columns) cannot be crossed: skipped
- * without its quadratic (a level vessel in the dermis costs the epidermis nothing). */
-HOT float next_inclusion(__global const float4* optics, float3 p, float3 d, int inside, float zlo, float zhi,
-                         int* which) {
-    float best = BIG;
+/* The inclusions whose bounding box meets the box (xlo .. xhi, ylo .. yhi, zlo .. zhi), one bit
+ * each: only they can be crossed by a path inside it.  A step ends at its layer's boundary at
+ * the latest, so the walks test the depths of the layer over all columns (a level vessel in the
+ * dermis costs the epidermis nothing); a light connection's leg tests its own box. */
+HOT int inclusions_near(__global const float4* optics, float xlo, float xhi, float ylo, float yhi,
+                        float zlo, float zhi) {
+    int m = 0;
     for (int i = 0; i < NINC; ++i) {
         __global const float4* r = optics + NMAT * NB + INC_ROWS * i;
-        if (!((inside >> i) & 1) && (r[0].w > zhi || r[1].w < zlo)) continue;
+        const float4 bx = r[3];
+        if (!(r[0].w > zhi || r[1].w < zlo || bx.x > xhi || bx.y < xlo || bx.z > yhi || bx.w < ylo))
+            m |= 1 << i;
+    }
+    return m;
+}
+
+/* Distance along d from p to the next crossing of the surface of an inclusion of bits near or
+ * inside (BIG if none), and which inclusion (*which). */
+HOT float next_inclusion(__global const float4* optics, float3 p, float3 d, int inside, int near, int* which) {
+    float best = BIG;
+    for (int i = 0; i < NINC; ++i) {
+        if (!(((inside | near) >> i) & 1)) continue;
         const float3 k = inclusion_poly(optics, i, p, d);
         if (!(k.x > 0.0f)) continue;                        /* along a vessel's axis: no crossing */
         const float disc = k.y * k.y - 4.0f * k.x * k.z;
@@ -84,6 +97,9 @@ HOT float next_inclusion(__global const float4* optics, float3 p, float3 d, int 
     }
     return best;
 }
+
+/* The inclusions a step of layer L can cross (any column) */
+#define INCLUSIONS_OF_LAYER(optics, L) inclusions_near(optics, -BIG, BIG, -BIG, BIG, IF_ZMIN((L) + 1), IF_ZMAX(L))
 
 #define MATERIAL(t) material_of((t)->L, (t)->inside)
 #else

@@ -728,7 +728,7 @@ __kernel void photon_pass(const PhotonLaunch launch,
 #endif
 #if NINC > 0
         int inc = -1;                                /* an inclusion's surface before the boundary */
-        const float dinc = next_inclusion(optics, t.pos, t.dir, t.inside, IF_ZMIN(t.L + 1), IF_ZMAX(t.L), &inc);
+        const float dinc = next_inclusion(optics, t.pos, t.dir, t.inside, INCLUSIONS_OF_LAYER(optics, t.L), &inc);
         const int at_inc = dinc <= db;
         if (at_inc) db = dinc;
 #endif

@@ -279,9 +279,9 @@ inline float connect(const Chain* ch, float2 v, int Lv, float2 lpos, float2 shif
  * legs from the vertex (x, y, zv; inclusion bits inside) back toward the light, each a straight
  * line in one layer k at horizontal slowness p (sin = p / n_k along (ux, uy), the light's
  * horizontal direction from the vertex) up or down to its event's interface, walked through the
- * quadrics as a flight is (next_inclusion), with mu_t of the inclusion instead of the layer's
- * where the leg is inside one.  Scalars only across the call (Intel's float3 miscompilation,
- * connect). */
+ * quadrics as a flight is (next_inclusion: an inclusion whose box the leg's misses is skipped),
+ * with mu_t of the inclusion instead of the layer's where the leg is inside one.  Scalars only
+ * across the call (Intel's float3 miscompilation, connect). */
 inline float chain_inclusion_od(const Chain* ch, float x, float y, float zv, int inside, float ux, float uy,
                                 float p, int b, __constant const float4* iface,
                                 __constant const float* layer_n, __global const float4* optics) {
@@ -294,10 +294,13 @@ inline float chain_inclusion_od(const Chain* ch, float x, float y, float zv, int
         const float3 d = (float3)(sk * ux, sk * uy, up ? ck : -ck);
         const float len = ck > 0.0f ? fabs(IF_Z(i) - pos.z) / ck : 0.0f;
         const float mut_k = optics[k * NB + b].w;
+        const float3 end = pos + len * d;
+        const int near = inclusions_near(optics, fmin(pos.x, end.x), fmax(pos.x, end.x), fmin(pos.y, end.y),
+                                         fmax(pos.y, end.y), fmin(pos.z, IF_Z(i)), fmax(pos.z, IF_Z(i)));
         float done = 0.0f;
-        for (int guard = 0; guard < 2 * NINC + 2 && done < len; ++guard) {
+        for (int guard = 0; guard < 2 * NINC + 2 && done < len && (near | inside); ++guard) {
             int which = -1;
-            const float s = fmin(next_inclusion(optics, pos + done * d, d, inside, -BIG, BIG, &which), len - done);
+            const float s = fmin(next_inclusion(optics, pos + done * d, d, inside, near, &which), len - done);
             if (inside) od += (optics[material_of(k, inside) * NB + b].w - mut_k) * s;
             done += s;
             if (done < len && which >= 0) inside ^= 1 << which;
@@ -779,7 +782,7 @@ HOT void pt_walk(Track* t, float beta, int b, float3 lpos, int nimg, Rng* rng, R
         float db = next_boundary(t, P, iface, heights, sfl, &ev);
 #if NINC > 0
         int inc = -1;                   /* an inclusion's surface before the boundary (photon.cl) */
-        const float dinc = next_inclusion(optics, t->pos, t->dir, t->inside, IF_ZMIN(t->L + 1), IF_ZMAX(t->L), &inc);
+        const float dinc = next_inclusion(optics, t->pos, t->dir, t->inside, INCLUSIONS_OF_LAYER(optics, t->L), &inc);
         const int at_inc = dinc <= db;
         if (at_inc) db = dinc;
 #endif

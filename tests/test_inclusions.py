@@ -424,6 +424,13 @@ def test_vessel_and_ellipsoid_geometry():
     level = volume.inclusion_of({**C.validate({**SLAB, "inclusion": [{**SLAB["inclusion"][0], "axis": [1.0, 1.0, 0.0]}]},
                                              "x")["inclusion"][0]}, 0, vol.wl)
     assert level.z_range() == pytest.approx((-180.0, -80.0))
+    along_y = volume.inclusion_of({**C.validate({**SLAB, "inclusion": [{**SLAB["inclusion"][0], "axis": [0.0, 1.0, 0.0]}]},
+                                               "x")["inclusion"][0]}, 0, vol.wl)
+    np.testing.assert_allclose(along_y.half_extents(), [50.0, volume.BIG, 50.0])
+    np.testing.assert_allclose(e.half_extents(), [80.0, 60.0, 30.0])
+    box = e.rows()[3]                   # the bounding box the light connections' legs test
+    assert box[0] < 40.0 - 80.0 and box[1] > 40.0 + 80.0 and box[2] < 20.0 - 60.0 and box[3] > 20.0 + 60.0
+    assert box[1] < 40.0 + 80.0 + 0.01 and box[0] > 40.0 - 80.0 - 0.01
 
 
 BAD = [

@@ -27,9 +27,9 @@ BIG = 1e30
 CELL = 4
 
 
-#: float4 rows of one inclusion's quadric after the material rows of the kernels' optics buffer
-#: (kernels/inclusion.h): the centre, then the diagonal, then the off-diagonal of Q
-INC_ROWS = 3
+#: float4 rows of one inclusion after the material rows of the kernels' optics buffer
+#: (kernels/inclusion.h): the centre, the diagonal and the off-diagonal of Q, the bounding box
+INC_ROWS = 4
 
 
 @dataclass(frozen=True)
@@ -52,27 +52,36 @@ class Inclusion:
         w = np.asarray(p, float) - self.center
         return np.einsum("...i,ij,...j->...", w, self.Q, w) < 1.0
 
-    def z_range(self) -> tuple[float, float]:
-        """Lowest and highest z of the region (um; +-BIG for a vessel whose axis is not level):
-        the half-height of {w: w^T Q w < 1} along z is sqrt((Q^-1)_zz), for a level vessel its
-        radius."""
+    def half_extents(self) -> np.ndarray:
+        """(3,) um: how far the region reaches from its centre along x, y and z (BIG where a
+        vessel's axis has a component along that axis: unbounded).  An ellipsoid's is
+        sqrt((Q^-1)_jj), a vessel's its radius across the axes its axis does not follow."""
         if self.kind == "vessel":
             a = np.linalg.svd(self.Q)[2][-1]             # the axis: Q's null direction
-            if abs(a[2]) > 1e-12:
-                return -BIG, BIG
-            h = 1.0 / math.sqrt(float(np.max(np.linalg.eigvalsh(self.Q))))
-        else:
-            h = math.sqrt(float(np.linalg.inv(self.Q)[2, 2]))
-        return float(self.center[2]) - h, float(self.center[2]) + h
+            r = 1.0 / math.sqrt(float(np.max(np.linalg.eigvalsh(self.Q))))
+            return np.where(np.abs(a) > 1e-12, BIG, r)
+        return np.sqrt(np.diag(np.linalg.inv(self.Q)))
+
+    def z_range(self) -> tuple[float, float]:
+        """Lowest and highest z of the region (um; +-BIG for a vessel whose axis is not level)."""
+        h = float(self.half_extents()[2])
+        return (-BIG, BIG) if h >= BIG else (float(self.center[2]) - h, float(self.center[2]) + h)
 
     def rows(self) -> np.ndarray:
-        """(INC_ROWS, 4) float32: the quadric as kernels/inclusion.h reads it, with its z range
-        (widened by a float32 step or two) in the first two rows' w."""
+        """(INC_ROWS, 4) float32: the quadric as kernels/inclusion.h reads it, its bounding box
+        (widened by a float32 step or two; +-BIG where unbounded) in the first two rows' w (z)
+        and the fourth row (x, y)."""
         q = self.Q
-        lo, hi = self.z_range()
-        pad = 1e-3 + 1e-6 * max(abs(lo), abs(hi)) if max(abs(lo), abs(hi)) < BIG else 0.0
-        return np.array([[*self.center, lo - pad], [q[0, 0], q[1, 1], q[2, 2], hi + pad],
-                         [q[0, 1], q[0, 2], q[1, 2], 0.0]], np.float32)
+        h = self.half_extents()
+        lo, hi = [], []
+        for c, e in zip(self.center, h):
+            if e >= BIG:
+                lo.append(-BIG); hi.append(BIG)
+            else:
+                pad = 1e-3 + 1e-6 * (abs(c) + e)
+                lo.append(c - e - pad); hi.append(c + e + pad)
+        return np.array([[*self.center, lo[2]], [q[0, 0], q[1, 1], q[2, 2], hi[2]],
+                         [q[0, 1], q[0, 2], q[1, 2], 0.0], [lo[0], hi[0], lo[1], hi[1]]], np.float32)
 
 
 def inclusion_of(table: dict, index: int, wl: np.ndarray, source: str = "<config>") -> Inclusion:
