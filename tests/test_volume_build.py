@@ -88,3 +88,24 @@ def test_stored_volume_is_the_built_one(tmp_path, monkeypatch):
     small = C.validate(_config("forearm.toml", **{"model.size_mm": [1.0, 1.0]}), "small")
     volume._stored(volume.geometry_key(small), small, "small")       # small volumes are not kept
     assert len(os.listdir(volume.store_dir())) == 1
+
+
+def test_store_keeps_the_most_recent(tmp_path, monkeypatch):
+    """At most STORE_MAX volumes stay on disk: the least recently used go first; with
+    CLPPM_NO_VOLUME_STORE nothing is written."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.delenv("CLPPM_NO_VOLUME_STORE", raising=False)
+    monkeypatch.setattr(volume, "STORE_COLUMNS", 1)
+    monkeypatch.setattr(volume, "STORE_MAX", 2)
+    cfgs = [C.validate(_config("forearm.toml", **{"model.size_mm": [0.5 + 0.1 * i, 0.5]}), f"v{i}")
+            for i in range(3)]
+    names = []
+    for i, cfg in enumerate(cfgs):
+        volume._stored(volume.geometry_key(cfg), cfg, f"v{i}")
+        names.append(volume._digest(volume.geometry_key(cfg)) + ".npz")
+        os.utime(os.path.join(volume.store_dir(), names[-1]), (i + 1, i + 1))   # distinct ages
+    assert sorted(os.listdir(volume.store_dir())) == sorted(names[1:])
+    monkeypatch.setenv("CLPPM_NO_VOLUME_STORE", "1")
+    more = C.validate(_config("forearm.toml", **{"model.size_mm": [0.9, 0.5]}), "more")
+    volume._stored(volume.geometry_key(more), more, "more")
+    assert sorted(os.listdir(volume.store_dir())) == sorted(names[1:])
