@@ -448,33 +448,21 @@ typedef struct {
 } PhotonMap;
 
 
-/* Store the scattering event at t with weight W (importance storage under store rule 1: kept
- * with probability q and weighted 1/q; every event under rule 0).  The decision draws from the
- * storage stream srng only, so the path is the same under every rule. */
-HOT void store_event(__constant const Params* P, const Track* t, Spectral* sw, long W, int b,
-                     Rng* srng, __global const float2* store_imp, __global const float2* band_spi,
-                     __global const float4* optics, __global const float* logmu, PhotonMap map,
-                     Counters* cnt) {
+/* Store the scattering event at t with weight W, its storage uniform u already drawn (rule 1;
+ * unused under rule 0) and, under rule 1, the bound of q already passed (store_bound): the bands'
+ * weights, q, and the record if u <= q. */
+HOT void store_record(__constant const Params* P, const Track* t, const Spectral* sw, long W, int b, float u,
+                      __global const float2* store_imp, __global const float2* band_spi,
+                      __global const float4* optics, __global const float* logmu, PhotonMap map,
+                      Counters* cnt) {
     const float a_h = (float)W * (1.0f / W0F);
     float F[HERO_C];
     float q = 1.0f;
-    int keep = 1;
+    sw_weights(sw, a_h, band_spi, optics, logmu, F);
     if (P->store_rule == 1) {
-        const float u = rng_u01(srng);
-        const float ce = cone_cos(P, t->dir);
-#ifndef STORE_EXACT                     /* tests: q for every event (the same decisions) */
-        keep = u <= clamp(P->store_scale * store_bound(store_imp, t->L, ce, sw_amax(sw, a_h), t->pos.z),
-                          P->store_qmin, 1.0f);
-#endif
-        if (keep) {
-            sw_weights(sw, a_h, band_spi, optics, logmu, F);
-            q = store_probability(P, ce, t->L, b, F, band_spi, optics, store_imp, t->pos.z);
-            keep = u <= q;
-        }
-    } else {
-        sw_weights(sw, a_h, band_spi, optics, logmu, F);
+        q = store_probability(P, cone_cos(P, t->dir), t->L, b, F, band_spi, optics, store_imp, t->pos.z);
+        if (!(u <= q)) return;
     }
-    if (!keep) return;
     const float iq = 1.0f / q;
     for (int j = 0; j < HERO_C; ++j) F[j] *= iq;
     COUNT(cnt, K_STORED);
@@ -484,6 +472,26 @@ HOT void store_event(__constant const Params* P, const Track* t, Spectral* sw, l
         map.dir_b[i] = (float4)(t->dir, (float)(b + 256 * t->L));   /* band, layer */
         for (int j = 1; j < HERO_C; ++j) map.extra[(size_t)i * (HERO_C - 1) + j - 1] = F[j];
     }
+}
+
+/* Store the scattering event at t with weight W (importance storage under store rule 1: kept
+ * with probability q and weighted 1/q; every event under rule 0).  The decision draws from the
+ * storage stream srng only, so the path is the same under every rule.  Most events fail the
+ * bound of q (store_bound) and cost no more. */
+HOT void store_event(__constant const Params* P, const Track* t, Spectral* sw, long W, int b,
+                     Rng* srng, __global const float2* store_imp, __global const float2* band_spi,
+                     __global const float4* optics, __global const float* logmu, PhotonMap map,
+                     Counters* cnt) {
+    float u = 0.0f;
+    if (P->store_rule == 1) {
+        u = rng_u01(srng);
+#ifndef STORE_EXACT                     /* tests: q for every event (the same decisions) */
+        const float a_h = (float)W * (1.0f / W0F);
+        if (!(u <= clamp(P->store_scale * store_bound(store_imp, t->L, cone_cos(P, t->dir), sw_amax(sw, a_h),
+                                                      t->pos.z), P->store_qmin, 1.0f))) return;
+#endif
+    }
+    store_record(P, t, sw, W, b, u, store_imp, band_spi, optics, logmu, map, cnt);
 }
 
 /* A new direction from material m's Henyey-Greenstein phase function (op: its optics), then
@@ -648,6 +656,86 @@ HOT void cross_lateral(int ev, Track* t, long* W, Fates* f, VOLUME_ARGS, __globa
 #endif
 }
 
+/* One event of a live photon (W > 0): its free path against the next boundary of its region,
+ * then a collision (collide) or the boundary's crossing.  The photon has ended when *W <= 0. */
+HOT void photon_event(Track* t, Spectral* sw, long* W, int b, Fates* f, int* events, int* planes, int* still,
+                      float* tau, Rng* rng, Rng* srng, VOLUME_ARGS, __global const float2* store_imp,
+                      __global const float2* band_spi, __global const float* logmu,
+                      __global const float* smooth, __global const float2* tile_z, PhotonMap map,
+                      Counters* cnt) {
+    if (++*events > P->max_events) { f->lost += *W; *W = 0; return; }
+    COUNT(cnt, K_STEPS);
+    const int m = MATERIAL(t);                  /* the layer, or the inclusion the photon is in */
+    const float4 op = optics[m * NB + b];       /* mua/mut, g, 1/(2g), mut in um^-1 */
+    const float mut = op.w;
+    int ev;
+    const float s = mut > 0.0f ? *tau / mut : BIG;
+#ifdef FLAT
+    float db = next_boundary(t, P, iface, heights, s, &ev);
+#else
+    float plane = 0.0f;
+    int2 tile;
+    float db = photon_boundary(t, VOLUME_PASS, tile_z, s, &ev, &plane, &tile);
+#ifdef SMOOTH_SURFACE
+    if (tile.x >= 0) { t->ix = tile.x * SMOOTH_CELL; t->iy = tile.y * SMOOTH_CELL; }
+#endif
+#endif
+#if NINC > 0
+    int inc = -1;                                /* an inclusion's surface before the boundary */
+    const float dinc = next_inclusion(optics, t->pos, t->dir, t->inside, INCLUSIONS_OF_LAYER(optics, t->L), &inc);
+    const int at_inc = dinc <= db;
+    if (at_inc) db = dinc;
+#endif
+    if (s < db) {
+        collide(P, op, m, s, t, sw, W, b, f, planes, tau, rng, srng, store_imp, band_spi, optics, logmu, map, cnt);
+        return;
+    }
+    /* ---- boundary: move onto it */
+    *still = db < TRAP_UM ? *still + 1 : 0;
+    if (*still > TRAPPED_STEPS) { f->lost += *W; *W = 0; return; }
+    t->pos += db * t->dir;
+    sw_flight(sw, optics, logmu, m, mut, db);
+    if (mut > 0.0f) { *tau -= db * mut; *tau = *tau > 0.0f ? *tau : 0.0f; }
+#if NINC > 0
+    if (at_inc) { t->inside ^= 1 << inc; locate_column(t, P); return; }   /* into or out of it */
+#endif
+    if (ev == EV_NONE) { f->lost += *W; *W = 0; return; }   /* semi-infinite, direction flat */
+    if (ev == EV_TOP || ev == EV_BOTTOM) {
+        if (cross_interface(ev == EV_TOP, t, W, f, VOLUME_PASS, smooth, rng, cnt)) ++*events;
+        return;
+    }
+    if (ev == EV_ZONE) { COUNT(cnt, K_ZONE); locate_column(t, P); return; }
+#ifndef FLAT
+    if (ev == EV_TILE_Z) { COUNT(cnt, K_ZONE); t->pos.z = plane; locate_column_ahead(t, P); return; }
+    if (ev == EV_TILE_X || ev == EV_TILE_Y) { COUNT(cnt, K_TILE); cross_tile(t, P, ev == EV_TILE_Y); return; }
+#endif
+    cross_lateral(ev, t, W, f, VOLUME_PASS, smooth, rng, cnt);
+#if NINC > 0
+    if (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y) t->inside = inclusion_mask(optics, t->pos);  /* wrapped */
+#endif
+}
+
+/* A photon's start: emission, and its walk's counters and first optical depth.  Returns whether
+ * it entered the skin (its fates are flushed when it ends). */
+HOT int photon_start(uint id, const PhotonLaunch* L, VOLUME_ARGS, __global const float* band_cdf,
+                     __global const float* smooth, __global long* tallies, Rng* rng, Rng* srng, Track* t,
+                     Spectral* sw, int* b, Fates* f, long* W, int* events, int* planes, int* still, float* tau,
+                     Counters* cnt) {
+    *W = emit_photon(id, L, VOLUME_PASS, band_cdf, smooth, tallies, rng, srng, t, sw, b, f);
+#ifdef PHOTON_COUNTERS
+    if (t->L < 0) COUNT(cnt, K_MISSED); else COUNT(cnt, K_ENTERED);
+#endif
+    const int live = t->L >= 0;
+#if NINC > 0
+    t->inside = live ? inclusion_mask(optics, t->pos) : 0;
+#endif
+    *events = 0;
+    *planes = 0;
+    *still = 0;
+    *tau = neg_log_u01(rng_u01(rng));
+    return live;
+}
+
 /* The photons of a launch are drawn from a shared counter by a fixed number of work items
  * (persistent threads): a work item whose photon has ended takes the next one at the top of the
  * same loop, so neighbouring work items that a SIMD compiler runs in lanes (Intel's CPU runtime,
@@ -694,72 +782,12 @@ __kernel void photon_pass(const PhotonLaunch launch,
             if (live) { fates_flush(&f, tallies + (size_t)b * NC); fates_clear(&f); live = 0; }
             const uint k = atomic_inc(store_count + 1);
             if (k >= launch.count) break;
-            W = emit_photon(launch.photon_offset + k, &launch, VOLUME_PASS, band_cdf, smooth, tallies,
-                            &rng, &srng, &t, &sw, &b, &f);
-#ifdef PHOTON_COUNTERS
-            if (t.L < 0) COUNT(&cnt, K_MISSED); else COUNT(&cnt, K_ENTERED);
-#endif
-            live = t.L >= 0;
-#if NINC > 0
-            t.inside = live ? inclusion_mask(optics, t.pos) : 0;
-#endif
-            events = 0;
-            planes = 0;
-            still = 0;
-            tau = neg_log_u01(rng_u01(&rng));
+            live = photon_start(launch.photon_offset + k, &launch, VOLUME_PASS, band_cdf, smooth, tallies, &rng,
+                                &srng, &t, &sw, &b, &f, &W, &events, &planes, &still, &tau, &cnt);
             continue;
         }
-        if (++events > P->max_events) { f.lost += W; W = 0; continue; }
-        COUNT(&cnt, K_STEPS);
-        const int m = MATERIAL(&t);                 /* the layer, or the inclusion the photon is in */
-        const float4 op = optics[m * NB + b];       /* mua/mut, g, 1/(2g), mut in um^-1 */
-        const float mut = op.w;
-        int ev;
-        const float s = mut > 0.0f ? tau / mut : BIG;
-#ifdef FLAT
-        float db = next_boundary(&t, P, iface, heights, s, &ev);
-#else
-        float plane = 0.0f;
-        int2 tile;
-        float db = photon_boundary(&t, VOLUME_PASS, tile_z, s, &ev, &plane, &tile);
-#ifdef SMOOTH_SURFACE
-        if (tile.x >= 0) { t.ix = tile.x * SMOOTH_CELL; t.iy = tile.y * SMOOTH_CELL; }
-#endif
-#endif
-#if NINC > 0
-        int inc = -1;                                /* an inclusion's surface before the boundary */
-        const float dinc = next_inclusion(optics, t.pos, t.dir, t.inside, INCLUSIONS_OF_LAYER(optics, t.L), &inc);
-        const int at_inc = dinc <= db;
-        if (at_inc) db = dinc;
-#endif
-        if (s < db) {
-            collide(P, op, m, s, &t, &sw, &W, b, &f, &planes, &tau, &rng, &srng, store_imp, band_spi, optics, logmu,
-                    map, &cnt);
-            continue;
-        }
-        /* ---- boundary: move onto it */
-        still = db < TRAP_UM ? still + 1 : 0;
-        if (still > TRAPPED_STEPS) { f.lost += W; W = 0; continue; }
-        t.pos += db * t.dir;
-        sw_flight(&sw, optics, logmu, m, mut, db);
-        if (mut > 0.0f) { tau -= db * mut; tau = tau > 0.0f ? tau : 0.0f; }
-#if NINC > 0
-        if (at_inc) { t.inside ^= 1 << inc; locate_column(&t, P); continue; }   /* into or out of it */
-#endif
-        if (ev == EV_NONE) { f.lost += W; W = 0; continue; }   /* semi-infinite, direction flat */
-        if (ev == EV_TOP || ev == EV_BOTTOM) {
-            if (cross_interface(ev == EV_TOP, &t, &W, &f, VOLUME_PASS, smooth, &rng, &cnt)) events++;
-            continue;
-        }
-        if (ev == EV_ZONE) { COUNT(&cnt, K_ZONE); locate_column(&t, P); continue; }
-#ifndef FLAT
-        if (ev == EV_TILE_Z) { COUNT(&cnt, K_ZONE); t.pos.z = plane; locate_column_ahead(&t, P); continue; }
-        if (ev == EV_TILE_X || ev == EV_TILE_Y) { COUNT(&cnt, K_TILE); cross_tile(&t, P, ev == EV_TILE_Y); continue; }
-#endif
-        cross_lateral(ev, &t, &W, &f, VOLUME_PASS, smooth, &rng, &cnt);
-#if NINC > 0
-        if (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y) t.inside = inclusion_mask(optics, t.pos);  /* wrapped */
-#endif
+        photon_event(&t, &sw, &W, b, &f, &events, &planes, &still, &tau, &rng, &srng, VOLUME_PASS, store_imp,
+                     band_spi, logmu, smooth, tile_z, map, &cnt);
     }
 #ifdef PHOTON_COUNTERS
     for (int k = 0; k < K_NCOUNT; ++k)
