@@ -796,3 +796,61 @@ __kernel void photon_pass(const PhotonLaunch launch,
     lane_steps[2 * get_global_id(0) + 1] = iterations;
 #endif
 }
+
+#if defined(LANES) && LANES > 1
+#include "photon_lanes.h"        /* the same pass in explicit SIMD lanes (CPUs) */
+
+/* photon_pass in lanes: the same arguments, launched with a LANES-th of its work items */
+__kernel __attribute__((vec_type_hint(vf)))
+void photon_pass_lanes(const PhotonLaunch launch,
+                       VOLUME_ARGS,
+                       __global const float2* store_imp,
+                       __global const float* band_cdf,
+                       __global const float2* band_spi,
+                       __global const float* logmu,
+                       __global float4* store_pos_w,
+                       __global float4* store_dir_b,
+                       __global float* store_extra,
+                       __global volatile uint* store_count,
+                       __global long* tallies,
+                       __global const float* smooth,
+                       __global const float2* tile_z,
+                       __global long* counters,
+                       __global uint* lane_steps)
+{
+    const PhotonMap map = { store_pos_w, store_dir_b, store_extra, store_count, launch.capacity };
+    Counters cnt;
+#ifdef PHOTON_COUNTERS
+    for (int k = 0; k < K_NCOUNT; ++k) cnt.k[k] = 0u;
+    uint iterations = 0u;
+#endif
+    Lanes S;
+    for (int i = 0; i < LANES; ++i) {
+        S.W[i] = 0; S.live[i] = 0; S.on[i] = 1; S.fast[i] = 0; S.b[i] = 0; S.L[i] = 0;
+        S.gain[i] = 0; S.loss[i] = 0; S.acur[i] = 0;
+        fates_clear(&S.f[i]);
+    }
+    for (;;) {
+        int on = 0;
+        for (int i = 0; i < LANES; ++i) {
+            if (S.on[i] && !S.fast[i])
+                lane_slow(&S, i, &launch, VOLUME_PASS, store_imp, band_cdf, band_spi, logmu, store_count, tallies,
+                          smooth, tile_z, map, &cnt);
+            on += S.on[i];
+        }
+        if (!on) break;
+        const int n = lanes_fast(&S, P, optics, logmu, store_imp, band_spi, map, &cnt);
+#ifdef PHOTON_COUNTERS
+        cnt.k[K_STEPS] += n;
+        cnt.k[K_COLLISIONS] += n;
+        iterations++;
+#endif
+    }
+#ifdef PHOTON_COUNTERS
+    for (int k = 0; k < K_NCOUNT; ++k)
+        if (cnt.k[k]) atom_add(counters + k, (long)cnt.k[k]);
+    lane_steps[2 * get_global_id(0)] = cnt.k[K_STEPS];
+    lane_steps[2 * get_global_id(0) + 1] = iterations;
+#endif
+}
+#endif

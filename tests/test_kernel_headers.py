@@ -1,7 +1,8 @@
 """Every kernel header includes what it uses: each compiles alone, first in its program, in the
 builds it serves (flat, relief on the smooth surfaces), so no header works only because another
-came before it.  mnee.h is the exception by design: it is pt.cl's manifold section (its chains,
-traces and connection live in pt.cl) and pt.cl includes it in the middle."""
+came before it.  mnee.h and photon_lanes.h are the exceptions by design: mnee.h is pt.cl's manifold section (its
+chains, traces and connection live in pt.cl) and pt.cl includes it in the middle; photon_lanes.h is
+photon.cl's pass in SIMD lanes, built on photon.cl's events."""
 from __future__ import annotations
 
 import os
@@ -10,7 +11,7 @@ import pytest
 
 from clppm.compute.device import kernel_dir
 
-PART_OF = {"mnee.h": "pt.cl"}
+PART_OF = {"mnee.h": "pt.cl", "photon_lanes.h": "photon.cl"}
 #: headers of relief builds only (they #error without the smooth surfaces' switches)
 RELIEF_ONLY = {"smoothwalk.h"}
 BUILDS = {

@@ -420,7 +420,7 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
                    gclass: int | None = None, pt_fp64: bool | None = None,
                    count_candidates: bool = False, exact_rsqrt: bool = False,
                    photon_counters: bool = False, photon_plain_walk: bool = False,
-                   depth_roulette: bool = False, vec16: bool = True) -> dict:
+                   depth_roulette: bool = False, vec16: bool = True, photon_lanes: int = 1) -> dict:
     """Every ``-D`` switch of clppm's kernels, assembled in this one place (as MCX-CL does).
 
     From the volume: NB bands, NL layers, NINC inclusions (when there are any: kernels/inclusion.h),
@@ -436,6 +436,7 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     PHOTON_COUNTERS (photon.cl: count events, crossings and loop steps, for bench/photons.py),
     PHOTON_PLAIN_WALK (photon.cl: the smooth walk of the other passes, tile by tile, for tests),
     DEPTH_ROULETTE (photon.cl: render.depth_roulette_um's roulette below the storage depth),
+    LANES (photon.cl: photon_pass_lanes, the photon pass in explicit SIMD lanes of this width),
     NO_VEC16 (gather.cl: the beam's band math lane by lane, where :func:`wide_vectors` is false)."""
     if vol is None:
         return {"NB": int(nb)} if nb is not None else {}
@@ -464,6 +465,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
         d["PHOTON_PLAIN_WALK"] = 1
     if depth_roulette:
         d["DEPTH_ROULETTE"] = 1
+    if photon_lanes > 1:
+        d["LANES"] = int(photon_lanes)
     if not vec16:
         d["NO_VEC16"] = 1
     return d

@@ -136,6 +136,27 @@ def persistent_items(dev: Device) -> int:
     return max(64, cu * per)
 
 
+def photon_lanes(dev: Device, vol: Volume) -> int:
+    """Photons per work item of the photon pass: on a CPU the SIMD width (photon_pass_lanes,
+    kernels/photon_lanes.h: 16 where kernels may use 16-lane vectors, else 8), on a GPU 1 (its
+    work items are its lanes: photon_pass).  Scenes with inclusions take photon_pass (the lanes'
+    fast phase knows layers only).  CLPPM_PHOTON_LANES (1, 4, 8 or 16) overrides, for
+    benchmarks and tests."""
+    import os
+    from ..compute.device import wide_vectors
+    env = os.environ.get("CLPPM_PHOTON_LANES")
+    if getattr(vol, "ninc", 0):
+        return 1
+    if env:
+        n = int(env)
+        if n not in (1, 4, 8, 16):
+            raise ValueError(f"CLPPM_PHOTON_LANES={env}: give 1, 4, 8 or 16")
+        return n
+    if not dev.device.type & 1 << 1:                        # CL_DEVICE_TYPE_CPU = 2
+        return 1
+    return 16 if wide_vectors(dev.device) else 8
+
+
 @dataclass
 class Tallies:
     """Exact integer tallies, per band, in units of W0 per photon."""
@@ -240,7 +261,8 @@ class PhotonPass:
         self.bands = bands or scene.bands(hero=1, sampling="power")
         self.hero = self.bands.hero
         self.counters = bool(counters)
-        self.items = persistent_items(dev)
+        self.lanes = photon_lanes(dev, vol)
+        self.items = max(1, persistent_items(dev) // self.lanes)
         self.plain_walk = bool(plain_walk)
         self._build(depth_roulette=False)
         self.vbuf = vbuf or upload_volume(dev, vol)
@@ -316,8 +338,8 @@ class PhotonPass:
         self.depth_roulette = depth_roulette
         self.prg = self.dev.build("photon.cl", kernel_defines(
             self.vol, hero=self.hero, pt_fp64=surface_fp64(self.dev, self.vol), photon_counters=self.counters,
-            photon_plain_walk=self.plain_walk, depth_roulette=depth_roulette))
-        self.kernel = Kernel(self.prg, "photon_pass")
+            photon_plain_walk=self.plain_walk, depth_roulette=depth_roulette, photon_lanes=self.lanes))
+        self.kernel = Kernel(self.prg, "photon_pass_lanes" if self.lanes > 1 else "photon_pass")
 
     def set_storage_depth(self, zmin_um: float, roulette_um: float = 0.0) -> None:
         """Store no event below ``zmin_um`` (they could never be gathered), and with
@@ -352,7 +374,7 @@ class PhotonPass:
             L["qmc_s0"], L["qmc_s1"], L["qmc_s2"] = qmc_shift(self.seed, pass_index)
         self._upload_params()
         cl.enqueue_copy(q, self.count_buf, np.zeros(1, np.uint32), dst_offset=4)   # no photon taken yet
-        items = min(n, self.items)
+        items = min(-(-n // self.lanes), self.items)
         self.kernel(q, items, launch=L, **self.vbuf.named(self.pbuf), store_imp=self.store_imp, band_cdf=self.cdf,
                     band_spi=self.band_spi, logmu=self.logmu, store_pos_w=self.pos_w,
                     store_dir_b=self.dir_b, store_extra=self.extra, store_count=self.count_buf,
