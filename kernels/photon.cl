@@ -46,7 +46,9 @@ enum { T_SPEC = 0, T_RD, T_TT, T_LOST, T_RRGAIN, T_RRLOSS, T_MISS, T_RCONE, T_AB
  * what the photons did, and per work item its loop steps (the host groups neighbouring work
  * items as SIMD lanes to estimate lane utilisation).  Not part of the estimator. */
 enum { K_ENTERED = 0, K_MISSED, K_STEPS, K_COLLISIONS, K_STORED, K_IFACE, K_IFACE_SMOOTH,
-       K_ZONE, K_WALL, K_DOMAIN, K_REENTER, K_TILE, K_NCOUNT };
+       K_ZONE, K_WALL, K_DOMAIN, K_REENTER, K_TILE, K_LANES, K_LANE_ITERS, K_NCOUNT };
+/* K_LANES: events done in photon_pass_lanes's fast phase, K_LANE_ITERS: its iterations (each
+ * LANES lanes wide) */
 #ifdef PHOTON_COUNTERS
 typedef struct { uint k[K_NCOUNT]; } Counters;
 #define COUNT(c, i) ((c)->k[i]++)
@@ -826,23 +828,24 @@ void photon_pass_lanes(const PhotonLaunch launch,
 #endif
     Lanes S;
     for (int i = 0; i < LANES; ++i) {
-        S.W[i] = 0; S.live[i] = 0; S.on[i] = 1; S.fast[i] = 0; S.b[i] = 0; S.L[i] = 0;
-        S.gain[i] = 0; S.loss[i] = 0; S.acur[i] = 0;
+        S.W.s[i] = 0; S.live.s[i] = 0; S.on.s[i] = 1; S.fast.s[i] = 0; S.b.s[i] = 0; S.L.s[i] = 0;
+        S.gain.s[i] = 0; S.loss.s[i] = 0; S.acur.s[i] = 0;
         fates_clear(&S.f[i]);
     }
     for (;;) {
         int on = 0;
         for (int i = 0; i < LANES; ++i) {
-            if (S.on[i] && !S.fast[i])
+            if (S.on.s[i] && !S.fast.s[i])
                 lane_slow(&S, i, &launch, VOLUME_PASS, store_imp, band_cdf, band_spi, logmu, store_count, tallies,
                           smooth, tile_z, map, &cnt);
-            on += S.on[i];
+            on += S.on.s[i];
         }
         if (!on) break;
         const int n = lanes_fast(&S, P, optics, logmu, store_imp, band_spi, map, &cnt);
 #ifdef PHOTON_COUNTERS
         cnt.k[K_STEPS] += n;
         cnt.k[K_COLLISIONS] += n;
+        cnt.k[K_LANES] += n;
         iterations++;
 #endif
     }

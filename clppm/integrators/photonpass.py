@@ -33,7 +33,7 @@ CATEGORIES = ["specular", "diffuse", "transmitted", "lost", "rr_gain", "rr_loss"
 # smooth surface's normal), core- and tile-plane, column-wall and domain-side crossings,
 # re-entries, tile-wall crossings
 COUNTERS = ["entered", "missed", "steps", "collisions", "stored", "interface", "interface_smooth",
-            "zone", "wall", "domain", "reenter", "tile"]
+            "zone", "wall", "domain", "reenter", "tile", "lane_events", "lane_iterations"]
 NA = len(CATEGORIES)        # index of the first per-layer absorption tally
 BALANCE = [i for i, c in enumerate(CATEGORIES) if c != "diffuse_cone"]
 MAX_LAUNCH = 1 << 20          # photons per launch: tallies stay far below 2^63
@@ -375,7 +375,9 @@ class PhotonPass:
         self._upload_params()
         cl.enqueue_copy(q, self.count_buf, np.zeros(1, np.uint32), dst_offset=4)   # no photon taken yet
         items = min(-(-n // self.lanes), self.items)
-        self.kernel(q, items, launch=L, **self.vbuf.named(self.pbuf), store_imp=self.store_imp, band_cdf=self.cdf,
+        # a lanes work item is a SIMD group already: work groups of one (PoCL would otherwise loop
+        # over a group's work items with every one's lane state in memory)
+        self.kernel(q, items, want=1 if self.lanes > 1 else 64, launch=L, **self.vbuf.named(self.pbuf), store_imp=self.store_imp, band_cdf=self.cdf,
                     band_spi=self.band_spi, logmu=self.logmu, store_pos_w=self.pos_w,
                     store_dir_b=self.dir_b, store_extra=self.extra, store_count=self.count_buf,
                     tallies=self.tally_buf, smooth=self.vbuf.smooth, tile_z=self.tile_z,
