@@ -829,7 +829,7 @@ void photon_pass_lanes(const PhotonLaunch launch,
     Lanes S;
     for (int i = 0; i < LANES; ++i) {
         S.W.s[i] = 0; S.live.s[i] = 0; S.on.s[i] = 1; S.fast.s[i] = 0; S.b.s[i] = 0; S.L.s[i] = 0;
-        S.gain.s[i] = 0; S.loss.s[i] = 0; S.acur.s[i] = 0;
+        S.gain.s[i] = 0; S.loss.s[i] = 0; S.acur.s[i] = 0; S.rnv.s[i] = 0;
         fates_clear(&S.f[i]);
     }
     for (;;) {

@@ -63,6 +63,7 @@ HOT vl sel_l(vl a, vl b, vl m) { return (a & ~m) | (b & m); }
 HOT vf min_v(vf a, vf b) { return sel_f(a, b, b < a); }
 HOT vf max_v(vf a, vf b) { return sel_f(a, b, b > a); }
 HOT vf abs_v(vf a) { return AS_F(AS_I(a) & (vi)0x7fffffff); }
+HOT vi clampi_v(vi a, int hi) { return sel_i(sel_i(a, (vi)hi, a > (vi)hi), (vi)0, a < (vi)0); }
 
 /* a lane array: as one vector (.v) or lane by lane (.s[i]) */
 typedef union { vf v; float s[LANES]; } LF;
@@ -88,6 +89,8 @@ typedef struct {
     LF tau;
     LU rc[2][4], rk[2][2], rr[2][4];   /* [0] rng, [1] srng: Rng */
     LI ru[2];
+    LU rn[4];                    /* rng's next block, computed ahead where rnv (its counter: rc - 1) */
+    LI rnv;
 #if HERO_C > 1
     LF lr[HERO_C], hq[HERO_C], la[HERO_C];
     LF scale, amax, pl;
@@ -111,12 +114,14 @@ HOT void lane_rng_get(const Lanes* S, int w, int i, Rng* g) {
     for (int k = 0; k < 4; ++k) { g->c.v[k] = S->rc[w][k].s[i]; g->r.v[k] = S->rr[w][k].s[i]; }
     g->k.v[0] = S->rk[w][0].s[i]; g->k.v[1] = S->rk[w][1].s[i];
     g->used = S->ru[w].s[i];
+    if (w == 0 && S->rnv.s[i]) g->c.v[1] -= 1u;      /* the block computed ahead is dropped */
 }
 
 HOT void lane_rng_put(Lanes* S, int w, int i, const Rng* g) {
     for (int k = 0; k < 4; ++k) { S->rc[w][k].s[i] = g->c.v[k]; S->rr[w][k].s[i] = g->r.v[k]; }
     S->rk[w][0].s[i] = g->k.v[0]; S->rk[w][1].s[i] = g->k.v[1];
     S->ru[w].s[i] = g->used;
+    if (w == 0) S->rnv.s[i] = 0;
 }
 
 HOT void lane_track_get(const Lanes* S, int i, Track* t) {
@@ -158,7 +163,8 @@ HOT void lane_fold(Lanes* S, int i) {
  * each event itself whether the next one is a collision there), and if so the layer's constants.
  * Brings the bands' pending part to the layer (sw_flight would on its next flight). */
 HOT int lane_enter_fast(Lanes* S, int i, const Track* t, Spectral* sw, VOLUME_ARGS,
-                        __global const float* logmu, __global const float2* store_imp) {
+                        __global const float* logmu, __global const float2* store_imp,
+                        __global const float2* tile3) {
 #if NINC > 0
     return 0;                           /* inclusions: photon_pass (photonpass.py photon_lanes) */
 #endif
@@ -175,18 +181,29 @@ HOT int lane_enter_fast(Lanes* S, int i, const Track* t, Spectral* sw, VOLUME_AR
     const float z = t->pos.z, dz = t->dir.z;
     if (!((dz > 0.0f ? z < zt : z <= zt) && (dz < 0.0f ? z > zb : z >= zb))) {
 #ifdef SMOOTH_SURFACE
-        /* tile mode: within its tile, between the tile's bounds of its layer's top and bottom,
-         * a flight that stays in that box crosses no surface (photon_smooth_boundary would find
-         * none before leaving it), so a collision in it is the scalar walk's collision */
+        /* tile mode: within a box of tiles, between the lowest point of its layer's top and the
+         * highest of its bottom over them, a flight that stays in the box crosses no surface
+         * (photon_smooth_boundary would find none before leaving it), so a collision in it is the
+         * scalar walk's collision.  The box: the photon's tile and its 8 neighbours (tile3:
+         * those bounds, photonpass.py tile_bounds3), else its tile alone. */
         const int tx = t->ix / SMOOTH_CELL, ty = t->iy / SMOOTH_CELL;
-        const float top = IF_VAR(L) >= 0 ? smooth_tile(P, iface, heights, L, tx, ty).x : IF_Z(L);
-        const float bot = L + 1 >= NL ? IF_Z(L + 1)
-                        : (IF_VAR(L + 1) >= 0 ? smooth_tile(P, iface, heights, L + 1, tx, ty).y : IF_Z(L + 1));
-        if (!((dz > 0.0f ? z < top : z <= top) && (dz < 0.0f ? z > bot : z >= bot))) return 0;
-        const float xl = P->x0 + P->dx * (float)(tx * SMOOTH_CELL);
-        const float xh = fmin(P->x0 + P->dx * (float)((tx + 1) * SMOOTH_CELL), P->x0 + P->xw);
-        const float yl = P->y0 + P->dy * (float)(ty * SMOOTH_CELL);
-        const float yh = fmin(P->y0 + P->dy * (float)((ty + 1) * SMOOTH_CELL), P->y0 + P->yw);
+        const int ntx = (P->nx + SMOOTH_CELL - 1) / SMOOTH_CELL, nty = (P->ny + SMOOTH_CELL - 1) / SMOOTH_CELL;
+        const int vt = IF_VAR(L), vb = L + 1 >= NL ? -1 : IF_VAR(L + 1);
+        const size_t at = ((size_t)ty * (size_t)ntx + (size_t)tx);
+        float top = vt >= 0 ? tile3[(size_t)vt * (size_t)(ntx * nty) + at].x + IF_Z(L) : IF_Z(L);
+        float bot = vb >= 0 ? tile3[(size_t)vb * (size_t)(ntx * nty) + at].y + IF_Z(L + 1) : IF_Z(L + 1);
+        int r = 1;                                         /* tiles each side of the photon's */
+        if (!((dz > 0.0f ? z < top : z <= top) && (dz < 0.0f ? z > bot : z >= bot))) {
+            top = vt >= 0 ? smooth_tile(P, iface, heights, L, tx, ty).x : IF_Z(L);
+            bot = vb >= 0 ? smooth_tile(P, iface, heights, L + 1, tx, ty).y : IF_Z(L + 1);
+            if (!((dz > 0.0f ? z < top : z <= top) && (dz < 0.0f ? z > bot : z >= bot))) return 0;
+            r = 0;
+        }
+        const float w = P->dx * (float)SMOOTH_CELL, h = P->dy * (float)SMOOTH_CELL;
+        const float xl = fmax(P->x0 + w * (float)(tx - r), P->x0);
+        const float xh = fmin(P->x0 + w * (float)(tx + 1 + r), P->x0 + P->xw);
+        const float yl = fmax(P->y0 + h * (float)(ty - r), P->y0);
+        const float yh = fmin(P->y0 + h * (float)(ty + 1 + r), P->y0 + P->yw);
         const float x = t->pos.x, y = t->pos.y;
         if (!(x >= xl && x <= xh && y >= yl && y <= yh)) return 0;
         S->bzt.s[i] = top; S->bzb.s[i] = bot; S->bxl.s[i] = xl; S->bxh.s[i] = xh; S->byl.s[i] = yl; S->byh.s[i] = yh;
@@ -227,6 +244,21 @@ HOT void philox_v(vu* c0, vu* c1, vu* c2, vu* c3, vu k0, vu k1) {
     }
 }
 
+/* The next block of rng (stream 0) for the lanes of m that have none: one Philox for all of them,
+ * so that the lanes' blocks, used up at different draws, cost one vector Philox per fast
+ * iteration rather than one per draw. */
+HOT void rng_ahead(Lanes* S, vi m) {
+    const vi need = m & ~S->rnv.v;
+    if (!any_v(need)) return;
+    const vu c1 = S->rc[0][1].v;
+    vu n0 = S->rc[0][0].v, n1 = c1, n2 = S->rc[0][2].v, n3 = S->rc[0][3].v;
+    philox_v(&n0, &n1, &n2, &n3, S->rk[0][0].v, S->rk[0][1].v);
+    S->rn[0].v = sel_u(S->rn[0].v, n0, need); S->rn[1].v = sel_u(S->rn[1].v, n1, need);
+    S->rn[2].v = sel_u(S->rn[2].v, n2, need); S->rn[3].v = sel_u(S->rn[3].v, n3, need);
+    S->rc[0][1].v = sel_u(c1, c1 + (vu)1u, need);
+    S->rnv.v |= need;
+}
+
 /* rng_u01 of stream w (0: the path's, 1: storage's) in the lanes of mask m (the others draw
  * nothing): the same uniforms, in the same order, as a scalar Rng */
 HOT vf vdraw(Lanes* S, int w, vi m) {
@@ -234,12 +266,19 @@ HOT vf vdraw(Lanes* S, int w, vi m) {
     vu r0 = S->rr[w][0].v, r1 = S->rr[w][1].v, r2 = S->rr[w][2].v, r3 = S->rr[w][3].v;
     const vi need = m & (used == (vi)4);
     if (any_v(need)) {
-        const vu c1 = S->rc[w][1].v;
-        vu n0 = S->rc[w][0].v, n1 = c1, n2 = S->rc[w][2].v, n3 = S->rc[w][3].v;
-        philox_v(&n0, &n1, &n2, &n3, S->rk[w][0].v, S->rk[w][1].v);
-        r0 = sel_u(r0, n0, need); r1 = sel_u(r1, n1, need);
-        r2 = sel_u(r2, n2, need); r3 = sel_u(r3, n3, need);
-        S->rc[w][1].v = sel_u(c1, c1 + (vu)1u, need);
+        if (w == 0) {
+            rng_ahead(S, need);
+            r0 = sel_u(r0, S->rn[0].v, need); r1 = sel_u(r1, S->rn[1].v, need);
+            r2 = sel_u(r2, S->rn[2].v, need); r3 = sel_u(r3, S->rn[3].v, need);
+            S->rnv.v &= ~need;
+        } else {
+            const vu c1 = S->rc[w][1].v;
+            vu n0 = S->rc[w][0].v, n1 = c1, n2 = S->rc[w][2].v, n3 = S->rc[w][3].v;
+            philox_v(&n0, &n1, &n2, &n3, S->rk[w][0].v, S->rk[w][1].v);
+            r0 = sel_u(r0, n0, need); r1 = sel_u(r1, n1, need);
+            r2 = sel_u(r2, n2, need); r3 = sel_u(r3, n3, need);
+            S->rc[w][1].v = sel_u(c1, c1 + (vu)1u, need);
+        }
         S->rr[w][3].v = r3;
         used = sel_i(used, (vi)0, need);
     }
@@ -247,7 +286,7 @@ HOT vf vdraw(Lanes* S, int w, vi m) {
     S->rr[w][0].v = sel_u(r0, r1, m);
     S->rr[w][1].v = sel_u(r1, r2, m);
     S->rr[w][2].v = sel_u(r2, r3, m);
-    S->ru[w].v = used - m;                    /* m is -1 where drawn */
+    S->ru[w].v = used - m;                      /* m is -1 where drawn */
     return (V_F(x >> (vu)8u) + 1.0f) * (1.0f / 16777216.0f);
 }
 
@@ -386,11 +425,24 @@ HOT int lanes_fast(Lanes* S, __constant const Params* P, __global const float4* 
         act = coll;
         if (!any_v(coll)) break;
         COUNT(cnt, K_LANE_ITERS);
+        rng_ahead(S, coll);
         /* ---- collide: move, absorb by weight */
         events -= coll;
         S->events.v = events;
         x = sel_f(x, x + s * dx, coll); y = sel_f(y, y + s * dy, coll); z = sel_f(z, z + s * dz, coll);
         S->px.v = x; S->py.v = y; S->pz.v = z;
+#ifdef SMOOTH_SURFACE
+        {   /* the tile of a collision in tile mode (photon_event keeps it in t->ix, t->iy) */
+            const vi moved = coll & tile;
+            if (any_v(moved)) {
+                const int ntx = (P->nx + SMOOTH_CELL - 1) / SMOOTH_CELL, nty = (P->ny + SMOOTH_CELL - 1) / SMOOTH_CELL;
+                const vi tx = clampi_v(V_I((x - P->x0) * (1.0f / (P->dx * (float)SMOOTH_CELL))), ntx - 1);
+                const vi ty = clampi_v(V_I((y - P->y0) * (1.0f / (P->dy * (float)SMOOTH_CELL))), nty - 1);
+                S->ix.v = sel_i(S->ix.v, tx * SMOOTH_CELL, moved);
+                S->iy.v = sel_i(S->iy.v, ty * SMOOTH_CELL, moved);
+            }
+        }
+#endif
         const vl cl = V_L(coll);
 #if HERO_C > 1
         S->pl.v = sel_f(S->pl.v, S->pl.v + s, coll);
@@ -561,7 +613,7 @@ HOT void lane_slow(Lanes* S, int i, const PhotonLaunch* launch, VOLUME_ARGS, __g
             S->b.s[i] = b;
             continue;
         }
-        if (!first && (fast = lane_enter_fast(S, i, &t, &sw, VOLUME_PASS, logmu, store_imp))) break;
+        if (!first && (fast = lane_enter_fast(S, i, &t, &sw, VOLUME_PASS, logmu, store_imp, tile_z))) break;
         first = 0;
         photon_event(&t, &sw, &W, b, f, &events, &planes, &still, &tau, &rng, &srng, VOLUME_PASS, store_imp,
                      band_spi, logmu, smooth, tile_z, map, cnt);

@@ -34,8 +34,8 @@
 HOT float4 smooth_tile(__constant const Params* P, __constant const float4* iface,
                        __global const float* heights, int k, int tx, int ty) {
     const int ntx = (P->nx + SMOOTH_CELL - 1) / SMOOTH_CELL, nty = (P->ny + SMOOTH_CELL - 1) / SMOOTH_CELL;
-    const float4 b = vload4(((size_t)IF_VAR(k) * (size_t)nty + (size_t)ty) * (size_t)ntx + (size_t)tx,
-                            heights + (size_t)NVAR * (size_t)P->nx * (size_t)P->ny);
+    const float4 b = ld4(heights + (size_t)NVAR * (size_t)P->nx * (size_t)P->ny
+                         + 4 * (((size_t)IF_VAR(k) * (size_t)nty + (size_t)ty) * (size_t)ntx + (size_t)tx));
     return (float4)(b.x + IF_Z(k), b.y + IF_Z(k), b.z, b.w);
 }
 

@@ -80,7 +80,7 @@ inline void sw_init(Spectral* w, int h) {
 #define TAB_LOGMU(L, b) tab[(L) * NB + (b)]
 #define TAB_LOGALB(L, b) tab[NMAT * NB + (L) * NB + (b)]
 #define TAB_MAXALB(L, h) tab[2 * NMAT * NB + (L) * HERO_STEP + (h) % HERO_STEP]
-#define TAB_HG(L, b) vload2((L) * NB + (b), tab + 2 * NMAT * NB + NMAT * HERO_STEP)
+#define TAB_HG(L, b) ld2(tab + 2 * NMAT * NB + NMAT * HERO_STEP + 2 * ((L) * NB + (b)))
 
 /* Lazy per-band work.  Within one layer the per-band factors of a flight and of a collision are
  * constants, so a path keeps only its length and its collisions in the current layer (two

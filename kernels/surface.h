@@ -78,7 +78,7 @@ inline real hf_gy(__constant const Params* P, real y) { return (y - (real)P->y0)
 
 /* h and its derivatives up to `order` (1: h, hx, hy; 2: the second ones too; a constant at
  * every call, so the compiler drops the rest).  The patch's 4 x 4 samples as four row vectors
- * (one vload4 each inside the grid), combined over y first, then dotted with the x weights. */
+ * (one ld4 each inside the grid), combined over y first, then dotted with the x weights. */
 inline void hf_eval_n(__constant const Params* P, __constant const float4* iface,
                       __global const float* smooth, int k, real x, real y, HF* o, const int order) {
     o->hx = o->hy = o->hxx = o->hxy = o->hyy = 0;
@@ -94,10 +94,10 @@ inline void hf_eval_n(__constant const Params* P, __constant const float4* iface
     real4 s0, s1, s2, s3;
     if (ix >= 1 && ix + 2 < P->nx && iy >= 1 && iy + 2 < P->ny) {
         __global const float* q = base + (size_t)(iy - 1) * (size_t)P->nx + (size_t)(ix - 1);
-        s0 = convert_real4(vload4(0, q)); q += P->nx;
-        s1 = convert_real4(vload4(0, q)); q += P->nx;
-        s2 = convert_real4(vload4(0, q)); q += P->nx;
-        s3 = convert_real4(vload4(0, q));
+        s0 = convert_real4(ld4(q)); q += P->nx;
+        s1 = convert_real4(ld4(q)); q += P->nx;
+        s2 = convert_real4(ld4(q)); q += P->nx;
+        s3 = convert_real4(ld4(q));
     } else {
         const int i0 = hf_index(ix - 1, P->nx, per), i1 = hf_index(ix, P->nx, per);
         const int i2 = hf_index(ix + 1, P->nx, per), i3 = hf_index(ix + 2, P->nx, per);

@@ -145,6 +145,12 @@ inline float r3_u01(uint i, uint a, uint shift) {
     return ((float)((i * a + shift) >> 8) + 0.5f) * (1.0f / 16777216.0f);
 }
 
+/* Four and two consecutive floats from any float boundary: vload4/vload2's values, loaded inline
+ * (PoCL calls its kernel library for every vloadn, which put 7 % of the relief photon pass's time
+ * in _cl_vload4). */
+inline float4 ld4(__global const float* p) { return (float4)(p[0], p[1], p[2], p[3]); }
+inline float2 ld2(__global const float* p) { return (float2)(p[0], p[1]); }
+
 /* ---------------------------------------------------------------- optics */
 /* Unpolarised Fresnel reflectance from n1 into n2 at incidence cosine cos_i (> 0). */
 inline float fresnel_R(float n1, float n2, float cos_i, float* cos_t_out) {
