@@ -59,7 +59,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-from clppm.analysis.bench import MCML_SLAB  # noqa: E402
+try:
+    from clppm.analysis.bench import MCML_SLAB  # noqa: E402
+except ImportError:                  # a --base tree from before clppm bench
+    MCML_SLAB = "mua=10,mus=90,g=0.75,n=1.0,d=0.02"
 SKIN_BAND_NM = 550.0
 SKIN_SIZE_MM = 2.0
 VOXEL_UM = 5.0
@@ -423,6 +426,15 @@ def events_worker(spec: dict) -> dict:
         steps = c.pop("lane_steps")
         c["lane_util_8"] = lane_utilisation(steps, 8)
         c["lane_util_16"] = lane_utilisation(steps, 16)
+        # SIMD lanes doing an event, of the lane slots the pass occupied: photon_pass_lanes runs
+        # lane_events in lane_iterations vector iterations of W lanes and the other events one
+        # lane of W at a time; photon_pass (no vectorising CPU compiler) one lane of W always
+        w = int(getattr(pp, "lanes", 1))
+        c["lanes"] = w
+        le, li = c.get("lane_events", 0), c.get("lane_iterations", 0)
+        simd = w if w > 1 else 16
+        c["active_lanes"] = c["steps"] / (simd * (li + c["steps"] - le))
+        c["lane_share"] = le / max(c["steps"], 1)
         c["missed_fraction"] = missed
         c["emitted"] = r["emitted"]
         return {"counters": c}
@@ -460,7 +472,8 @@ def events_ab(base: Path | None, impls: list, rounds: int, photons: dict, out_pa
     hz = cpu_hz()
     res = {"cpu_hz": hz, "rounds": rounds, "trees": {k: str(t) for k, t in trees}, "rows": []}
     print(f"{'impl':6s} {'scene':7s} {'tree':4s} {'emitted/s':>10s} {'entered/s':>10s} {'best':>10s} "
-          f"{'missed':>7s} {'events/ph':>9s} {'events/s':>9s} {'cyc/event':>9s} {'lanes8':>6s} {'lanes16':>7s}")
+          f"{'missed':>7s} {'events/ph':>9s} {'events/s':>9s} {'cyc/event':>9s} {'lanes8':>6s} {'lanes16':>7s} "
+          f"{'W':>3s} {'in lanes':>8s} {'active':>6s}")
     for impl in impls:
         for scene, name in EVENT_SCENES.items():
             n = photons[scene]
@@ -492,7 +505,8 @@ def events_ab(base: Path | None, impls: list, rounds: int, photons: dict, out_pa
                 print(f"{impl:6s} {scene:7s} {k:4s} {row['emitted_per_s']:10.3e} {row['entered_per_s']:10.3e} "
                       f"{row['entered_per_s_best']:10.3e} {row['missed']:7.4f} {ev:9.1f} "
                       f"{row['events_per_s']:9.2e} {row['cycles_per_event']:9.0f} "
-                      f"{cnt['lane_util_8']:6.2f} {cnt['lane_util_16']:7.2f}", flush=True)
+                      f"{cnt['lane_util_8']:6.2f} {cnt['lane_util_16']:7.2f} {cnt.get('lanes', 1):3d} "
+                      f"{cnt.get('lane_share', 0.0):8.3f} {cnt.get('active_lanes', 1 / 16):6.3f}", flush=True)
             if "B" in rows:
                 print(f"{'':19s} A/B entered photons/s (median): {rows['A']['entered_per_s'] / rows['B']['entered_per_s']:.2f}x, "
                       f"seconds per pass B/A {rows['B']['seconds_per_pass'] / rows['A']['seconds_per_pass']:.2f}x")

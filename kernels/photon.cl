@@ -800,7 +800,9 @@ __kernel void photon_pass(const PhotonLaunch launch,
 }
 
 #if defined(LANES) && LANES > 1
-#include "photon_lanes.h"        /* the same pass in explicit SIMD lanes (CPUs) */
+/* the same pass in explicit SIMD lanes (CPUs); an include line holds nothing else: pyopencl's
+ * program cache follows only such lines to the headers it keys binaries by */
+#include "photon_lanes.h"
 
 /* photon_pass in lanes: the same arguments, launched with a LANES-th of its work items */
 __kernel __attribute__((vec_type_hint(vf)))

@@ -41,3 +41,19 @@ def test_header_compiles_alone(dev, build):
         except BuildError as e:
             failed[h] = [ln for ln in str(e).splitlines() if "error" in ln][:2]
     assert not failed, failed
+
+
+def test_include_lines_are_followed_by_the_program_cache():
+    """pyopencl's program cache keys a binary by the headers it finds through include lines that
+    hold nothing but the include (its C_INCLUDE_RE); a comment after one hid photon_lanes.h from
+    it, and an edited header then ran a stale binary."""
+    from pyopencl.cache import C_INCLUDE_RE
+    bad = []
+    for f in sorted(os.listdir(kernel_dir())):
+        if not f.endswith((".h", ".cl")):
+            continue
+        for n, line in enumerate(open(os.path.join(kernel_dir(), f), encoding="utf-8"), 1):
+            if line.lstrip().startswith("#") and "include" in line and '"' in line:
+                if not C_INCLUDE_RE.match(line.rstrip("\n").encode()):
+                    bad.append(f"{f}:{n}: {line.strip()}")
+    assert not bad, bad

@@ -105,18 +105,6 @@ def tile_bounds(vol: Volume, tile: int = TILE) -> np.ndarray:
     return np.ascontiguousarray(np.stack([blocks.min((2, 4)), blocks.max((2, 4))], -1), np.float32)
 
 
-def tile_bounds3(vol: Volume) -> np.ndarray:
-    """(rows, nty, ntx, 2) float32: per row of smooth-surface samples and tile, the lowest and
-    highest point over the tile and its 8 neighbours (from the tiles' Bernstein bounds,
-    Volume.tiles): the lanes' tile mode (kernels/photon_lanes.h lane_enter_fast) flies within
-    three tiles a side where the layer lies clear of both surfaces over all nine."""
-    from scipy.ndimage import maximum_filter, minimum_filter
-    t = np.asarray(vol.tiles, np.float32)
-    lo = minimum_filter(t[..., 0], size=(1, 3, 3), mode="nearest")
-    hi = maximum_filter(t[..., 1], size=(1, 3, 3), mode="nearest")
-    return np.ascontiguousarray(np.stack([lo, hi], -1), np.float32)
-
-
 def band_table(vol: Volume, hero: int) -> np.ndarray:
     """float32 (spectral.h): per material (the layers, then the inclusions) and band log mu_t, then log albedo (at least -1e4: 0 for mu_s = 0), then per
     layer and hero class (h mod NB/hero) the largest albedo over the bands such a path carries, then per layer and
@@ -320,9 +308,9 @@ class PhotonPass:
         self._uploaded = b""                  # the Params bytes on the device
         self.truncated = False
         self.store_imp = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=storage_importance(vol))
-        self.tile_z = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=(
-            np.zeros(2, np.float32) if vol.flat or (vol.smooth_walk and (self.lanes == 1 or vol.tiles is None))
-            else tile_bounds3(vol) if vol.smooth_walk else tile_bounds(vol)))
+        self.tile_z = cl.Buffer(dev.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                                hostbuf=np.zeros(2, np.float32) if vol.flat or vol.smooth_walk
+                                else tile_bounds(vol))    # the smooth walk has its own cells
         if self.counters:
             self.counter_host = np.zeros(len(COUNTERS), np.int64)
             self.counter_buf = cl.Buffer(dev.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=self.counter_host)
