@@ -22,10 +22,11 @@ FAMILIES = ("render: photon pass, grid build, eye pass, calibration, gather",
             "render: the beam estimator's gather, the depth roulette's photon pass", "path tracer",
             "reflectance tallies",
             "grid queries (radix build, gather_grid, gather_bruteforce)",
-            "render on the smooth surfaces (model.surface = smooth: photon and eye passes)")
+            "render on the smooth surfaces (model.surface = smooth: photon and eye passes)",
+            "the photon pass in SIMD lanes (4 lanes, flat and smooth surfaces)")
 
 #: clppm's kernels the families above launch (each through clppm.compute.device.local_size)
-KERNELS = ("photon_pass", "grid_count", "grid_scatter", "grid_permute", "grid_keys",
+KERNELS = ("photon_pass", "photon_pass_lanes", "grid_count", "grid_scatter", "grid_permute", "grid_keys",
            "grid_starts_from_keys", "eye_pass", "init_radius", "count_within", "gather",
            "gather_beam", "pt_pass", "gather_grid", "gather_bruteforce")
 
@@ -81,7 +82,20 @@ def run_all(dev, photons: int = 2000, resolution=(8, 6), families=None) -> dict:
     timed(FAMILIES[4], lambda: grid_queries(dev, hashgrid))
     timed(FAMILIES[5], lambda: entry.render(config.override(
         copy.deepcopy(cfg), "model", "surface", "smooth"), dev=dev))
+    timed(FAMILIES[6], lambda: photon_lanes(dev, [flat, config.override(copy.deepcopy(cfg), "model", "surface",
+                                                                          "smooth")], max(16, photons // 10)))
     return out
+
+
+def photon_lanes(dev, cfgs, photons: int) -> None:
+    """photon_pass_lanes on each config (4 lanes: its fast and slow phases, storage), a few
+    photons (a simulator runs it about 7 times slower per photon than photon_pass)."""
+    from ..integrators.photonpass import PhotonPass
+    from ..scene import volume
+    for c in cfgs:
+        vol = volume.build(c, "tiny")
+        pp = PhotonPass.of_config(dev, vol, c, capacity=4 * photons + 4096, lanes=4)
+        pp.run_pass(0, photons)
 
 
 def grid_queries(dev, hashgrid) -> None:

@@ -140,8 +140,8 @@ def photon_lanes(dev: Device, vol: Volume) -> int:
     """Photons per work item of the photon pass: on a CPU the SIMD width (photon_pass_lanes,
     kernels/photon_lanes.h: 16 where kernels may use 16-lane vectors, else 8), on a GPU 1 (its
     work items are its lanes: photon_pass).  Scenes with inclusions take photon_pass (the lanes'
-    fast phase knows layers only).  CLPPM_PHOTON_LANES (1, 4, 8 or 16) overrides, for
-    benchmarks and tests."""
+    fast phase knows layers only), and oclgrind's simulator.  CLPPM_PHOTON_LANES (1, 4, 8 or 16)
+    overrides, for benchmarks and tests."""
     import os
     from ..compute.device import wide_vectors
     env = os.environ.get("CLPPM_PHOTON_LANES")
@@ -154,6 +154,9 @@ def photon_lanes(dev: Device, vol: Volume) -> int:
         return n
     if not dev.device.type & 1 << 1:                        # CL_DEVICE_TYPE_CPU = 2
         return 1
+    from ..compute.programs import implementation
+    if implementation(dev.device) == "oclgrind":           # a simulator: lanes cost it 7x per photon
+        return 1                                            # (clppm.checks.tiny checks them there)
     return 16 if wide_vectors(dev.device) else 8
 
 
@@ -248,20 +251,22 @@ class PhotonPass:
         return cls(dev, Scene.of_config(cfg, volume=vol, seed=seed), **kw)
 
     def __init__(self, dev: Device, scene: Scene, capacity: int = 0, vbuf: VolumeBuffers | None = None,
-                 bands: Bands | None = None, counters: bool = False, plain_walk: bool = False):
+                 bands: Bands | None = None, counters: bool = False, plain_walk: bool = False,
+                 lanes: int | None = None):
         """``scene``: the render's (its model, light, seed and storage depth).  ``bands``: the
         spectral sampling (default: one band per path, the hero drawn from the light's
         spectrum); the tallies follow the hero band alone, so it does not change them.
         ``counters``: build with the event counters (photon.cl PHOTON_COUNTERS; read them with
         :meth:`counts`).  ``plain_walk`` (tests): on the smooth surfaces, the other passes' walk
-        (photon.cl PHOTON_PLAIN_WALK)."""
+        (photon.cl PHOTON_PLAIN_WALK).  ``lanes``: photons per work item (default
+        :func:`photon_lanes`: the device's)."""
         import pyopencl as cl
         vol = scene.volume
         self.dev, self.vol, self.scene = dev, vol, scene
         self.bands = bands or scene.bands(hero=1, sampling="power")
         self.hero = self.bands.hero
         self.counters = bool(counters)
-        self.lanes = photon_lanes(dev, vol)
+        self.lanes = photon_lanes(dev, vol) if lanes is None else int(lanes)
         self.items = max(1, persistent_items(dev) // self.lanes)
         self.plain_walk = bool(plain_walk)
         self._build(depth_roulette=False)
