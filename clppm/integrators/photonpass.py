@@ -239,6 +239,9 @@ class PhotonPass:
         self.dev, self.vol, self.scene = dev, vol, scene
         self.bands = bands or scene.bands(hero=1, sampling="power")
         self.hero = self.bands.hero
+        if vol.maps is not None and self.hero > 1:
+            # kernels/maps.h: delta tracking through the maps with one band per path
+            raise ValueError(f"chromophore maps are traced with one band per path, not {self.hero}")
         self.counters = bool(counters)
         self.items = persistent_items(dev)
         self.plain_walk = bool(plain_walk)

@@ -67,7 +67,8 @@ def _read_file(path: str, src: str, key: str) -> tuple[np.ndarray, bool]:
         try:
             data = load_heightmap(path)
         except ValueError as e:
-            raise ConfigError(src, key, path, str(e).replace("height map", "map")) from None
+            why = str(e).replace(f"height map {str(path)!r} ", "").replace(f" {str(path)!r}", "")
+            raise ConfigError(src, key, path, why.replace("height map", "map")) from None
         image = ext == ".exr"
     else:
         raise ConfigError(src, key, path, f"unknown extension {ext!r} (expected .png, .tif, .tiff, .exr or .npy)")

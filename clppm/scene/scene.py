@@ -123,11 +123,25 @@ def problems(cfg: dict, source: str = "<config>") -> list[ConfigError]:
     return out
 
 
+def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
+    """Refuse to render a scene with ``[[map]]`` tables where the render would not see them: the
+    photon pass (clppm trace, clppm reflectance) traces the maps; the eye pass and the gathers
+    (PPM) and the path tracer do not yet, and such an image would be wrong, not merely noisy."""
+    maps = cfg.get("map") or []
+    if not maps:
+        return
+    raise ConfigError(source, "map[0].layer", maps[0]["layer"],
+                      "chromophore maps are seen by the photon pass (clppm trace, clppm reflectance) only "
+                      "so far; the renders (PPM's eye pass and gathers, the path tracer) do not see them "
+                      "yet: trace the scene or remove the [[map]] tables")
+
+
 def refuse_inclusions(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
     """Refuse to render a scene with ``[[inclusion]]`` tables where the render would not see
     them: the photon pass and the path tracer on flat layers walk through them; the eye pass and
     the gathers (PPM) do not yet, nor the path tracer's connections through the relief or across
     periodic sides, and such an image would be wrong, not merely noisy."""
+    refuse_maps(cfg, source, integrator)
     inc = cfg.get("inclusion") or []
     if not inc:
         return
