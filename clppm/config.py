@@ -484,8 +484,8 @@ def _maps(src: str, tables, base_dir: str) -> list[dict]:
 
 def _check_maps(src: str, cfg: dict) -> None:
     """Each map names a layer of the config whose chromophores it can vary, once per quantity,
-    with the keys its kind needs; a file's contents are read and checked here, before any work
-    (clppm.scene.maps)."""
+    with the keys its kind needs.  A file's contents and the spots' sums are checked where the
+    volume is built, before any tracing (clppm.scene.maps)."""
     names = [L["name"] for L in cfg["layer"]]
     seen = {}
     for i, m in enumerate(cfg.get("map", [])):
@@ -511,9 +511,6 @@ def _check_maps(src: str, cfg: dict) -> None:
             raise ConfigError(src, f"{key}.file", None, "a file map needs its file")
         if m["kind"] != "file" and m["file"] is not None:
             raise ConfigError(src, f"{key}.file", m["file"], f"only a file map reads a file (kind = {m['kind']!r})")
-    if cfg.get("map"):
-        from .scene import maps as _M
-        _M.check(cfg, src)
 
 
 def _check_inclusions(src: str, cfg: dict) -> None:

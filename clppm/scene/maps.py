@@ -162,22 +162,6 @@ def _values(cfg: dict, i: int, src: str, nx: int, ny: int, dx: float, dy: float)
     return _resample(data, px, py, nx, ny, dx, dy)
 
 
-def check(cfg: dict, src: str = "<config>") -> None:
-    """Every map's values can be made and lie in [0, 1] (config validation: before any work).
-    Files are read; spots are evaluated only where their sum could leave [0, 1]."""
-    nx, ny, dx, dy = grid(cfg)
-    for i, m in enumerate(cfg["map"]):
-        if m["kind"] == "file":
-            _file_values(cfg, m, src, f"map[{i}]")
-        elif m["kind"] == "spots":
-            L = next(L for L in cfg["layer"] if L["name"] == m["layer"])
-            bg = float(L[m["quantity"]]) if m["value"] is None else m["value"]
-            up = sum(max(0.0, s["peak"] - bg) for s in m["spots"])
-            down = sum(min(0.0, s["peak"] - bg) for s in m["spots"])
-            if bg + up > 1.0 or bg + down < 0.0:
-                _values(cfg, i, src, nx, ny, dx, dy)
-
-
 @dataclass
 class ColumnMaps:
     """The maps of a scene on their column grid: per mapped layer (ny, nx, 4) float32 columns of
