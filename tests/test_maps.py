@@ -423,3 +423,22 @@ def test_render_with_maps_refused(tmp_path, capsys):
 def test_set_item_and_toml_round_trip():
     cfg = slab_cfg([FRECKLE, {"layer": "dermis", "quantity": "saturation", "kind": "constant", "value": 0.5}])
     assert C.validate(tomllib.loads(C.to_toml(cfg)), "slab") == cfg
+
+
+def test_shipped_forearm_freckles(tmp_path, capsys):
+    """configs/forearm_freckles.toml is configs/forearm_vein.toml with its three ellipsoid
+    freckles made a melanin map of the basal layer (five spots), the vein kept; clppm trace
+    traces it (energy balanced), a render refuses it in one line."""
+    fr, vein = C.load("forearm_freckles"), C.load("forearm_vein")
+    assert [i["kind"] for i in fr["inclusion"]] == ["vessel"] and fr["inclusion"][0] == vein["inclusion"][0]
+    assert [(m["layer"], m["quantity"], m["kind"], len(m["spots"])) for m in fr["map"]] == [("basal", "melanin", "spots", 5)]
+    assert {k: v for k, v in fr.items() if k not in ("inclusion", "map", "model")} == {
+        k: v for k, v in vein.items() if k not in ("inclusion", "model")}
+    js = tmp_path / "t.json"
+    assert cli.main(["trace", "forearm_freckles", "--photons", "20000", "--json", str(js)]) == 0
+    import json
+    rep = json.loads(js.read_text())
+    assert rep["energy_balance_error"] == 0.0 and rep["absorbed_per_inclusion"]["inclusion[0]"] > 0
+    capsys.readouterr()
+    assert cli.main(["render", "forearm_freckles", "-o", str(tmp_path / "f.png"), "-q"]) == 2
+    assert "map[0].layer = 'basal'" in capsys.readouterr().err
