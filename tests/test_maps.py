@@ -11,8 +11,11 @@
   delta tracking against one global majorant.  Rd, Tt and each layer's absorbed fraction agree per
   band within 3.5 combined standard errors; the map's effect is many tolerances.
 * The tallies' fixed-point bookkeeping stays exact with maps, on flat layers and on the relief.
-* Bad input: one line naming the key and value, exit 2, before any work; a render with maps is
-  refused (only the photon pass sees them so far).
+* The path tracer on flat layers (delta tracking on its walk, ratio tracking on its light
+  connections' legs) against the photon pass's exit tally, through random maps in two layers.
+* Bad input: one line naming the key and value, exit 2, before any tracing; a render with maps is
+  refused where its passes do not see them (PPM; the path tracer on relief, periodic sides or
+  with inclusions).
 """
 from __future__ import annotations
 
@@ -289,12 +292,13 @@ def test_map_columns_and_rows():
     assert np.all(col[..., 1] == np.float32(0.0)) and np.all(col[..., 2] == np.float32(0.0))
     rows = vol.device_optics()
     base = vol.nmat * vol.nb
-    band = rows[base + 1 + vol.nl: base + 1 + vol.nl + 2 * vol.nl * vol.nb].reshape(vol.nl, vol.nb, 2, 4)
+    band = rows[base + 1 + vol.nl: base + 1 + vol.nl + 3 * vol.nl * vol.nb].reshape(vol.nl, vol.nb, 3, 4)
     # every column's mu_a under the majorant's mu_a (the layer's plus dmax)
     mua_cols = (col[..., 0].reshape(-1, 1).astype(float) * spectra.mua_melanosome(vol.wl)[None, :] * 1e-4
                 + cfg["layer"][0]["baseline"] * spectra.mua_baseline(vol.wl)[None, :] * 1e-4)
     assert np.all(mua_cols.max(axis=0) <= vol.mua[0] + band[0, :, 0, 3])
     assert np.all(band[0, :, 0, 3] <= 1.001 * (mua_cols.max(axis=0) - vol.mua[0]))
+    assert np.all(mua_cols.min(axis=0) >= vol.mua[0] + band[0, :, 2, 0])
     # the unmapped dermis: its optics row's majorant and absorbed fraction, bit for bit
     opt = vol.optics_table().reshape(vol.nl, vol.nb, 4)
     assert np.array_equal(band[1, :, 0, 0], opt[1, :, 3]) and np.array_equal(band[1, :, 0, 1], opt[1, :, 0])
@@ -401,23 +405,38 @@ def test_bad_map_one_line_exit_2(tmp_path, capsys, monkeypatch, maps, message):
     assert message in err, err
 
 
-def test_render_with_maps_refused(tmp_path, capsys):
-    """The eye pass, the gathers and the path tracer do not see maps: one line, exit 2, no output."""
+def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
+    """PPM (its eye pass and gathers) and the path tracer through the relief, across periodic
+    sides or with inclusions do not see maps: one line naming the key, exit 2, no output; the path
+    tracer on flat layers renders."""
     from clppm.checks.tiny import tiny_config
     raw = tomllib.loads(C.to_toml(tiny_config(size_mm=1.0)))
-    raw["map"] = [{"layer": "basal", "quantity": "melanin", "kind": "constant", "value": 0.2}]
+    the_map = {"layer": "basal", "quantity": "melanin", "kind": "constant", "value": 0.2}
     flat = {**raw, "relief": {"kind": "flat"}, "papillae": {"amplitude_um": 0.0}}
-    p = tmp_path / "m.toml"
+    periodic = {**flat, "model": {**flat["model"], "lateral": "periodic"}}
+    vessel = [{"kind": "vessel", "center_mm": [0.5, 0.5], "depth_um": 150.0}]
     out = tmp_path / "x.png"
-    lines = [_toml({k: v for k, v in flat.items() if k != "map"}), "[[map]]"]
-    lines += [f"{k} = {C.toml_value(v)}" for k, v in raw["map"][0].items()]
-    p.write_text("\n".join(lines) + "\n")
-    for extra in ([], ["--integrator", "pt"]):
+    p = tmp_path / "m.toml"
+
+    def write(scene_raw, inclusions=()):
+        lines = [_toml({**scene_raw, **({"inclusion": list(inclusions)} if inclusions else {})}), "[[map]]"]
+        lines += [f"{k} = {C.toml_value(v)}" for k, v in the_map.items()]
+        p.write_text("\n".join(lines) + "\n")
+    for scene_raw, inc, extra, needles in [
+            (flat, (), [], ("map[0].layer = 'basal'", "--integrator pt")),
+            (raw, (), ["--integrator", "pt"], ("relief.kind = 'generated'", "flat layers only")),
+            (periodic, (), ["--integrator", "pt"], ("model.lateral = 'periodic'", "periodic sides")),
+            (flat, vessel, ["--integrator", "pt"], ("inclusion[0].kind = 'vessel'", "maps and inclusions"))]:
+        write(scene_raw, inc)
         rc = cli.main(["render", str(p), "-o", str(out), "-q", *extra])
         err = capsys.readouterr().err.strip()
         assert rc == 2 and len(err.splitlines()) == 1, err
-        assert "map[0].layer = 'basal'" in err and "photon pass" in err, err
+        assert all(n in err for n in needles), err
         assert not out.exists()
+    write(flat)
+    assert cli.main(["render", str(p), "-o", str(out), "-q", "--integrator", "pt", "--passes", "1",
+                     "--resolution", "4x3"]) == 0
+    assert out.exists()
 
 
 def test_set_item_and_toml_round_trip():
@@ -442,3 +461,57 @@ def test_shipped_forearm_freckles(tmp_path, capsys):
     capsys.readouterr()
     assert cli.main(["render", "forearm_freckles", "-o", str(tmp_path / "f.png"), "-q"]) == 2
     assert "map[0].layer = 'basal'" in capsys.readouterr().err
+    assert cli.main(["render", "forearm_freckles", "-o", str(tmp_path / "f.png"), "-q", "--integrator", "pt"]) == 2
+    assert "maps and inclusions" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- the path tracer
+def _speckled_scene(tmp_path, *, maps: bool = True) -> dict:
+    """A 40 mm index-matched two-layer skin (n 1.4 throughout: no light reflected unscattered
+    inside) on 20 um map columns, under a point light 1 m above its centre, the camera 40 mm
+    above: the epidermis's melanin 0.02 or 0.15 and the dermis's blood 0.02 or 0.12, column by
+    column at random, so the map is the same in distribution wherever the camera and the photons
+    look.  (Regular stripes would not do: a pixel's footprint spans a fraction of a period more
+    or less than a whole number of them, and the melanin's contrast in the exit radiance, about
+    2x, biased the camera's mean by 3.5 % against the photons' over the whole footprint.)"""
+    from test_pathtracer import FAR, scene
+    c = 0.95
+    fov = 2 * math.degrees(math.acos(c)) * 1.03
+    layers = [{"name": "epidermis", "thickness_um": 80.0, "n": 1.4, "melanin": 0.05, "baseline": 0.5},
+              {"name": "dermis", "thickness_um": math.inf, "n": 1.4, "blood": 0.02, "saturation": 0.8}]
+    base = scene(layers, fov=fov, res=(32, 32), spp=64, passes=3, size=40.0, light=(20.0, 20.0, FAR))
+    raw = tomllib.loads(C.to_toml(base))
+    raw["model"]["lateral_voxel_um"] = 20.0
+    if maps:
+        rng = np.random.default_rng(52)
+        np.save(tmp_path / "mel.npy", np.where(rng.random((2000, 2000)) < 0.5, 0.02, 0.15))
+        np.save(tmp_path / "blood.npy", np.where(rng.random((2000, 2000)) < 0.5, 0.02, 0.12))
+        raw["map"] = [{"layer": "epidermis", "quantity": "melanin", "kind": "file", "file": str(tmp_path / "mel.npy")},
+                      {"layer": "dermis", "quantity": "blood", "kind": "file", "file": str(tmp_path / "blood.npy")}]
+    return C.validate(raw, "striped")
+
+
+def test_path_tracer_matches_the_photon_tally_with_maps(dev, tmp_path):
+    """The path tracer's delta tracking through the maps and its light connections (each leg's
+    ratio tracking of the maps) against the photon pass's exact exit tally: the cos-weighted mean
+    radiance over the cone cos > 0.95 equals E R_cone / (pi (1 - c^2)) within 3 sigma + 0.2 %
+    (as tests/test_inclusions.py does through an inclusion); without the maps the tally moves by
+    many times that."""
+    from clppm.run import entry
+    from test_pathtracer import E_FAR, _cone_average
+    c = 0.95
+    fov = 2 * math.degrees(math.acos(c)) * 1.03
+    cfg = _speckled_scene(tmp_path)
+    Lc, sec = _cone_average(entry.render_pt(cfg, dev=dev), fov, c)
+    k = E_FAR / (math.pi * (1 - c * c))
+
+    def tally(cfg, photons):
+        pp = photonpass.PhotonPass.of_config(dev, volume.build(cfg, "striped"), cfg)
+        pp.p["rcone_cos"] = c
+        rep = photonpass.trace_report(pp, photons, batches=10)
+        return k * rep["Rd_cone"], k * rep["Rd_cone_se"]
+    ref, seref = tally(cfg, 2_000_000)
+    tol = 3 * math.hypot(sec, seref) + 0.002 * ref
+    assert abs(Lc - ref) < tol, (Lc, ref, sec, seref)
+    without, _ = tally(_speckled_scene(tmp_path, maps=False), 1_000_000)
+    assert abs(without - ref) > 10 * tol, (without, ref, tol)

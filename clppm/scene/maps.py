@@ -182,14 +182,16 @@ class ColumnMaps:
         c = self.columns[L][..., :3].reshape(-1, 3).astype(np.float64) - self.own[L].astype(np.float64)
         return c.min(axis=0), c.max(axis=0)
 
-    def mua_range(self, L: int) -> tuple[np.ndarray, np.ndarray]:
-        """(NB,) the greatest increase of mu_a over the layer's own in any column, as the kernel
-        bounds it, and its rounding pad (maps.h: dmax)."""
+    def mua_range(self, L: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(NB,) each: the greatest and least change of mu_a from the layer's own over its
+        columns, as the kernel bounds them from the per-quantity extremes, and their rounding pad
+        (maps.h: dmax = max(top, 0) + pad, dmin = bottom - pad)."""
         lo, hi = self.delta_range(L)
         k = self.basis
         top = np.sum(np.where(k >= 0, hi[:, None], lo[:, None]) * k, axis=0)
+        bottom = np.sum(np.where(k >= 0, lo[:, None], hi[:, None]) * k, axis=0)
         pad = 1e-5 * np.sum(np.maximum(np.abs(lo), np.abs(hi))[:, None] * np.abs(k), axis=0)
-        return np.maximum(top, 0.0), pad
+        return top, bottom, pad
 
 
 def basis(wl: np.ndarray) -> np.ndarray:
@@ -226,26 +228,27 @@ def build(cfg: dict, wl: np.ndarray, src: str = "<config>") -> ColumnMaps | None
 def device_rows(cm: ColumnMaps, mua: np.ndarray, mus: np.ndarray) -> np.ndarray:
     """float4 rows after the materials' and inclusions' rows of the kernels' optics buffer
     (kernels/maps.h): the grid; per layer its own values and where its columns start (-1: not
-    mapped, as int bits); per layer and band (majorant, mu_a/majorant, 1/majorant, dmax) and
-    (mu_s, the three basis values); then the mapped layers' columns.  ``mua``, ``mus``: the
+    mapped, as int bits); per layer and band (majorant, mu_a/majorant, 1/majorant, dmax),
+    (mu_s, the three basis values) and (dmin, 0, 0, 0); then the mapped layers' columns.  ``mua``, ``mus``: the
     layers' (NL, NB), um^-1."""
     nl, nb = mua.shape
-    head = np.zeros((1 + nl + 2 * nl * nb, 4), np.float32)
+    head = np.zeros((1 + nl + 3 * nl * nb, 4), np.float32)
     iv = head.view(np.int32)
     head[0, :2] = cm.dx, cm.dy
     iv[0, 2:] = cm.nx, cm.ny
     head[1:1 + nl, :3] = cm.own
     iv[1:1 + nl, 3] = -1
-    band = head[1 + nl:].reshape(nl, nb, 2, 4)
+    band = head[1 + nl:].reshape(nl, nb, 3, 4)
     off, blocks = 0, []
     for L in range(nl):
-        dmax = np.zeros(nb)
+        dmax, dmin = np.zeros(nb), np.zeros(nb)
         if L in cm.columns:
             iv[1 + L, 3] = off
             off += cm.nx * cm.ny
             blocks.append(cm.columns[L].reshape(-1, 4))
-            top, pad = cm.mua_range(L)
-            dmax = top + pad
+            top, bottom, pad = cm.mua_range(L)
+            dmax = np.maximum(top, 0.0) + pad
+            dmin = bottom - pad
         maj = mua[L] + mus[L] + dmax          # = the layer's mu_t, exactly, where dmax is 0
         with np.errstate(divide="ignore", invalid="ignore"):
             band[L, :, 0, 0] = maj
@@ -254,4 +257,5 @@ def device_rows(cm: ColumnMaps, mua: np.ndarray, mus: np.ndarray) -> np.ndarray:
         band[L, :, 0, 3] = dmax
         band[L, :, 1, 0] = mus[L]
         band[L, :, 1, 1:] = cm.basis.T
+        band[L, :, 2, 0] = dmin
     return np.ascontiguousarray(np.concatenate([head] + blocks), np.float32)
