@@ -811,8 +811,10 @@ HOT void pt_walk(Track* t, float beta, int b, float3 lpos, int nimg, Rng* rng, R
     float tau = neg_log_u01(rng_u01(rng));
     int nv = 0;
     while (beta > 0.0f) {
-        float4 op = optics[MATERIAL(t) * NB + b];  /* mua/mut, g, 1/(2g), mut: the layer's or an inclusion's */
-#ifdef MAPS
+#ifndef MAPS
+        const float4 op = optics[MATERIAL(t) * NB + b];  /* mua/mut, g, 1/(2g), mut: the layer's or an inclusion's */
+#else
+        float4 op = optics[MATERIAL(t) * NB + b];
         const int mfirst = map_first(optics, MATERIAL(t));   /* a mapped layer: flights at its majorant */
         if (mfirst >= 0) op.w = map_majorant(optics, t->L, b);
 #endif
