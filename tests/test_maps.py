@@ -515,3 +515,25 @@ def test_path_tracer_matches_the_photon_tally_with_maps(dev, tmp_path):
     assert abs(Lc - ref) < tol, (Lc, ref, sec, seref)
     without, _ = tally(_speckled_scene(tmp_path, maps=False), 1_000_000)
     assert abs(without - ref) > 10 * tol, (without, ref, tol)
+
+
+def test_volume_store_keeps_no_scene_with_maps_or_inclusions(tmp_path, monkeypatch):
+    """The volume store keeps the geometry's arrays alone, so a scene with maps or inclusions is
+    built every time (read back, it came without them)."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(volume, "STORE_COLUMNS", 1)
+    from clppm.checks.tiny import tiny_config
+    raw = tomllib.loads(C.to_toml(tiny_config(size_mm=0.5)))
+    raw["map"] = [{"layer": "basal", "quantity": "melanin", "kind": "constant", "value": 0.2}]
+    raw["inclusion"] = [{"kind": "vessel", "center_mm": [0.25, 0.25], "depth_um": 150.0}]
+    cfg = C.validate(raw, "tiny")
+    for _ in range(2):
+        volume._recent.clear()
+        vol = volume.build(cfg, "tiny")
+        assert vol.maps is not None and vol.ninc == 1
+    import os
+    assert not os.path.isdir(volume.store_dir()) or not os.listdir(volume.store_dir())
+    plain = {k: v for k, v in cfg.items() if k not in ("map", "inclusion")}
+    volume._recent.clear()
+    volume.build(plain, "tiny")
+    assert len(os.listdir(volume.store_dir())) == 1          # the store itself still works
