@@ -537,3 +537,53 @@ def test_volume_store_keeps_no_scene_with_maps_or_inclusions(tmp_path, monkeypat
     volume._recent.clear()
     volume.build(plain, "tiny")
     assert len(os.listdir(volume.store_dir())) == 1          # the store itself still works
+
+
+# ----------------------------------------------------------------------------- fuzzing the tables
+def test_fuzzed_map_is_valid_or_one_line_naming_it():
+    """One [[map]] key, or one key of its spot, set to an edge or junk value: a config whose map
+    builds (finite columns in [0, 1], finite device rows), or one ConfigError naming that map's
+    key on one line, at validation or where the volume is built."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+    from test_config_fuzz import BASE, _edge_numbers, junk
+
+    def values(f):
+        return st.one_of(junk, st.sampled_from(_edge_numbers(f) + list(f.choices) + [0.05, 0.5, "dermis"]))
+    keys = [("map", k) for k in C.MAP_SCHEMA if k != "file"] + [("spot", k) for k in C.SPOT_SCHEMA]
+
+    @st.composite
+    def one(draw):
+        where, key = draw(st.sampled_from(keys))
+        f = (C.MAP_SCHEMA if where == "map" else C.SPOT_SCHEMA)[key]
+        if f.kind == "vec2" and draw(st.booleans()):
+            return where, key, draw(st.lists(st.sampled_from(_edge_numbers(f) + [0.5]), min_size=2, max_size=2))
+        return where, key, draw(values(f))
+
+    @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+    @given(one())
+    def check(wkv):
+        where, key, v = wkv
+        raw = {k: (list(x) if isinstance(x, list) else dict(x)) for k, x in BASE.items()}
+        spot = {"center_mm": [0.5, 0.5], "radius_um": 50.0, "peak": 0.3}
+        m = {"layer": "epidermis", "quantity": "melanin", "kind": "spots", "spots": [spot]}
+        if where == "map":
+            m[key] = v
+        else:
+            spot[key] = v
+        raw["map"] = [m]
+        try:
+            cfg = C.validate(raw, "fuzz.toml")
+            vol = volume.build(cfg, "fuzz.toml")
+        except C.ConfigError as e:
+            msg = str(e)
+            assert "\n" not in msg and msg.startswith("fuzz.toml: map"), msg
+            assert e.key.startswith("map"), msg
+            return
+        for a in vol.maps.columns.values():
+            assert np.all(np.isfinite(a)) and a.min() >= 0.0 and a.max() <= 1.0
+        rows = vol.device_optics()
+        base = vol.nmat * vol.nb + 1 + vol.nl           # the grid and layer rows hold int bits
+        assert np.all(np.isfinite(rows[:vol.nmat * vol.nb])) and np.all(np.isfinite(rows[base:]))
+        assert C.validate(tomllib.loads(C.to_toml(cfg)), "fuzz.toml") == cfg
+    check()
