@@ -463,6 +463,10 @@ def test_shipped_forearm_freckles(tmp_path, capsys):
     assert "map[0].layer = 'basal'" in capsys.readouterr().err
     assert cli.main(["render", "forearm_freckles", "-o", str(tmp_path / "f.png"), "-q", "--integrator", "pt"]) == 2
     assert "maps and inclusions" in capsys.readouterr().err
+    # clppm reflectance's photon pass sees the maps; its --methods renders (PPM) are refused first
+    assert cli.main(["reflectance", "forearm_freckles", "--methods", "e", "--no-nist"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "map[0].layer = 'basal'" in err, err
 
 
 # ----------------------------------------------------------------------------- the path tracer
