@@ -652,8 +652,8 @@ def load(path: str) -> dict:
 
 
 def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
-    """A copy of ``cfg`` with one value changed by ``SECTION.KEY=VALUE``, ``layer.N.KEY=VALUE``
-    or ``inclusion.N.KEY=VALUE`` (N: index into the ``[[layer]]`` or ``[[inclusion]]`` tables;
+    """A copy of ``cfg`` with one value changed by ``SECTION.KEY=VALUE``, ``layer.N.KEY=VALUE``,
+    ``inclusion.N.KEY=VALUE`` or ``map.N.KEY=VALUE`` (N: index into those tables;
     VALUE in TOML syntax, a bare word is a string), validated like the file's value.  ``cfg`` itself is left unchanged, as by
     :func:`override`: ``cfg = set_item(cfg, "layer.0.n=1.45")``.  The same strings as
     ``clppm render --set``; raises :class:`ConfigError` for an unknown key or a bad value."""
@@ -669,7 +669,7 @@ def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
         value = tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         value = text
-    if section in ("layer", "inclusion"):
+    if section in ("layer", "inclusion", "map"):
         index, _, key = key.partition(".")
         return override_table(cfg, section, index, key, value, source)
     return override(cfg, section, key, value, source)
@@ -681,11 +681,12 @@ def override_layer(cfg: dict, index, key: str, value: Any, source: str = "--set"
 
 
 def override_table(cfg: dict, kind: str, index, key: str, value: Any, source: str = "--set") -> dict:
-    """Set ``kind[index].key``, kind "layer" or "inclusion" (validated like the file's value)."""
-    schema = LAYER_SCHEMA if kind == "layer" else INCLUSION_SCHEMA
+    """Set ``kind[index].key``, kind "layer", "inclusion" or "map" (validated like the file's value)."""
+    schema = {"layer": LAYER_SCHEMA, "inclusion": INCLUSION_SCHEMA, "map": MAP_SCHEMA}[kind]
     tables = cfg.get(kind, [])
     n = len(tables)
-    names = ", ".join(f"{i} {t['name'] if kind == 'layer' else t['kind']}" for i, t in enumerate(tables))
+    names = ", ".join(f"{i} " + (t["name"] if kind == "layer" else t["kind"] if kind == "inclusion"
+                                 else f"{t['layer']} {t['quantity']}") for i, t in enumerate(tables))
     try:
         i = int(index)
     except ValueError:

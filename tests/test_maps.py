@@ -591,3 +591,15 @@ def test_fuzzed_map_is_valid_or_one_line_naming_it():
         assert np.all(np.isfinite(rows[:vol.nmat * vol.nb])) and np.all(np.isfinite(rows[base:]))
         assert C.validate(tomllib.loads(C.to_toml(cfg)), "fuzz.toml") == cfg
     check()
+
+
+def test_set_item_reaches_a_map():
+    cfg = slab_cfg([FRECKLE, {"layer": "dermis", "quantity": "saturation", "kind": "constant", "value": 0.5}])
+    out = C.set_item(cfg, "map.1.value=0.6")
+    assert out["map"][1]["value"] == 0.6 and cfg["map"][1]["value"] == 0.5
+    with pytest.raises(C.ConfigError, match=r"map\[1\]\.value = 2.0: must be <= 1"):
+        C.set_item(cfg, "map.1.value=2.0")
+    with pytest.raises(C.ConfigError, match=r"map\[1\]\.layer = 'nowhere': no such layer"):
+        C.set_item(cfg, "map.1.layer=nowhere")
+    with pytest.raises(C.ConfigError, match=r"no such map: give an index 0\.\.1 \(0 epidermis melanin, 1 dermis saturation\)"):
+        C.set_item(cfg, "map.2.value=0.5")
