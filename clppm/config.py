@@ -240,6 +240,42 @@ MAX_INCLUSIONS = 8
 #: the smallest radius or semi-axis (um): ten times kernels/inclusion.h INC_EPS
 MIN_INCLUSION_UM = 0.1
 
+#: the chromophores a [[map]] varies across a layer's columns (kernels/maps.h: mu_a is linear in
+#: melanin, blood and blood x saturation, so these three per column give every band's absorption)
+MAP_QUANTITIES = ("melanin", "blood", "saturation")
+
+SPOT_SCHEMA: dict[str, F] = {
+    "center_mm": F("vec2", None, lo=-1e4, hi=1e4, doc="lateral position of the spot's centre, x and y"),
+    "radius_um": F("float", None, lo=0, lo_open=True, hi=1e6,
+                   doc="1/e radius of the Gaussian: value = background + (peak - background) exp(-(r/radius)^2)"),
+    "peak": F("float", None, lo=0, hi=1, doc="the value at the centre"),
+}
+
+MAP_SCHEMA: dict[str, F] = {
+    "layer": F("str", None, doc="the name of the [[layer]] the map varies (required)"),
+    "quantity": F("choice", None, choices=MAP_QUANTITIES,
+                  doc="melanin (melanosome volume fraction), blood (whole-blood volume fraction) or "
+                      "saturation (blood oxygen saturation) (required)"),
+    "kind": F("choice", None, choices=("file", "spots", "constant"),
+              doc="file: an image or .npy; spots: Gaussian spots (freckles, nevi) on a background; "
+                  "constant: one value everywhere (required)"),
+    "value": F("float", None, none_ok=True, lo=0, hi=1,
+               doc="constant: the value (required); spots: the background (unset: the layer's own value)"),
+    "spots": F("spots", [], doc="spots: a list of {center_mm = [x, y], radius_um = r, peak = v}; "
+                                "where spots overlap their excesses over the background add"),
+    "file": F("path", None, none_ok=True,
+              doc="file: a grayscale PNG or TIFF (8 or 16 bit), an EXR (channel Y, else R) or a .npy; "
+                  "row r is y = (r + 0.5) pixel, as relief.file"),
+    "low": F("float", 0.0, lo=0, hi=1, doc="file (image): the value of black"),
+    "high": F("float", 1.0, lo=0, hi=1, doc="file (image): the value of white (a float image's 1.0); "
+                                            "a .npy holds the values themselves"),
+    "pixel_um": F("float", None, none_ok=True, lo=0, lo_open=True, hi=1e6,
+                  doc="file: the map's pixel size (unset: the map spans the model's footprint); "
+                      "bilinear onto the columns where it is not the columns' own grid"),
+}
+#: maps a scene may hold (one per layer and quantity at most)
+MAX_MAPS = 64
+
 #: [render] keys that never change the accumulated picture (``picture="none"`` in the schema):
 #: how long to run, how often to save, and the beam gather's layout (its layouts give the same
 #: bytes, tests/test_layouts.py).  A checkpoint resumes, a worker's scene is reused, and a cached
@@ -332,6 +368,10 @@ def _check(src: str, key: str, v: Any, f: F, base_dir: str) -> Any:
         if not isinstance(v, int) or isinstance(v, bool):
             bad("must be an integer")
         return _range(src, key, v, f)
+    if k == "spots":
+        if not isinstance(v, list) or not all(isinstance(t, dict) for t in v):
+            bad("must be a list of tables {center_mm = [x, y], radius_um = r, peak = v}")
+        return [_section(src, f"{key}[{i}]", t, SPOT_SCHEMA, base_dir) for i, t in enumerate(v)]
     if k == "float":
         if not _is_num(v):
             bad("must be a number")
@@ -401,7 +441,7 @@ def validate(raw: dict, source: str = "<config>", base_dir: str = ".") -> dict:
     """Validate a parsed TOML dict; return a complete config with defaults filled."""
     if not isinstance(raw, dict):
         raise ConfigError(source, "<top>", raw, "must be a table")
-    valid_top = list(SCHEMA) + ["layer", "inclusion"]
+    valid_top = list(SCHEMA) + ["layer", "inclusion", "map"]
     for key in raw:
         if key not in valid_top:
             raise _unknown(source, "", key, valid_top, raw[key])
@@ -416,6 +456,8 @@ def validate(raw: dict, source: str = "<config>", base_dir: str = ".") -> dict:
                     for i, t in enumerate(layers)]
     if "inclusion" in raw:
         cfg["inclusion"] = _inclusions(source, raw["inclusion"], base_dir)
+    if "map" in raw:
+        cfg["map"] = _maps(source, raw["map"], base_dir)
     _cross_checks(source, cfg)
     return cfg
 
@@ -428,6 +470,47 @@ def _inclusions(src: str, tables, base_dir: str) -> list[dict]:
     if len(tables) > MAX_INCLUSIONS:
         raise ConfigError(src, "inclusion", f"{len(tables)} inclusions", f"at most {MAX_INCLUSIONS}")
     return [_section(src, f"inclusion[{i}]", t, INCLUSION_SCHEMA, base_dir) for i, t in enumerate(tables)]
+
+
+def _maps(src: str, tables, base_dir: str) -> list[dict]:
+    """The ``[[map]]`` tables, validated one by one (present only when the file has them, so a
+    config without maps is the same dict as before they existed)."""
+    if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
+        raise ConfigError(src, "map", tables, "must be [[map]] tables")
+    if len(tables) > MAX_MAPS:
+        raise ConfigError(src, "map", f"{len(tables)} maps", f"at most {MAX_MAPS}")
+    return [_section(src, f"map[{i}]", t, MAP_SCHEMA, base_dir) for i, t in enumerate(tables)]
+
+
+def _check_maps(src: str, cfg: dict) -> None:
+    """Each map names a layer of the config whose chromophores it can vary, once per quantity,
+    with the keys its kind needs.  A file's contents and the spots' sums are checked where the
+    volume is built, before any tracing (clppm.scene.maps)."""
+    names = [L["name"] for L in cfg["layer"]]
+    seen = {}
+    for i, m in enumerate(cfg.get("map", [])):
+        key = f"map[{i}]"
+        if m["layer"] not in names:
+            near = difflib.get_close_matches(m["layer"], names, 1, 0.5)
+            raise ConfigError(src, f"{key}.layer", m["layer"], "no such layer"
+                              + (f" (did you mean '{near[0]}'?)" if near else "") + f"; layers: {', '.join(names)}")
+        L = cfg["layer"][names.index(m["layer"])]
+        if L["mua"] is not None:
+            raise ConfigError(src, f"{key}.layer", m["layer"], "the layer's absorption is a homogeneous "
+                              "override (mua, mus), not chromophores: a map cannot vary it")
+        both = (m["layer"], m["quantity"])
+        if both in seen:
+            raise ConfigError(src, f"{key}.quantity", m["quantity"],
+                              f"map[{seen[both]}] already maps the {m['quantity']} of {m['layer']!r}")
+        seen[both] = i
+        if m["kind"] == "constant" and m["value"] is None:
+            raise ConfigError(src, f"{key}.value", None, "a constant map needs its value")
+        if m["kind"] == "spots" and not m["spots"]:
+            raise ConfigError(src, f"{key}.spots", [], "a spots map needs at least one spot")
+        if m["kind"] == "file" and m["file"] is None:
+            raise ConfigError(src, f"{key}.file", None, "a file map needs its file")
+        if m["kind"] != "file" and m["file"] is not None:
+            raise ConfigError(src, f"{key}.file", m["file"], f"only a file map reads a file (kind = {m['kind']!r})")
 
 
 def _check_inclusions(src: str, cfg: dict) -> None:
@@ -538,6 +621,7 @@ def _cross_checks(src: str, cfg: dict) -> None:
         raise ConfigError(src, "render.initial_photons", cfg["render"]["initial_photons"],
                           "must not exceed render.photons")
     _check_inclusions(src, cfg)
+    _check_maps(src, cfg)
 
 
 def load(path: str) -> dict:
@@ -568,8 +652,8 @@ def load(path: str) -> dict:
 
 
 def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
-    """A copy of ``cfg`` with one value changed by ``SECTION.KEY=VALUE``, ``layer.N.KEY=VALUE``
-    or ``inclusion.N.KEY=VALUE`` (N: index into the ``[[layer]]`` or ``[[inclusion]]`` tables;
+    """A copy of ``cfg`` with one value changed by ``SECTION.KEY=VALUE``, ``layer.N.KEY=VALUE``,
+    ``inclusion.N.KEY=VALUE`` or ``map.N.KEY=VALUE`` (N: index into those tables;
     VALUE in TOML syntax, a bare word is a string), validated like the file's value.  ``cfg`` itself is left unchanged, as by
     :func:`override`: ``cfg = set_item(cfg, "layer.0.n=1.45")``.  The same strings as
     ``clppm render --set``; raises :class:`ConfigError` for an unknown key or a bad value."""
@@ -585,7 +669,7 @@ def set_item(cfg: dict, item: str, source: str = "--set") -> dict:
         value = tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         value = text
-    if section in ("layer", "inclusion"):
+    if section in ("layer", "inclusion", "map"):
         index, _, key = key.partition(".")
         return override_table(cfg, section, index, key, value, source)
     return override(cfg, section, key, value, source)
@@ -597,11 +681,12 @@ def override_layer(cfg: dict, index, key: str, value: Any, source: str = "--set"
 
 
 def override_table(cfg: dict, kind: str, index, key: str, value: Any, source: str = "--set") -> dict:
-    """Set ``kind[index].key``, kind "layer" or "inclusion" (validated like the file's value)."""
-    schema = LAYER_SCHEMA if kind == "layer" else INCLUSION_SCHEMA
+    """Set ``kind[index].key``, kind "layer", "inclusion" or "map" (validated like the file's value)."""
+    schema = {"layer": LAYER_SCHEMA, "inclusion": INCLUSION_SCHEMA, "map": MAP_SCHEMA}[kind]
     tables = cfg.get(kind, [])
     n = len(tables)
-    names = ", ".join(f"{i} {t['name'] if kind == 'layer' else t['kind']}" for i, t in enumerate(tables))
+    names = ", ".join(f"{i} " + (t["name"] if kind == "layer" else t["kind"] if kind == "inclusion"
+                                 else f"{t['layer']} {t['quantity']}") for i, t in enumerate(tables))
     try:
         i = int(index)
     except ValueError:
@@ -773,6 +858,8 @@ def toml_value(v) -> str:
         return json.dumps(v)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):                     # an inline table (a map's spot)
+        return "{" + ", ".join(f"{_show_key(k)} = {toml_value(x)}" for k, x in v.items() if x is not None) + "}"
     raise TypeError(type(v))
 
 
@@ -797,6 +884,8 @@ def to_toml(cfg: dict, header: str = "") -> str:
         lines += _toml_table("[[layer]]", L, LAYER_SCHEMA)
     for inc in cfg.get("inclusion", []):
         lines += _toml_table("[[inclusion]]", inc, INCLUSION_SCHEMA)
+    for m in cfg.get("map", []):
+        lines += _toml_table("[[map]]", m, MAP_SCHEMA)
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -811,7 +900,7 @@ def defaults() -> dict:
 def _type_name(f: F) -> str:
     return {"float": "float", "int": "int", "bool": "bool", "str": "string", "path": "path",
             "vec2": "[float, float]", "vec3": "[float, float, float]", "ivec2": "[int, int]",
-            "choice": "choice"}[f.kind]
+            "choice": "choice", "spots": "[{spot}, ...]"}[f.kind]
 
 
 def _range_text(f: F) -> str:
@@ -831,12 +920,17 @@ def _default_text(f: F) -> str:
     return toml_value(f.default)
 
 
+_TABLES = [("layer", LAYER_SCHEMA), ("inclusion", INCLUSION_SCHEMA), ("map", MAP_SCHEMA),
+           ("map spot", SPOT_SCHEMA)]
+
+
 def schema_rows() -> list[tuple[str, str, str, str, str]]:
     """(key, type, default, range, meaning) of every config key, from :data:`SCHEMA`."""
     rows = []
-    for name, schema in list(SCHEMA.items()) + [("layer", LAYER_SCHEMA), ("inclusion", INCLUSION_SCHEMA)]:
+    for name, schema in list(SCHEMA.items()) + _TABLES:
         for k, f in schema.items():
-            key = f"[[{name}]].{k}" if name in ("layer", "inclusion") else f"{name}.{k}"
+            key = (f"[[{name}]].{k}" if name in ("layer", "inclusion", "map")
+                   else f"[[map]].spots.{k}" if name == "map spot" else f"{name}.{k}")
             rows.append((key, _type_name(f), _default_text(f), _range_text(f), f.doc))
     return rows
 
@@ -862,9 +956,13 @@ def schema_markdown() -> str:
            "wavelengths. `clppm config FILE` prints a file with every default filled in; "
            "`--set SECTION.KEY=VALUE` / `--set layer.N.KEY=VALUE` changes one value on the command line. "
            "Optional `[[inclusion]]` tables (at most 8) bury a vessel or an ellipsoid of chromophores of "
-           "its own in the layers (docs/method.md, Inclusions).", ""]
-    for name, schema in list(SCHEMA.items()) + [("layer", LAYER_SCHEMA), ("inclusion", INCLUSION_SCHEMA)]:
-        out += [f"## `[[{name}]]`" if name in ("layer", "inclusion") else f"## `[{name}]`", "",
+           "its own in the layers (docs/method.md, Inclusions). Optional `[[map]]` tables vary a layer's "
+           "melanin, blood or oxygen saturation from column to column: an image or .npy file, Gaussian "
+           "spots (`spots` items: `center_mm`, `radius_um`, `peak`) or a constant (docs/method.md, "
+           "Chromophore maps).", ""]
+    for name, schema in list(SCHEMA.items()) + _TABLES:
+        out += [f"## `[[{name}]]`" if name in ("layer", "inclusion", "map")
+                else "## `[[map]].spots` items" if name == "map spot" else f"## `[{name}]`", "",
                 "| key | type | default | range | meaning |", "|---|---|---|---|---|"]
         for k, f in schema.items():
             out.append(f"| `{k}` | {_type_name(f)} | `{_default_text(f)}` | {cell(_range_text(f))} "

@@ -12,6 +12,7 @@
 #include "common.h"
 #include "spectral.h"
 #include "inclusion.h"
+#include "maps.h"
 #ifndef FLAT
 #include "surface.h"
 #endif
@@ -568,6 +569,32 @@ HOT void collide(__constant const Params* P, float4 op, int m, float s, Track* t
     *tau = neg_log_u01(rng_u01(rng));
 }
 
+#ifdef MAPS
+/* A tentative collision after free path s in mapped layer m (maps.h: flights at the majorant maj,
+ * columns from row first): absorb the fraction mu_a(x)/maj by weight, then a null collision (no
+ * turn, no stored event, a new optical depth) with probability (maj - mu_a(x) - mu_s)/(maj -
+ * mu_a(x)), else collide() as in a uniform layer (its scattering, storage and roulettes).  No
+ * random number is drawn where the null probability is 0 (a column at the majorant's mu_a). */
+HOT void collide_mapped(__constant const Params* P, float4 op, float maj, int first, int m, float s, Track* t,
+                        Spectral* sw, long* W, int b, Fates* f, int* planes, float* tau, Rng* rng, Rng* srng,
+                        __global const float2* store_imp, __global const float2* band_spi,
+                        __global const float4* optics, __global const float* logmu, PhotonMap map, Counters* cnt) {
+    const float4 c = map_collision(optics, m, b, first, t->pos + s * t->dir, P);
+    op.x = c.x;
+    op.w = maj;
+    if (c.y > 0.0f && rng_u01(rng) * (c.z + c.y) < c.y) {
+        COUNT(cnt, K_COLLISIONS);
+        t->pos += s * t->dir;
+        long dw = convert_long_rte((float)*W * op.x);
+        dw = dw < 0 ? 0 : (dw > *W ? *W : dw);
+        f->absorbed[m] += dw; *W -= dw;
+        *tau = neg_log_u01(rng_u01(rng));
+        return;
+    }
+    collide(P, op, m, s, t, sw, W, b, f, planes, tau, rng, srng, store_imp, band_spi, optics, logmu, map, cnt);
+}
+#endif
+
 /* The photon went through a face into layer L2: out of the top (unless the relief takes it
  * back in: returns 1), out of the bottom, or on in layer L2. */
 HOT int enter_layer(Track* t, int L2, long* W, Fates* f, VOLUME_ARGS, __global const float* smooth,
@@ -669,7 +696,12 @@ HOT void photon_event(Track* t, Spectral* sw, long* W, int b, Fates* f, int* eve
     COUNT(cnt, K_STEPS);
     const int m = MATERIAL(t);                  /* the layer, or the inclusion the photon is in */
     const float4 op = optics[m * NB + b];       /* mua/mut, g, 1/(2g), mut in um^-1 */
+#ifdef MAPS
+    const int mfirst = map_first(optics, m);    /* a mapped layer: flights at its majorant */
+    const float mut = mfirst >= 0 ? map_majorant(optics, m, b) : op.w;
+#else
     const float mut = op.w;
+#endif
     int ev;
     const float s = mut > 0.0f ? *tau / mut : BIG;
 #ifdef FLAT
@@ -689,6 +721,13 @@ HOT void photon_event(Track* t, Spectral* sw, long* W, int b, Fates* f, int* eve
     if (at_inc) db = dinc;
 #endif
     if (s < db) {
+#ifdef MAPS
+        if (mfirst >= 0) {
+            collide_mapped(P, op, mut, mfirst, m, s, t, sw, W, b, f, planes, tau, rng, srng, store_imp, band_spi,
+                           optics, logmu, map, cnt);
+            return;
+        }
+#endif
         collide(P, op, m, s, t, sw, W, b, f, planes, tau, rng, srng, store_imp, band_spi, optics, logmu, map, cnt);
         return;
     }

@@ -169,6 +169,9 @@ HOT int lane_enter_fast(Lanes* S, int i, const Track* t, Spectral* sw, VOLUME_AR
 #endif
     const int L = t->L;
     if (L < 0 || L >= NL) return 0;
+#ifdef MAPS
+    if (map_first(optics, L) >= 0) return 0;          /* a mapped layer: collide_mapped's */
+#endif
     const float4 op = optics[L * NB + S->b.s[i]];
     if (!(op.x < 1.0f) || !(op.w > 0.0f)) return 0;
     int tmode = 0;

@@ -49,6 +49,7 @@
 #include "common.h"
 #include "camera.h"
 #include "inclusion.h"
+#include "maps.h"
 
 #ifdef PT_FP64
 #define REL_TOL 1e-15
@@ -310,6 +311,33 @@ inline float chain_inclusion_od(const Chain* ch, float x, float y, float zv, int
         if (refl) up = !up;
     }
     return od;
+}
+#endif
+
+#ifdef MAPS
+/* The factor by which chromophore maps change a flat chain's attenuation in band b: the chain's
+ * legs from the vertex (x, y, zv) back toward the light as chain_inclusion_od walks them, each
+ * leg in a mapped layer by map_leg_factor (maps.h: ratio tracking of the map's change of mu_a
+ * along it).  Scalars only across the call (connect). */
+inline float chain_map_factor(const Chain* ch, float x, float y, float zv, float ux, float uy, float p, int b,
+                              Rng* rng, __constant const Params* P, __constant const float4* iface,
+                              __constant const float* layer_n, __global const float4* optics) {
+    float px = x, py = y, pz = zv;
+    int up = ch->up;
+    float T = 1.0f;
+    for (int e = 0; e < ch->ne; ++e) {
+        const int i = ch->ev[e] & 255, k = (ch->ev[e] >> 8) & 255, refl = ch->ev[e] >> 16;
+        const float sk = p / layer_n[k], ck = sqrt(fmax(0.0f, 1.0f - sk * sk));
+        const float len = ck > 0.0f ? fabs(IF_Z(i) - pz) / ck : 0.0f;
+        const int first = map_first(optics, k);
+        if (first >= 0 && len > 0.0f)
+            T *= map_leg_factor(optics, k, b, first, px, py, sk * ux, sk * uy, len, P, rng);
+        px += len * sk * ux;
+        py += len * sk * uy;
+        pz = IF_Z(i);
+        if (refl) up = !up;
+    }
+    return T;
 }
 #endif
 
@@ -703,6 +731,14 @@ HOT float connect_light(const Track* t, float g, float3 lpos, int nimg, int b, R
                                                  (float)pp, b, iface, layer_n, optics));
                 }
 #endif
+#ifdef MAPS
+                if (f > 0.0f) {                 /* the maps on the chain's legs */
+                    const float2 u = (lpos.xy - sh) - t->pos.xy;
+                    const float ru = length(u);
+                    f *= chain_map_factor(&ch, t->pos.x, t->pos.y, t->pos.z, ru > 0.0f ? u.x / ru : 1.0f,
+                                          ru > 0.0f ? u.y / ru : 0.0f, (float)pp, b, rng, P, iface, layer_n, optics);
+                }
+#endif
                 if (f > 0.0f) c += f * hg_eval(g, -dot(dl, t->dir));
             }
     }
@@ -775,7 +811,13 @@ HOT void pt_walk(Track* t, float beta, int b, float3 lpos, int nimg, Rng* rng, R
     float tau = neg_log_u01(rng_u01(rng));
     int nv = 0;
     while (beta > 0.0f) {
+#ifndef MAPS
         const float4 op = optics[MATERIAL(t) * NB + b];  /* mua/mut, g, 1/(2g), mut: the layer's or an inclusion's */
+#else
+        float4 op = optics[MATERIAL(t) * NB + b];
+        const int mfirst = map_first(optics, MATERIAL(t));   /* a mapped layer: flights at its majorant */
+        if (mfirst >= 0) op.w = map_majorant(optics, t->L, b);
+#endif
         const float mut = op.w;
         int ev;
         const float sfl = mut > 0.0f ? tau / mut : BIG;
@@ -789,6 +831,17 @@ HOT void pt_walk(Track* t, float beta, int b, float3 lpos, int nimg, Rng* rng, R
         if (sfl < db) {
             /* ---- scattering vertex */
             t->pos += sfl * t->dir;
+#ifdef MAPS
+            if (mfirst >= 0) {              /* delta tracking (maps.h): absorb, then null or scatter */
+                const float4 c = map_collision(optics, t->L, b, mfirst, t->pos, P);
+                op.x = c.x;
+                if (c.y > 0.0f && rng_u01(rng) * (c.z + c.y) < c.y) {
+                    beta *= 1.0f - op.x;
+                    tau = neg_log_u01(rng_u01(rng));
+                    continue;
+                }
+            }
+#endif
             if (++nv > E->max_vertices) { st->ncut++; break; }
             beta *= 1.0f - op.x;
             if (!(beta > 0.0f)) break;

@@ -4,6 +4,7 @@
  * Compile-time switches (-D):
  *   NB    number of wavelength bands          NL   number of layers
  *   NINC  number of inclusions (inclusion.h; 0 or absent: none, the code compiled out)
+ *   MAPS  per-column chromophore maps (maps.h; absent: none, the code compiled out)
  *   FLAT  every interface is a plane (no per-column heights, no lateral stepping)
  *   SMOOTH_SURFACE, NVAR  the walks cross the smooth surfaces themselves (smoothwalk.h), not the
  *         voxel staircase; NVAR varying interfaces

@@ -78,6 +78,9 @@ def cmd_reflectance(a) -> int:
                     ("--passes", a.passes), ("--batches", a.batches)):
         if v is not None and v <= 0:
             raise ConfigError("command line", name, v, "must be > 0")
+    if a.methods:                       # the schemes' renders (PPM) see no inclusions or maps yet
+        from ..scene.scene import refuse_inclusions
+        refuse_inclusions(cfg, src, "ppm")
     paths.check_writable(a.json, "--json")
     paths.check_plot(a.plot, "--plot")
     paths.check_distinct(**{"--json": a.json, "--plot": a.plot})

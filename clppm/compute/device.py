@@ -424,6 +424,7 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     """Every ``-D`` switch of clppm's kernels, assembled in this one place (as MCX-CL does).
 
     From the volume: NB bands, NL layers, NINC inclusions (when there are any: kernels/inclusion.h),
+    MAPS (chromophore maps, when there are any: kernels/maps.h),
     FLAT (no relief or papillae: the flat code paths),
     SMOOTH_SURFACE and NVAR (model.surface = "smooth": the walk on the smooth surfaces, smoothwalk.h);
     ``nb`` alone (no volume): the photon grid's kernels (hashgrid.cl).  HERO_C: bands a photon
@@ -447,6 +448,8 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
         d["SMOOTH_CELL"] = int(vol.cell)
     if getattr(vol, "ninc", 0):
         d["NINC"] = int(vol.ninc)                 # kernels/inclusion.h; 0 (absent): compiled out
+    if getattr(vol, "maps", None) is not None:
+        d["MAPS"] = 1                             # kernels/maps.h; absent: compiled out
     if hero > 1:
         d["HERO_C"] = int(hero)
     if estimator is not None:

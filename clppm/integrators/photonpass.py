@@ -265,6 +265,9 @@ class PhotonPass:
         self.dev, self.vol, self.scene = dev, vol, scene
         self.bands = bands or scene.bands(hero=1, sampling="power")
         self.hero = self.bands.hero
+        if vol.maps is not None and self.hero > 1:
+            # kernels/maps.h: delta tracking through the maps with one band per path
+            raise ValueError(f"chromophore maps are traced with one band per path, not {self.hero}")
         self.counters = bool(counters)
         self.lanes = photon_lanes(dev, vol) if lanes is None else int(lanes)
         self.items = max(1, persistent_items(dev) // self.lanes)

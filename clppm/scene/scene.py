@@ -123,11 +123,40 @@ def problems(cfg: dict, source: str = "<config>") -> list[ConfigError]:
     return out
 
 
+def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
+    """Refuse to render a scene with ``[[map]]`` tables where the render would not see them: the
+    photon pass (clppm trace, clppm reflectance) and the path tracer on flat layers with open or
+    infinite sides and no inclusions trace the maps; PPM's eye pass and gathers do not yet, nor
+    the path tracer's connections through the relief, across periodic sides or through an
+    inclusion inside a mapped layer, and such an image would be wrong, not merely noisy."""
+    maps = cfg.get("map") or []
+    if not maps:
+        return
+    if integrator != "pt":
+        raise ConfigError(source, "map[0].layer", maps[0]["layer"],
+                          "chromophore maps are seen by the photon pass (clppm trace, clppm reflectance) and "
+                          "the path tracer (--integrator pt, flat layers) only so far; PPM's eye pass and "
+                          "gathers do not see them yet: render with --integrator pt or remove the [[map]] tables")
+    if cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0:
+        raise ConfigError(source, "relief.kind", cfg["relief"]["kind"],
+                          "the path tracer sees chromophore maps on flat layers only so far; give "
+                          "relief.kind = 'flat' and papillae.amplitude_um = 0, or remove the [[map]] tables")
+    if cfg["model"]["lateral"] == "periodic":
+        raise ConfigError(source, "model.lateral", "periodic",
+                          "the path tracer's connections across periodic sides do not see chromophore maps "
+                          "yet; give model.lateral = 'open' or 'infinite', or remove the [[map]] tables")
+    if cfg.get("inclusion"):
+        raise ConfigError(source, "inclusion[0].kind", cfg["inclusion"][0]["kind"],
+                          "the path tracer's light connections do not yet see chromophore maps and inclusions "
+                          "together; trace the scene (clppm trace) or remove the [[inclusion]] or [[map]] tables")
+
+
 def refuse_inclusions(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
     """Refuse to render a scene with ``[[inclusion]]`` tables where the render would not see
     them: the photon pass and the path tracer on flat layers walk through them; the eye pass and
     the gathers (PPM) do not yet, nor the path tracer's connections through the relief or across
     periodic sides, and such an image would be wrong, not merely noisy."""
+    refuse_maps(cfg, source, integrator)
     inc = cfg.get("inclusion") or []
     if not inc:
         return

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import maps as _maps
 from . import skin
 from ..compute.structs import LATERAL
 from ..config import ConfigError, wavelengths
@@ -149,6 +150,8 @@ class Volume:
     cell: int = CELL
     # [[inclusion]]: regions of their own material (materials NL .. NL + NINC - 1 of the kernels)
     inclusions: list = field(default_factory=list)
+    # [[map]]: per-column chromophores of some layers (clppm.scene.maps.ColumnMaps; kernels/maps.h)
+    maps: object | None = None
 
     @property
     def nl(self) -> int:
@@ -194,10 +197,13 @@ class Volume:
         """The kernels' ``optics`` buffer: (NMAT*NB, 4) material rows, then INC_ROWS rows per
         inclusion (kernels/inclusion.h); the layers' table alone when there is no inclusion, so a
         uniform scene uploads the same bytes as before inclusions existed."""
-        if not self.inclusions:
+        if not self.inclusions and self.maps is None:
             return self.optics_table()
-        return np.ascontiguousarray(np.concatenate([optics_rows(*self.material_optics())]
-                                                   + [i.rows() for i in self.inclusions]), np.float32)
+        rows = [optics_rows(*self.material_optics())] + [i.rows() for i in self.inclusions]
+        if self.maps is not None:              # after them, the maps' rows (kernels/maps.h)
+            from .maps import device_rows
+            rows.append(device_rows(self.maps, self.mua, self.mus))
+        return np.ascontiguousarray(np.concatenate(rows), np.float32)
 
     def hg_table(self) -> np.ndarray:
         """(NL*NB, 4) float32, the gathers' ``hgtab``: per layer and band 1 + g^2, 2g,
@@ -381,7 +387,7 @@ _memo: dict | None = None      # every volume built, while memoised() is active
 def geometry_key(cfg: dict) -> str:
     """The key a volume is kept under: its config sections (and its inclusions, when it has
     any), as sorted JSON."""
-    secs = GEOMETRY_SECTIONS + (("inclusion",) if cfg.get("inclusion") else ())
+    secs = GEOMETRY_SECTIONS + tuple(k for k in ("inclusion", "map") if cfg.get(k))
     return json.dumps({k: cfg.get(k) for k in secs}, sort_keys=True, default=str)
 
 
@@ -447,7 +453,9 @@ def _stored(key: str, cfg: dict, source: str) -> Volume:
     """The volume of ``cfg``: read from the store when a run built it before (the forearm's
     relief and smooth-surface bounds take seconds to build, tens of milliseconds to read),
     else built (and, when large, stored).  A file that cannot be read is built again."""
-    if not _storing() or cfg["relief"]["kind"] == "file":     # a height map may change under its name
+    # a height map or a chromophore map may change under its name; the store keeps the geometry's
+    # arrays alone (not inclusions or maps)
+    if not _storing() or cfg["relief"]["kind"] == "file" or cfg.get("inclusion") or cfg.get("map"):
         return _build(cfg, source)
     path = os.path.join(store_dir(), _digest(key) + ".npz")
     if os.path.exists(path):
@@ -808,7 +816,8 @@ def _build(cfg: dict, source: str = "<config>") -> Volume:
                  dz=dz, lateral=m["lateral"], n_above=m["n_outside"], n_below=m["n_below"],
                  smooth=np.ascontiguousarray(np.stack(svar), np.float32) if svar else None,
                  surface=m["surface"], tiles=tiles,
-                 inclusions=[inclusion_of(t, i, wl, source) for i, t in enumerate(cfg.get("inclusion", []))])
+                 inclusions=[inclusion_of(t, i, wl, source) for i, t in enumerate(cfg.get("inclusion", []))],
+                 maps=_maps.build(cfg, wl, source))
     vol.info = {"columns": [nx, ny], "varying_interfaces": int(np.sum(iface[:, 3] >= 0)), "surface_rows": len(svar),
                 "absent_layers": [layers[k]["name"] for k in absent],
                 "device_bytes": sum(vol.device_bytes().values())}
