@@ -38,6 +38,26 @@
 #include "spectral.h"
 #include "disc.h"
 #include "beam.h"
+#include "inclusion.h"
+
+#if NINC > 0 && !defined(FLAT)
+/* an eye-ray piece's record holds its material (the layer's or an inclusion's), which the
+ * layer-conforming depth of a relief's pieces would read as its layer */
+#error "gather.cl: inclusions on flat layers only"
+#endif
+
+/* Inclusions (inclusion.h).  A photon stored inside one scattered there: its phase function is
+ * the inclusion's, so a gather finds a photon's material from its position (the photon record
+ * keeps its layer only), testing only the inclusions whose box meets the query's (near: none
+ * for a query away from every inclusion, which then pays one box test).  Its weight already
+ * carries the inclusion's albedo (spectral.h), and an eye-ray piece inside an inclusion has the
+ * inclusion's material (eye.cl), so its transmittance runs at the inclusion's extinction. */
+#if NINC > 0
+HOT int photon_material(__global const float4* optics, float3 p, int L, int near) {
+    const int in = near ? inclusion_mask_of(optics, p, near) : 0;
+    return material_of(L, in);
+}
+#endif
 
 #define FIX 4294967296.0f               /* 2^32 per unit of weight x phase */
 #define INV_FIX (1.0f / 4294967296.0f)
@@ -122,10 +142,14 @@ HOT QueryBox query_box(const GridParams gp, float3 x, float R, int L, __constant
  * found. */
 HOT uint gather_sphere(const GridParams gp, __global const uint* cell_start, __global const float4* spos_w,
                        __global const float4* sdir_b, __global const float* sextra,
-                       __global const float4* hg, __constant const float2* layer_z, float3 x, float R,
-                       int L, float3 w_eye, long* acc) {
+                       __global const float4* hgtab, __global const float4* optics,
+                       __constant const float2* layer_z, float3 x, float R, int L, float3 w_eye, long* acc) {
     const float R2 = R * R;
     uint M = 0;
+    __global const float4* hg = hgtab + L * NB;
+#if NINC > 0
+    const int near = inclusions_near(optics, x.x - R, x.x + R, x.y - R, x.y + R, x.z - R, x.z + R);
+#endif
     const QueryBox qb = query_box(gp, x, R, L, layer_z);
     for (int iz = qb.z0; iz <= qb.z1; ++iz)
         for (int iy = qb.c0.y; iy <= qb.c1.y; ++iy) {
@@ -137,6 +161,10 @@ HOT uint gather_sphere(const GridParams gp, __global const uint* cell_start, __g
                     const int bl = (int)d.w;
 #if ESTIMATOR == 2
                     if ((bl >> 8) != L) continue;
+#endif
+#if NINC > 0
+                    /* an inclusion's photon: its phase function (else the point's layer's) */
+                    hg = hgtab + photon_material(optics, p.xyz, L, near) * NB;
 #endif
                     const float cw = dot(d.xyz, w_eye);
                     for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
@@ -186,8 +214,8 @@ __kernel void gather(const GridParams gp,
                      __global const float4* spos_w,
                      __global const float4* sdir_b,
                      __global const float* sextra,          /* HERO_C-1 band weights per photon */
-                     __global const float4* hgtab,          /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
-                     __global const float4* optics,         /* [NL*NB]: mua, mus, g, mut (um^-1) */
+                     __global const float4* hgtab,          /* [NMAT*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
+                     __global const float4* optics,         /* [NMAT*NB]: mua, mus, g, mut (um^-1), inclusions */
                      __global const uint* ray_start,        /* [nrays+1] first point of each ray */
                      __global const float4* pt_pos,         /* xyz, tw */
                      __global const float4* pt_dir,         /* toward the eye, layer */
@@ -225,7 +253,7 @@ __kernel void gather(const GridParams gp,
             for (int b = 0; b < NB; ++b) acc[b] = 0;
             uint M = 0;
             if (R > 0.0f)
-                M = gather_sphere(gp, cell_start, spos_w, sdir_b, sextra, hgtab + L * NB, layer_z, x, R,
+                M = gather_sphere(gp, cell_start, spos_w, sdir_b, sextra, hgtab, optics, layer_z, x, R,
                                   L, pd.xyz, acc);
             /* path weight integral of T over the point's interval, per band */
             const float V = estimator_volume(x.z, R, pt_slab[i]);
@@ -464,13 +492,13 @@ HOT void class_od_advance(ClassOd* od, __global const float4* optics, __global c
  * piece, in fixed point. */
 #ifdef BAND16
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __global const float16* hgc,
-                         __global const float16* sw16, uint j, int bl, int g, float cw, float wax,
+                         __global const float16* sw16, uint j, int mat, int g, float cw, float wax,
                          const BeamHit* h) {
     const float wl = h->wl, wwin = h->wwin, ts = h->ts;
     /* the photon's weights in class order (sw16: lane k holds member c = k - kh (mod 9), c = 0
      * the hero's p.w; lanes 9-15: 0) */
     const float16 w = sw16[j] * wax * wl * wwin;
-    __global const float16* hh = hgc + ((bl >> 8) * GCLASS + g) * 3;
+    __global const float16* hh = hgc + (mat * GCLASS + g) * 3;      /* the photon's material */
     const float16 q = hh[0] + hh[1] * cw;
 #ifdef EXACT_RSQRT                      /* tests on implementations whose native_rsqrt differs
                                          * between vector widths (Intel's: up to 0.9 % per pixel) */
@@ -504,10 +532,10 @@ HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4*
 
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
                          __global const float4* hgtab, __global const float* sextra, uint j,
-                         float4 p, int bl, int g, float cw, float wax, const BeamHit* h) {
+                         float4 p, int bl, int mat, int g, float cw, float wax, const BeamHit* h) {
     const float wl = h->wl, wwin = h->wwin, ts = h->ts;
     const float wk = p.w * wax * wl * wwin;
-    __global const float4* hg = hgtab + (bl >> 8) * NB;
+    __global const float4* hg = hgtab + mat * NB;                  /* the photon's material */
 #if HERO_C == NBC                       /* the photon carries every band of the class */
     const int kh = (bl & 255) / GCLASS;         /* its hero's place */
     for (int k = 0; k < NBC; ++k) {
@@ -536,7 +564,12 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
                       float Rwin, int g, const ClassOd* od, ClassAcc* acc) {
     uint M = 0;
     const BeamBox bx = beam_box(gp, vlay, iface, pc, R);
-    __global const float4* mut_k = optics + pc->Lk * NB;
+    __global const float4* mut_k = optics + pc->Lk * NB;          /* the piece's material */
+#if NINC > 0
+    const float3 pe = pc->s0 + pc->len * pc->d;
+    const int near = inclusions_near(optics, bx.xa - bx.Rp, bx.xb + bx.Rp, bx.ya - bx.Rp, bx.yb + bx.Rp,
+                                     fmin(pc->s0.z, pe.z) - bx.Rp, fmax(pc->s0.z, pe.z) + bx.Rp);
+#endif
 #ifdef BAND16
     const float16 mut16 = mutc[pc->Lk * GCLASS + g];
 #endif
@@ -562,10 +595,15 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
                 BeamHit h;
                 if (!beam_pair(P, pc, R, R2, Rwin, p, bl, tb_p, &h)) continue;
                 const float cw = dot(dd.xyz, pc->d);                /* w_eye = -d */
-#ifdef BAND16
-                beam_pair_bands(acc, od, mut16, hgc, sw16, j, bl, g, cw, pc->wax, &h);
+#if NINC > 0
+                const int mat = photon_material(optics, p.xyz, bl >> 8, near);
 #else
-                beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, g, cw, pc->wax, &h);
+                const int mat = bl >> 8;
+#endif
+#ifdef BAND16
+                beam_pair_bands(acc, od, mut16, hgc, sw16, j, mat, g, cw, pc->wax, &h);
+#else
+                beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, mat, g, cw, pc->wax, &h);
 #endif
                 ++M;
             }
@@ -628,10 +666,10 @@ __kernel void gather_beam(const GridParams gp,
                           __global const float2* sslab,     /* photon_slabs: its layer at its column */
                           __constant const float4* vlay,    /* [NL+1] depth keys (photon_keys) */
                           __global const float* sextra,     /* HERO_C-1 band weights per photon */
-                          __global const float4* hgtab,     /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
-                          __global const float4* optics,    /* [NL*NB]: ..., mut (um^-1) in .w */
-                          __global const float16* hgc,      /* [NL][GCLASS][3]: hgtab's x, y, z by class */
-                          __global const float16* mutc,     /* [NL][GCLASS]: mu_t by class (band g + GCLASS k) */
+                          __global const float4* hgtab,     /* [NMAT*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
+                          __global const float4* optics,    /* [NMAT*NB]: ..., mut (um^-1) in .w; inclusions */
+                          __global const float16* hgc,      /* [NMAT][GCLASS][3]: hgtab's x, y, z by class */
+                          __global const float16* mutc,     /* [NMAT][GCLASS]: mu_t by class (band g + GCLASS k) */
                           __global const float16* sw16,     /* photon_weights16: band weights in class order */
                           __global const float4* pslab,     /* piece_slabs */
                           __global const uint* ray_start,
