@@ -46,16 +46,36 @@
 #error "gather.cl: inclusions on flat layers only"
 #endif
 
-/* Inclusions (inclusion.h).  A photon stored inside one scattered there: its phase function is
- * the inclusion's, so a gather finds a photon's material from its position (the photon record
- * keeps its layer only), testing only the inclusions whose box meets the query's (near: none
- * for a query away from every inclusion, which then pays one box test).  Its weight already
- * carries the inclusion's albedo (spectral.h), and an eye-ray piece inside an inclusion has the
- * inclusion's material (eye.cl), so its transmittance runs at the inclusion's extinction. */
+/* Inclusions (inclusion.h).  A photon stored in material m' estimates there the in-scattered
+ * radiance mu_s(m') int f_m'(w . w') L(w') dw' (its weight carries m''s albedo, spectral.h; the
+ * photons' density, m''s mu_t).  An eye-ray piece inside an inclusion has the inclusion's
+ * material (eye.cl), so its transmittance runs at the inclusion's extinction; what it needs is
+ * the in-scattered radiance of its own material m.  Across an inclusion's wall (no change of
+ * index) the radiance L is continuous and mu_s and g jump, so a photon of m' != m within the
+ * disc (or sphere) of a query of material m counts with m's phase function and its weight times
+ * mu_s(m) / mu_s(m') per band: the estimate then blurs L, continuous, and not mu_s, which jumps
+ * (4x between the dermis and whole blood): without this, a query inside a vessel near its wall
+ * counts the dermis's photons at the vessel's transmittance, and a vessel shows brighter than
+ * the path tracer sees it where blood is clear (red).  Pairs of two layers keep their layer's
+ * estimate, as without inclusions.  The photon record keeps its layer only, so a gather finds a
+ * photon's material from its position, testing only the inclusions whose box meets the query's
+ * (near: none for a query away from every inclusion, which then pays one box test). */
 #if NINC > 0
 HOT int photon_material(__global const float4* optics, float3 p, int L, int near) {
     const int in = near ? inclusion_mask_of(optics, p, near) : 0;
     return material_of(L, in);
+}
+
+/* whether a photon of material mp counts in a query of material m with m's estimate */
+HOT int material_swap(int m, int mp) {
+    return mp != m && (mp >= NL || m >= NL);
+}
+
+/* mu_s(m) / mu_s(mp) in band b (optics: mu_a / mu_t, ..., mu_t) */
+HOT float mus_ratio(__global const float4* optics, int m, int mp, int b) {
+    const float4 a = optics[m * NB + b], o = optics[mp * NB + b];
+    const float d = o.w * (1.0f - o.x);
+    return d > 0.0f ? a.w * (1.0f - a.x) / d : 0.0f;
 }
 #endif
 
@@ -149,6 +169,7 @@ HOT uint gather_sphere(const GridParams gp, __global const uint* cell_start, __g
     __global const float4* hg = hgtab + L * NB;
 #if NINC > 0
     const int near = inclusions_near(optics, x.x - R, x.x + R, x.y - R, x.y + R, x.z - R, x.z + R);
+    const int mx = material_of(L, near ? inclusion_mask_of(optics, x, near) : 0);   /* the point's */
 #endif
     const QueryBox qb = query_box(gp, x, R, L, layer_z);
     for (int iz = qb.z0; iz <= qb.z1; ++iz)
@@ -163,13 +184,21 @@ HOT uint gather_sphere(const GridParams gp, __global const uint* cell_start, __g
                     if ((bl >> 8) != L) continue;
 #endif
 #if NINC > 0
-                    /* an inclusion's photon: its phase function (else the point's layer's) */
-                    hg = hgtab + photon_material(optics, p.xyz, L, near) * NB;
+                    /* a photon of another material than the point's, either an inclusion: the
+                     * point's phase function, its weight times mu_s(point's) / mu_s(photon's) */
+                    const int mp = photon_material(optics, p.xyz, L, near);
+                    const int swap = material_swap(mx, mp);
+                    hg = hgtab + (swap || mx >= NL ? mx : L) * NB;
 #endif
                     const float cw = dot(d.xyz, w_eye);
                     for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
                         const int b = sw_band(bl & 255, c);
+#if NINC > 0
+                        const float w = (c == 0 ? p.w : sextra[(size_t)j * (HERO_C - 1) + c - 1])
+                                        * (swap ? mus_ratio(optics, mx, mp, b) : 1.0f);
+#else
                         const float w = c == 0 ? p.w : sextra[(size_t)j * (HERO_C - 1) + c - 1];
+#endif
                         const float4 h = hg[b];
                         const float q = h.x - h.y * cw;
                         const float rq = rsqrt(q);
@@ -493,11 +522,15 @@ HOT void class_od_advance(ClassOd* od, __global const float4* optics, __global c
 #ifdef BAND16
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __global const float16* hgc,
                          __global const float16* sw16, uint j, int mat, int g, float cw, float wax,
-                         const BeamHit* h) {
+                         const BeamHit* h, float16 wsc) {
     const float wl = h->wl, wwin = h->wwin, ts = h->ts;
     /* the photon's weights in class order (sw16: lane k holds member c = k - kh (mod 9), c = 0
      * the hero's p.w; lanes 9-15: 0) */
+#if NINC > 0
+    const float16 w = sw16[j] * wsc * wax * wl * wwin;     /* wsc: mu_s(piece's) / mu_s(photon's) */
+#else
     const float16 w = sw16[j] * wax * wl * wwin;
+#endif
     __global const float16* hh = hgc + (mat * GCLASS + g) * 3;      /* the photon's material */
     const float16 q = hh[0] + hh[1] * cw;
 #ifdef EXACT_RSQRT                      /* tests on implementations whose native_rsqrt differs
@@ -517,8 +550,13 @@ HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __glob
 /* the term of band b (class member k, the photon's band c: c = 0 the hero) */
 HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
                         __global const float4* hg, __global const float* sextra, uint j, int c,
-                        int k, int b, float wk, float cw, float wax, float wl, float wwin, float ts) {
+                        int k, int b, float wk, float cw, float wax, float wl, float wwin, float ts,
+                        float wsc) {
+#if NINC > 0
+    const float w = (c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin) * wsc;
+#else
     const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin;
+#endif
     const float4 hq = hg[b];
     const float q = hq.x + hq.y * cw;
 #ifdef EXACT_RSQRT
@@ -532,7 +570,8 @@ HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4*
 
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
                          __global const float4* hgtab, __global const float* sextra, uint j,
-                         float4 p, int bl, int mat, int g, float cw, float wax, const BeamHit* h) {
+                         float4 p, int bl, int mat, int g, float cw, float wax, const BeamHit* h,
+                         __global const float4* optics, int mp) {
     const float wl = h->wl, wwin = h->wwin, ts = h->ts;
     const float wk = p.w * wax * wl * wwin;
     __global const float4* hg = hgtab + mat * NB;                  /* the photon's material */
@@ -540,12 +579,22 @@ HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, __global const float4
     const int kh = (bl & 255) / GCLASS;         /* its hero's place */
     for (int k = 0; k < NBC; ++k) {
         const int c = k >= kh ? k - kh : k - kh + NBC;
-        beam_band_term(acc, od, mut_k, hg, sextra, j, c, k, g + GCLASS * k, wk, cw, wax, wl, wwin, ts);
+#if NINC > 0
+        const float wsc = mp != mat ? mus_ratio(optics, mat, mp, g + GCLASS * k) : 1.0f;
+#else
+        const float wsc = 1.0f;
+#endif
+        beam_band_term(acc, od, mut_k, hg, sextra, j, c, k, g + GCLASS * k, wk, cw, wax, wl, wwin, ts, wsc);
     }
 #else
     for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
         const int b = sw_band(bl & 255, c);
-        beam_band_term(acc, od, mut_k, hg, sextra, j, c, b / GCLASS, b, wk, cw, wax, wl, wwin, ts);
+#if NINC > 0
+        const float wsc = mp != mat ? mus_ratio(optics, mat, mp, b) : 1.0f;
+#else
+        const float wsc = 1.0f;
+#endif
+        beam_band_term(acc, od, mut_k, hg, sextra, j, c, b / GCLASS, b, wk, cw, wax, wl, wwin, ts, wsc);
     }
 #endif
 }
@@ -596,14 +645,26 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
                 if (!beam_pair(P, pc, R, R2, Rwin, p, bl, tb_p, &h)) continue;
                 const float cw = dot(dd.xyz, pc->d);                /* w_eye = -d */
 #if NINC > 0
-                const int mat = photon_material(optics, p.xyz, bl >> 8, near);
+                /* the phase function and mu_s of the piece's material where the photon's is
+                 * another and either is an inclusion's (see photon_material) */
+                const int mp = photon_material(optics, p.xyz, bl >> 8, near);
+                const int mat = material_swap(pc->Lk, mp) ? pc->Lk : mp;
 #else
-                const int mat = bl >> 8;
+                const int mp = bl >> 8, mat = mp;
 #endif
 #ifdef BAND16
-                beam_pair_bands(acc, od, mut16, hgc, sw16, j, mat, g, cw, pc->wax, &h);
+                float16 wsc = (float16)(1.0f);
+#if NINC > 0
+                if (mat != mp) {
+                    float sc[16];
+                    for (int k = 0; k < 16; ++k)
+                        sc[k] = k < NBC ? mus_ratio(optics, mat, mp, g + GCLASS * k) : 0.0f;
+                    wsc = vload16(0, sc);
+                }
+#endif
+                beam_pair_bands(acc, od, mut16, hgc, sw16, j, mat, g, cw, pc->wax, &h, wsc);
 #else
-                beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, mat, g, cw, pc->wax, &h);
+                beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, mat, g, cw, pc->wax, &h, optics, mp);
 #endif
                 ++M;
             }
