@@ -25,18 +25,24 @@ from vessel import vessel_figures, vessel_scene          # noqa: E402
 from clppm.run import entry                               # noqa: E402
 
 # PPM: 4 passes of 400,000 stored photons, K = 200 in the first search (a radius small enough
-# that the vessel, 0.4 mm across, is not blurred away: with the default's K = 2000 the contrast
-# reads 0.78 in the green where the path tracer's is 0.44).  PT: 4 x 128 paths per pixel.
+# that the vessel, 0.4 mm across, is not blurred away: with the default's K = 2000 the green's
+# contrast reads 0.78 where the path tracer's is 0.44).  PT: 4 x 256 paths per pixel.
 RES, PASSES, PHOTONS, K = (17, 13), 4, 400_000, 200
-PT_PASSES, PT_SAMPLES = 4, 128
-# Bounds, from 2 PPM seeds and 2 PT seeds on PoCL (bench/studies/vessel.py prints them):
-# image mean PPM / PT - 1 within -3.4 % .. +2.5 % per group (the default mode's bias on the
-# flat forearm and both noises); contrast PPM / PT - 1 within -2 % .. +17 % (PT's noise on the
-# 13 pixels over the vessel, ~5 % per group, and PPM's blur by its radius, which weakens the
-# contrast: +8 % on average).  Without the gathers' material handling (the photons of the
-# dermis counted at the vessel's transmittance) the red groups' contrast reads 1.2 against 0.6.
-MEAN_BOUND = 0.06
-CONTRAST_LO, CONTRAST_HI = -0.12, 0.35
+PT_PASSES, PT_SAMPLES = 4, 256
+# Bounds, from 3 PPM seeds and 3 PT seeds (PT seeds 101-103, PPM 1-3; PoCL):
+#   image mean, PPM / PT - 1 per group: within -1.2 % .. +3.1 % (the default mode's bias on the
+#     flat forearm and both noises; allowed: 5 %);
+#   the vessel's contrast (the column over it / the columns away) per group: PT's own scatter
+#     over its seeds is up to +-14 % in the green (13 pixels over the vessel), and PPM's radius
+#     blurs the vessel, weakening its contrast by ~+10 % in the green (PPM 0.47-0.52 against PT
+#     0.39-0.52 at 530-575 nm); allowed: -12 % .. +30 %;
+#   the red pooled (630-780 nm, where blood is clear and scatters 4x less than the dermis): PT
+#     0.684-0.699, PPM 0.678-0.696; allowed: 8 %.  With the gathers counting the dermis's
+#     photons inside the vessel as the dermis's (no mu_s of the query's material) PPM reads
+#     ~0.80 (+16 %), with the default's K = 2000 1.2.
+MEAN_BOUND = 0.05
+CONTRAST_LO, CONTRAST_HI = -0.12, 0.30
+RED_BOUND = 0.08
 
 
 def _material(vol, p: np.ndarray) -> np.ndarray:
@@ -91,12 +97,12 @@ def vessel_renders(dev):
 def test_ppm_matches_pt_per_band_group_with_a_vessel(vessel_renders):
     ppm, pt = vessel_renders
     for grp in pt:
-        if grp == "380-425":            # little light and the noisiest contrast: means only
-            assert abs(ppm[grp]["mean"] / pt[grp]["mean"] - 1) <= MEAN_BOUND, (grp, ppm[grp], pt[grp])
-            continue
         assert abs(ppm[grp]["mean"] / pt[grp]["mean"] - 1) <= MEAN_BOUND, (grp, ppm[grp], pt[grp])
         r = ppm[grp]["contrast"] / pt[grp]["contrast"] - 1
-        assert CONTRAST_LO <= r <= CONTRAST_HI, (grp, ppm[grp]["contrast"], pt[grp]["contrast"])
+        if grp == "red":
+            assert abs(r) <= RED_BOUND, (ppm[grp]["contrast"], pt[grp]["contrast"])
+        elif grp != "380-425":              # little light, the noisiest contrast: its mean only
+            assert CONTRAST_LO <= r <= CONTRAST_HI, (grp, ppm[grp]["contrast"], pt[grp]["contrast"])
 
 
 def test_vessel_darker_and_redder_in_both(vessel_renders):
@@ -104,7 +110,7 @@ def test_vessel_darker_and_redder_in_both(vessel_renders):
     over the vessel the skin is darker in every group from 430 nm on, most in the green, so
     the green's contrast is below the red's (redder)."""
     for fig in vessel_renders:
-        c = {g: v["contrast"] for g, v in fig.items()}
+        c = {g: v["contrast"] for g, v in fig.items() if g != "red"}
         assert all(c[g] < 0.9 for g in c if g != "380-425"), c
         assert c["530-575"] < 0.65 and c["580-625"] < 0.65, c
         assert c["530-575"] < c["630-675"] < 1.0 and c["580-625"] < c["680-725"], c

@@ -72,6 +72,9 @@ def vessel_figures(cfg: dict, spectral: np.ndarray) -> dict:
     for lo, hi, idx in band_groups(wl):
         g = np.asarray(spectral, float)[..., idx].sum(-1)
         out[f"{lo:.0f}-{hi:.0f}"] = {"mean": float(g.mean()), "contrast": float(g[:, over].mean() / g[:, away].mean())}
+    # the red, pooled (630-780 nm): where blood is clear and scatters 4x less than the dermis
+    r = np.asarray(spectral, float)[..., wl >= 630.0].sum(-1)
+    out["red"] = {"mean": float(r.mean()), "contrast": float(r[:, over].mean() / r[:, away].mean())}
     return out
 
 
