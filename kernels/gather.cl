@@ -60,6 +60,13 @@
  * estimate, as without inclusions.  The photon record keeps its layer only, so a gather finds a
  * photon's material from its position, testing only the inclusions whose box meets the query's
  * (near: none for a query away from every inclusion, which then pays one box test). */
+/* the arguments only builds with inclusions pass (without, the kernels are the ones before them) */
+#if NINC > 0
+#define INC_ARGS(...) , __VA_ARGS__
+#else
+#define INC_ARGS(...)
+#endif
+
 #if NINC > 0
 HOT int photon_material(__global const float4* optics, float3 p, int L, int near) {
     const int in = near ? inclusion_mask_of(optics, p, near) : 0;
@@ -162,11 +169,11 @@ HOT QueryBox query_box(const GridParams gp, float3 x, float R, int L, __constant
  * found. */
 HOT uint gather_sphere(const GridParams gp, __global const uint* cell_start, __global const float4* spos_w,
                        __global const float4* sdir_b, __global const float* sextra,
-                       __global const float4* hgtab, __global const float4* optics,
-                       __constant const float2* layer_z, float3 x, float R, int L, float3 w_eye, long* acc) {
+                       __global const float4* hg, __constant const float2* layer_z, float3 x, float R,
+                       int L, float3 w_eye, long* acc INC_ARGS(__global const float4* hgtab,
+                                                               __global const float4* optics)) {
     const float R2 = R * R;
     uint M = 0;
-    __global const float4* hg = hgtab + L * NB;
 #if NINC > 0
     const int near = inclusions_near(optics, x.x - R, x.x + R, x.y - R, x.y + R, x.z - R, x.z + R);
     const int mx = material_of(L, near ? inclusion_mask_of(optics, x, near) : 0);   /* the point's */
@@ -282,8 +289,8 @@ __kernel void gather(const GridParams gp,
             for (int b = 0; b < NB; ++b) acc[b] = 0;
             uint M = 0;
             if (R > 0.0f)
-                M = gather_sphere(gp, cell_start, spos_w, sdir_b, sextra, hgtab, optics, layer_z, x, R,
-                                  L, pd.xyz, acc);
+                M = gather_sphere(gp, cell_start, spos_w, sdir_b, sextra, hgtab + L * NB, layer_z, x, R,
+                                  L, pd.xyz, acc INC_ARGS(hgtab, optics));
             /* path weight integral of T over the point's interval, per band */
             const float V = estimator_volume(x.z, R, pt_slab[i]);
             const float f = (R > 0.0f) ? pp.w / V * INV_FIX : 0.0f;
@@ -521,8 +528,8 @@ HOT void class_od_advance(ClassOd* od, __global const float4* optics, __global c
  * piece, in fixed point. */
 #ifdef BAND16
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __global const float16* hgc,
-                         __global const float16* sw16, uint j, int mat, int g, float cw, float wax,
-                         const BeamHit* h, float16 wsc) {
+                         __global const float16* sw16, uint j, int bl, int g, float cw, float wax,
+                         const BeamHit* h INC_ARGS(float16 wsc)) {
     const float wl = h->wl, wwin = h->wwin, ts = h->ts;
     /* the photon's weights in class order (sw16: lane k holds member c = k - kh (mod 9), c = 0
      * the hero's p.w; lanes 9-15: 0) */
@@ -531,7 +538,7 @@ HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __glob
 #else
     const float16 w = sw16[j] * wax * wl * wwin;
 #endif
-    __global const float16* hh = hgc + (mat * GCLASS + g) * 3;      /* the photon's material */
+    __global const float16* hh = hgc + ((bl >> 8) * GCLASS + g) * 3;    /* its material (gather_piece) */
     const float16 q = hh[0] + hh[1] * cw;
 #ifdef EXACT_RSQRT                      /* tests on implementations whose native_rsqrt differs
                                          * between vector widths (Intel's: up to 0.9 % per pixel) */
@@ -550,8 +557,8 @@ HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __glob
 /* the term of band b (class member k, the photon's band c: c = 0 the hero) */
 HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
                         __global const float4* hg, __global const float* sextra, uint j, int c,
-                        int k, int b, float wk, float cw, float wax, float wl, float wwin, float ts,
-                        float wsc) {
+                        int k, int b, float wk, float cw, float wax, float wl, float wwin, float ts
+                        INC_ARGS(float wsc)) {
 #if NINC > 0
     const float w = (c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin) * wsc;
 #else
@@ -570,31 +577,27 @@ HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4*
 
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
                          __global const float4* hgtab, __global const float* sextra, uint j,
-                         float4 p, int bl, int mat, int g, float cw, float wax, const BeamHit* h,
-                         __global const float4* optics, int mp) {
+                         float4 p, int bl, int g, float cw, float wax, const BeamHit* h
+                         INC_ARGS(__global const float4* optics, int mp)) {
     const float wl = h->wl, wwin = h->wwin, ts = h->ts;
     const float wk = p.w * wax * wl * wwin;
-    __global const float4* hg = hgtab + mat * NB;                  /* the photon's material */
+    __global const float4* hg = hgtab + (bl >> 8) * NB;           /* its material (gather_piece) */
 #if HERO_C == NBC                       /* the photon carries every band of the class */
     const int kh = (bl & 255) / GCLASS;         /* its hero's place */
     for (int k = 0; k < NBC; ++k) {
         const int c = k >= kh ? k - kh : k - kh + NBC;
 #if NINC > 0
-        const float wsc = mp != mat ? mus_ratio(optics, mat, mp, g + GCLASS * k) : 1.0f;
-#else
-        const float wsc = 1.0f;
+        const float wsc = mp != (bl >> 8) ? mus_ratio(optics, bl >> 8, mp, g + GCLASS * k) : 1.0f;
 #endif
-        beam_band_term(acc, od, mut_k, hg, sextra, j, c, k, g + GCLASS * k, wk, cw, wax, wl, wwin, ts, wsc);
+        beam_band_term(acc, od, mut_k, hg, sextra, j, c, k, g + GCLASS * k, wk, cw, wax, wl, wwin, ts INC_ARGS(wsc));
     }
 #else
     for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
         const int b = sw_band(bl & 255, c);
 #if NINC > 0
-        const float wsc = mp != mat ? mus_ratio(optics, mat, mp, b) : 1.0f;
-#else
-        const float wsc = 1.0f;
+        const float wsc = mp != (bl >> 8) ? mus_ratio(optics, bl >> 8, mp, b) : 1.0f;
 #endif
-        beam_band_term(acc, od, mut_k, hg, sextra, j, c, b / GCLASS, b, wk, cw, wax, wl, wwin, ts, wsc);
+        beam_band_term(acc, od, mut_k, hg, sextra, j, c, b / GCLASS, b, wk, cw, wax, wl, wwin, ts INC_ARGS(wsc));
     }
 #endif
 }
@@ -646,25 +649,29 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
                 const float cw = dot(dd.xyz, pc->d);                /* w_eye = -d */
 #if NINC > 0
                 /* the phase function and mu_s of the piece's material where the photon's is
-                 * another and either is an inclusion's (see photon_material) */
+                 * another and either is an inclusion's (see photon_material); the material
+                 * rides in bl's layer bits, its band bits unread here */
                 const int mp = photon_material(optics, p.xyz, bl >> 8, near);
                 const int mat = material_swap(pc->Lk, mp) ? pc->Lk : mp;
-#else
-                const int mp = bl >> 8, mat = mp;
-#endif
 #ifdef BAND16
                 float16 wsc = (float16)(1.0f);
-#if NINC > 0
                 if (mat != mp) {
                     float sc[16];
                     for (int k = 0; k < 16; ++k)
                         sc[k] = k < NBC ? mus_ratio(optics, mat, mp, g + GCLASS * k) : 0.0f;
                     wsc = vload16(0, sc);
                 }
-#endif
-                beam_pair_bands(acc, od, mut16, hgc, sw16, j, mat, g, cw, pc->wax, &h, wsc);
+                beam_pair_bands(acc, od, mut16, hgc, sw16, j, (mat << 8) | (bl & 255), g, cw, pc->wax, &h, wsc);
 #else
-                beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, mat, g, cw, pc->wax, &h, optics, mp);
+                beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, (mat << 8) | (bl & 255), g, cw, pc->wax, &h,
+                                optics, mp);
+#endif
+#else
+#ifdef BAND16
+                beam_pair_bands(acc, od, mut16, hgc, sw16, j, bl, g, cw, pc->wax, &h);
+#else
+                beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, g, cw, pc->wax, &h);
+#endif
 #endif
                 ++M;
             }

@@ -53,11 +53,13 @@ def _material(vol, p: np.ndarray) -> np.ndarray:
     return m
 
 
-def test_eye_pieces_lie_in_the_material_they_name(dev):
+@pytest.mark.parametrize("method", ["a", "e"])
+def test_eye_pieces_lie_in_the_material_they_name(dev, method):
+    """Equal spacing (a) and Poisson points at the material's rate (e, the default)."""
     from clppm.integrators import ppm
     from clppm.request import RenderRequest
     cfg = vessel_scene(RES, 1, 20_000, seed=1)
-    sc = ppm.Pipeline.build(RenderRequest.of(cfg, dev=dev), dev)
+    sc = ppm.Pipeline.build(RenderRequest.of(cfg, method=method, dev=dev), dev)
     e, vol = sc.eye, sc.vol
     assert vol.ninc == 1
     g = e.geo.get()[:2 * e.npieces]

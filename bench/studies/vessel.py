@@ -1,20 +1,21 @@
 """PPM against the path tracer on the flat forearm with a vessel, per 50-nm band group.
 
 configs/forearm_vein.toml's layers with one vessel (no freckles), shallower and thinner than the
-shipped vein so that the image shows it in the green: radius 150 um, centre 250 um deep in the
-subpapillary dermis, along y under the middle of a 4 mm field seen from above (0.17 mm per pixel
-at 24 rows).  Both integrators render the same scene; per 50-nm band group this prints
+shipped vein so that the image shows it in the green: radius 200 um, centre 300 um deep in the
+dermis (100-500 um), along y under the middle of a 4 mm field seen from above (0.31 mm per pixel
+at 13 rows; an odd width puts a column over the vessel's axis).  Both integrators render the same
+scene; per 50-nm band group (and the red, 630-780 nm, pooled) this prints
 
   * the whole image's mean radiance, PPM / PT - 1 (PPM's bias on this stack plus noise), and
-  * the contrast of the vessel: the mean over the columns above the vessel (|x - 5 mm| < 0.2 mm)
+  * the contrast of the vessel: the mean over the columns above the vessel (|x - 5 mm| < 0.25 mm)
     over the mean of the columns away from it (|x - 5 mm| > 1.2 mm), for PPM and for PT, and
     their ratio (PPM's bias largely cancels in it: what is left is how PPM sees the vessel).
 
 With several PPM seeds the spread of these figures over the seeds is printed too.
 
-    python bench/studies/vessel.py --resolution 48x36 --passes 8 --pt-passes 16 --seeds 3
+    python bench/studies/vessel.py --resolution 17x13 --passes 8 --pt-passes 16 --pt-samples 256 --seeds 3
 
-tests/test_inclusions.py runs the small version of this (vessel_scene, vessel_figures).
+tests/test_inclusions_ppm.py runs a small version of this (vessel_scene, vessel_figures).
 """
 from __future__ import annotations
 
@@ -40,7 +41,7 @@ OVER_MM, AWAY_MM = 0.25, 1.2
 
 
 def vessel_scene(res=(32, 24), passes=4, photons=200_000, pt_samples=16, seed=1, vessel=True,
-                 initial_photons=None) -> dict:
+                 initial_photons=None, estimator=None) -> dict:
     """configs/forearm_vein.toml, its vein replaced by VESSEL and the freckles removed, seen from
     30 mm above its centre over FIELD_MM; specular highlights off (both integrators alike)."""
     raw = C.load("forearm_vein")
@@ -54,6 +55,8 @@ def vessel_scene(res=(32, 24), passes=4, photons=200_000, pt_samples=16, seed=1,
                      "pt_samples_per_pass": pt_samples}
     if initial_photons:
         raw["render"]["initial_photons"] = initial_photons
+    if estimator:
+        raw["render"]["estimator"] = estimator
     return C.validate(raw, "vessel")
 
 
@@ -86,6 +89,8 @@ def main(argv=None) -> int:
     ap.add_argument("--pt-passes", type=int, default=16)
     ap.add_argument("--pt-samples", type=int, default=16)
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--initial-photons", type=int, default=200, help="K of the first search (default 200)")
+    ap.add_argument("--estimator", default=None, help="render.estimator (default: the config's, beam)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", default=os.path.join(ROOT, "out", "bench", "vessel.json"))
     a = ap.parse_args(argv)
@@ -100,7 +105,8 @@ def main(argv=None) -> int:
     ppm, t_ppm = [], []
     for s in range(1, a.seeds + 1):
         t0 = time.perf_counter()
-        c = vessel_scene(res, a.passes, a.photons, a.pt_samples, seed=s)
+        c = vessel_scene(res, a.passes, a.photons, a.pt_samples, seed=s, initial_photons=a.initial_photons,
+                         estimator=a.estimator)
         ppm.append(vessel_figures(c, render(c, dev=dev).spectral))
         t_ppm.append(time.perf_counter() - t0)
     print(f"{res[0]}x{res[1]}, PPM {a.passes} passes x {a.photons} photons, {a.seeds} seeds "
