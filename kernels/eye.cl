@@ -29,8 +29,13 @@
  * half-gaps of a cell are independent Exp(2r) lengths, so the cell is symmetric about its point
  * in distribution and E|cell| = 1/r: the estimate is unbiased to first order in S' too (the
  * estimator sum_i T S / r of Campbell's theorem is unbiased but far noisier, and gives the exit
- * fallback point no weight).  The cell is stored as pieces (length, layer) so the gather kernel
+ * fallback point no weight).  The cell is stored as pieces (length, material) so the gather kernel
  * evaluates the integral per band exactly (no 81 floats per point).
+ *
+ * Inclusions (inclusion.h, NINC > 0; flat layers only): a region also ends at an inclusion's
+ * surface, so a piece lies in one material, the layer's or the inclusion's it is in, and records
+ * that material (its extinction: the transmittance, the cut, scheme 1's rate); a sample point
+ * records its layer (the layer estimator's photons and volume).
  */
 #include "common.h"
 #include "camera.h"
