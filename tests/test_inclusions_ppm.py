@@ -116,3 +116,20 @@ def test_vessel_darker_and_redder_in_both(vessel_renders):
         assert all(c[g] < 0.9 for g in c if g != "380-425"), c
         assert c["530-575"] < 0.65 and c["580-625"] < 0.65, c
         assert c["530-575"] < c["630-675"] < 1.0 and c["580-625"] < c["680-725"], c
+
+
+def test_lane_by_lane_band_math_sees_the_vessel_alike(dev, monkeypatch):
+    """The beam gather's lane-by-lane build (NO_VEC16: where 16-lane vectors cannot be passed)
+    takes the inclusions' phase function and mu_s ratio band by band: the same image as the
+    16-lane build, to float rounding (the mu_s ratios are computed in each build's own order)."""
+    from clppm.compute import device
+    from clppm.integrators import beam, ppm
+    if not device.wide_vectors(dev.device):
+        pytest.skip(f"{dev.name}: no 16-lane vectors between functions (wide_vectors)")
+    cfg = vessel_scene(RES, 1, 100_000, seed=3, initial_photons=K)
+    a = entry.render(cfg, dev=dev).spectral
+    for mod in (ppm, beam):
+        monkeypatch.setattr(mod, "wide_vectors", lambda d: False)
+    b = entry.render(cfg, dev=dev).spectral
+    assert a.sum() > 0
+    np.testing.assert_allclose(b, a, rtol=2e-3, atol=1e-6 * float(a.max()))
