@@ -120,7 +120,7 @@ def _candidates(sc, cal, st, info, ppm, photonpass, flat: bool) -> int | None:
         est.kernels = dataclasses.replace(est.kernels, gather_beam=Kernel(prg, "gather_beam"))
         est.hz = est.hz if flat else None
         try:
-            sc.run_pass(cal, st, 0, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
+            sc.run_pass(cal, st, 0, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nmat))
         finally:
             est.kernels, est.hz = saved
         return int(acc.pairs.get().astype(np.int64).sum())
@@ -132,7 +132,7 @@ def _candidates(sc, cal, st, info, ppm, photonpass, flat: bool) -> int | None:
     if not flat:
         inner.hz = None
     try:
-        sc.run_pass(cal, st, 0, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
+        sc.run_pass(cal, st, 0, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nmat))
     finally:
         inner.kernels["gather_beam"], inner.hz = saved_k, saved_hz
     return int(acc.pairs.get().astype(np.int64).sum())
@@ -177,7 +177,7 @@ def worker(a) -> dict:
     setup_s = time.perf_counter() - t0
     st = sc.point_state(cal)
     acc = ppm.Accumulators.zeros(sc)
-    tal = photonpass.Tallies(sc.vol.nb, sc.vol.nl)
+    tal = photonpass.Tallies(sc.vol.nb, sc.vol.nmat)
     info = sc.run_pass(cal, st, 0, acc, tal)
     photon_s = sc.timing["photon"]
     first = acc.host()

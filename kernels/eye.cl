@@ -29,11 +29,21 @@
  * half-gaps of a cell are independent Exp(2r) lengths, so the cell is symmetric about its point
  * in distribution and E|cell| = 1/r: the estimate is unbiased to first order in S' too (the
  * estimator sum_i T S / r of Campbell's theorem is unbiased but far noisier, and gives the exit
- * fallback point no weight).  The cell is stored as pieces (length, layer) so the gather kernel
+ * fallback point no weight).  The cell is stored as pieces (length, material) so the gather kernel
  * evaluates the integral per band exactly (no 81 floats per point).
+ *
+ * Inclusions (inclusion.h, NINC > 0; flat layers only): a region also ends at an inclusion's
+ * surface, so a piece lies in one material, the layer's or the inclusion's it is in, and records
+ * that material (its extinction: the transmittance, the cut, scheme 1's rate); a sample point
+ * records its layer (the layer estimator's photons and volume).
  */
 #include "common.h"
 #include "camera.h"
+#include "inclusion.h"
+#if NINC > 0 && !defined(FLAT)
+/* a piece records its material (gather.cl), which a relief's layer-conforming depth reads as its layer */
+#error "eye.cl: inclusions on flat layers only"
+#endif
 #ifndef FLAT
 #include "surface.h"
 #endif
@@ -189,6 +199,9 @@ HOT void eye_ray(Track* t, Rng* rng, __constant const EyeParams* E, uint r) {
     t->pos = camera_pos(&E->cam).xyz;
     t->dir = camera_dir(&E->cam, (float)px + jx, (float)py + jy).xyz;
     t->L = -1; t->ix = 0; t->iy = 0;
+#if NINC > 0
+    t->inside = 0;
+#endif
 }
 
 HOT void emit_init(Emit* e, uint pt_base, uint pc_base) {
@@ -258,11 +271,13 @@ HOT float threshold_cut(const float* od, int L, __constant const EyeParams* E, _
     return never ? BIG : smax;
 }
 
-/* Sample points along the eye ray's path seg through a region of layer L (from t->pos, at path
- * length ell from the entry): at the equal spacing's lengths (scheme 0, *next_eq the next one)
- * or as a Poisson process of the layer's rate (scheme 1); the path between them pending as
- * pieces.  twp: the points' radiance weight.  Returns the points made. */
-HOT int sample_points(Emit* e, const Track* t, int L, float seg, float ell, float twp, float* next_eq,
+/* Sample points along the eye ray's path seg through a region of layer L and material m (L
+ * itself, or the inclusion the ray is in: inclusion.h), from t->pos at path length ell from the
+ * entry: at the equal spacing's lengths (scheme 0, *next_eq the next one) or as a Poisson
+ * process of the material's rate (scheme 1); the path between them pending as pieces of
+ * material m (the gathers read their extinction by it).  twp: the points' radiance weight.
+ * Returns the points made. */
+HOT int sample_points(Emit* e, const Track* t, int L, int m, float seg, float ell, float twp, float* next_eq,
                       Rng* rng, __constant const EyeParams* E, __constant const float* rate,
                       __constant const Params* P, __constant const float4* iface,
                       __global const float* heights, __global float4* pt_pos, __global float4* pt_dir,
@@ -274,25 +289,25 @@ HOT int sample_points(Emit* e, const Track* t, int L, float seg, float ell, floa
     if (E->scheme == 0) {
         while (*next_eq <= ell + seg) {
             float xc = *next_eq - ell;
-            pend_add(e, L, xc - x, t->pos + x * t->dir, t->dir); x = xc;
+            pend_add(e, m, xc - x, t->pos + x * t->dir, t->dir); x = xc;
             n += place(e, t->pos + xc * t->dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab,
                        point_slab(P, iface, heights, t->pos + xc * t->dir, L, write), write);
             *next_eq += E->spacing;
         }
     } else {
-        float rt = rate[L];
+        float rt = rate[m];
         if (rt > 0.0f) {
             float xc = x;
             while (1) {
                 xc += neg_log_u01(rng_u01(rng)) / rt;
                 if (xc > seg) break;
-                pend_add(e, L, xc - x, t->pos + x * t->dir, t->dir); x = xc;
+                pend_add(e, m, xc - x, t->pos + x * t->dir, t->dir); x = xc;
                 n += place(e, t->pos + xc * t->dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab,
                            point_slab(P, iface, heights, t->pos + xc * t->dir, L, write), write);
             }
         }
     }
-    pend_add(e, L, seg - x, t->pos + x * t->dir, t->dir);
+    pend_add(e, m, seg - x, t->pos + x * t->dir, t->dir);
     return n;
 }
 
@@ -407,7 +422,7 @@ HOT void refract_into(Track* t, const Face* fc, int L2, float* tw, float* nfac, 
 
 __kernel void eye_pass(VOLUME_ARGS,
                        __constant const EyeParams* E,
-                       __constant const float* rate,            /* per layer, um^-1 */
+                       __constant const float* rate,            /* per material, um^-1 */
                        int write,                               /* EYE_COUNT, EYE_STORE, EYE_STORE_GEOMETRY */
                        __global uint* n_points, __global uint* n_pieces,
                        __global const uint* pt_start, __global const uint* pc_start,
@@ -434,6 +449,9 @@ __kernel void eye_pass(VOLUME_ARGS,
     }
     /* ---- surface: specular term and refraction, weighted by the Fresnel transmittance */
     float tw = enter_skin(&t, gn, &spec, E, P, iface, layer_n, smooth);
+#if NINC > 0
+    t.inside = inclusion_mask(optics, t.pos);   /* an inclusion may reach the surface */
+#endif
 
     float od[NB];
     for (int b = 0; b < NB; ++b) od[b] = 0.0f;
@@ -448,16 +466,44 @@ __kernel void eye_pass(VOLUME_ARGS,
         const int L = t.L;
         float db = next_boundary(&t, P, iface, heights, BIG, &ev);
         if (ev == EV_NONE) db = E->max_len;
+#if NINC > 0
+        /* the region ends at an inclusion's surface too (as the photon pass's flights): inside
+         * one the ray's pieces and points take its material, its extinction and its rate */
+        const int m = MATERIAL(&t);
+        int inc = -1;
+        const float dinc = next_inclusion(optics, t.pos, t.dir, t.inside, INCLUSIONS_OF_LAYER(optics, L), &inc);
+        const int at_inc = dinc <= db;
+        if (at_inc) { db = dinc; ev = EV_ZONE; }       /* not EV_NONE: the walk goes on past it */
+#else
+        const int m = L;
+#endif
         /* where the most transparent band falls below the threshold inside this region */
-        float s_cut = threshold_cut(od, L, E, optics);
+        float s_cut = threshold_cut(od, m, E, optics);
         if (ell + db > E->max_len) { db = fmax(0.0f, E->max_len - ell); s_cut = fmin(s_cut, db); }
         const float seg = fmin(db, fmax(s_cut, 0.0f));
-        visit_pts += sample_points(&e, &t, L, seg, ell, tw * nfac, &next_eq, &rng, E, rate, P, iface, heights,
+        visit_pts += sample_points(&e, &t, L, m, seg, ell, tw * nfac, &next_eq, &rng, E, rate, P, iface, heights,
                                    pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab, write);
-        for (int b = 0; b < NB; ++b) od[b] += optics[L * NB + b].w * seg;
+        for (int b = 0; b < NB; ++b) od[b] += optics[m * NB + b].w * seg;
         if (seg < db || ev == EV_NONE) break;           /* cut by the threshold */
         t.pos += db * t.dir;
         ell += db;
+#if NINC > 0
+        if (at_inc) {
+            /* into or out of inclusion inc: a region boundary like a layer's (S jumps with mu_s
+             * there), so an empty visit of the extinction schemes gets its exit point and the
+             * cells do not cross it; no Fresnel (an inclusion has its layer's index) */
+            if (E->scheme == 1 && visit_pts == 0) {
+                visit_pts += place(&e, t.pos - 1e-3f * t.dir, -t.dir, L, tw * nfac, E, pt_pos, pt_dir, pt_piece,
+                                   pieces, geo, pt_slab, point_slab(P, iface, heights, t.pos - 1e-3f * t.dir, L, write),
+                                   write);
+            }
+            if (visit_pts > 0 && e.have_point) { flush_pieces(&e, pieces, geo, write); e.split_ok = 0; }
+            visit_pts = 0;
+            t.inside ^= 1 << inc;
+            locate_column(&t, P);
+            continue;
+        }
+#endif
 
         /* ---- boundary events: the eye ray takes the transmitted branch only */
         const int oix = t.ix, oiy = t.iy;
@@ -465,6 +511,9 @@ __kernel void eye_pass(VOLUME_ARGS,
         int out = 0;
         const int L2 = layer_beyond(&t, ev, L, &out, P, iface, heights);
         if (out) break;
+#if NINC > 0
+        if (ev == EV_DOMAIN_X || ev == EV_DOMAIN_Y) t.inside = inclusion_mask(optics, t.pos);  /* wrapped */
+#endif
         if (L2 == L) continue;
         Face fc;
         eye_face(&fc, &t, ev, L, L2, P, iface, layer_n, smooth);
@@ -488,6 +537,9 @@ __kernel void eye_pass(VOLUME_ARGS,
         if (L2 >= NL) break;
         if (L2 < 0) {
             if (!cross_furrow(&t, &fc, &tw, &nfac, P, iface, layer_n, heights, smooth)) break;
+#if NINC > 0
+            t.inside = inclusion_mask(optics, t.pos);   /* back in somewhere else */
+#endif
             continue;
         }
         refract_into(&t, &fc, L2, &tw, &nfac, P);

@@ -38,6 +38,53 @@
 #include "spectral.h"
 #include "disc.h"
 #include "beam.h"
+#include "inclusion.h"
+
+#if NINC > 0 && !defined(FLAT)
+/* an eye-ray piece's record holds its material (the layer's or an inclusion's), which the
+ * layer-conforming depth of a relief's pieces would read as its layer */
+#error "gather.cl: inclusions on flat layers only"
+#endif
+
+/* Inclusions (inclusion.h).  A photon stored in material m' estimates there the in-scattered
+ * radiance mu_s(m') int f_m'(w . w') L(w') dw' (its weight carries m''s albedo, spectral.h; the
+ * photons' density, m''s mu_t).  An eye-ray piece inside an inclusion has the inclusion's
+ * material (eye.cl), so its transmittance runs at the inclusion's extinction; what it needs is
+ * the in-scattered radiance of its own material m.  Across an inclusion's wall (no change of
+ * index) the radiance L is continuous and mu_s and g jump, so a photon of m' != m within the
+ * disc (or sphere) of a query of material m counts with m's phase function and its weight times
+ * mu_s(m) / mu_s(m') per band: the estimate then blurs L, continuous, and not mu_s, which jumps
+ * (4x between the dermis and whole blood): without this, a query inside a vessel near its wall
+ * counts the dermis's photons at the vessel's transmittance, and a vessel shows brighter than
+ * the path tracer sees it where blood is clear (red).  Pairs of two layers keep their layer's
+ * estimate, as without inclusions.  The photon record keeps its layer only, so a gather finds a
+ * photon's material from its position, testing only the inclusions whose box meets the query's
+ * (near: none for a query away from every inclusion, which then pays one box test). */
+/* the arguments only builds with inclusions pass (without, the kernels are the ones before them) */
+#if NINC > 0
+#define INC_ARGS(...) , __VA_ARGS__
+#else
+#define INC_ARGS(...)
+#endif
+
+#if NINC > 0
+HOT int photon_material(__global const float4* optics, float3 p, int L, int near) {
+    const int in = near ? inclusion_mask_of(optics, p, near) : 0;
+    return material_of(L, in);
+}
+
+/* whether a photon of material mp counts in a query of material m with m's estimate */
+HOT int material_swap(int m, int mp) {
+    return mp != m && (mp >= NL || m >= NL);
+}
+
+/* mu_s(m) / mu_s(mp) in band b (optics: mu_a / mu_t, ..., mu_t) */
+HOT float mus_ratio(__global const float4* optics, int m, int mp, int b) {
+    const float4 a = optics[m * NB + b], o = optics[mp * NB + b];
+    const float d = o.w * (1.0f - o.x);
+    return d > 0.0f ? a.w * (1.0f - a.x) / d : 0.0f;
+}
+#endif
 
 #define FIX 4294967296.0f               /* 2^32 per unit of weight x phase */
 #define INV_FIX (1.0f / 4294967296.0f)
@@ -123,9 +170,14 @@ HOT QueryBox query_box(const GridParams gp, float3 x, float R, int L, __constant
 HOT uint gather_sphere(const GridParams gp, __global const uint* cell_start, __global const float4* spos_w,
                        __global const float4* sdir_b, __global const float* sextra,
                        __global const float4* hg, __constant const float2* layer_z, float3 x, float R,
-                       int L, float3 w_eye, long* acc) {
+                       int L, float3 w_eye, long* acc INC_ARGS(__global const float4* hgtab,
+                                                               __global const float4* optics)) {
     const float R2 = R * R;
     uint M = 0;
+#if NINC > 0
+    const int near = inclusions_near(optics, x.x - R, x.x + R, x.y - R, x.y + R, x.z - R, x.z + R);
+    const int mx = material_of(L, near ? inclusion_mask_of(optics, x, near) : 0);   /* the point's */
+#endif
     const QueryBox qb = query_box(gp, x, R, L, layer_z);
     for (int iz = qb.z0; iz <= qb.z1; ++iz)
         for (int iy = qb.c0.y; iy <= qb.c1.y; ++iy) {
@@ -138,10 +190,22 @@ HOT uint gather_sphere(const GridParams gp, __global const uint* cell_start, __g
 #if ESTIMATOR == 2
                     if ((bl >> 8) != L) continue;
 #endif
+#if NINC > 0
+                    /* a photon of another material than the point's, either an inclusion: the
+                     * point's phase function, its weight times mu_s(point's) / mu_s(photon's) */
+                    const int mp = photon_material(optics, p.xyz, L, near);
+                    const int swap = material_swap(mx, mp);
+                    hg = hgtab + (swap || mx >= NL ? mx : L) * NB;
+#endif
                     const float cw = dot(d.xyz, w_eye);
                     for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
                         const int b = sw_band(bl & 255, c);
+#if NINC > 0
+                        const float w = (c == 0 ? p.w : sextra[(size_t)j * (HERO_C - 1) + c - 1])
+                                        * (swap ? mus_ratio(optics, mx, mp, b) : 1.0f);
+#else
                         const float w = c == 0 ? p.w : sextra[(size_t)j * (HERO_C - 1) + c - 1];
+#endif
                         const float4 h = hg[b];
                         const float q = h.x - h.y * cw;
                         const float rq = rsqrt(q);
@@ -186,8 +250,8 @@ __kernel void gather(const GridParams gp,
                      __global const float4* spos_w,
                      __global const float4* sdir_b,
                      __global const float* sextra,          /* HERO_C-1 band weights per photon */
-                     __global const float4* hgtab,          /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
-                     __global const float4* optics,         /* [NL*NB]: mua, mus, g, mut (um^-1) */
+                     __global const float4* hgtab,          /* [NMAT*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
+                     __global const float4* optics,         /* [NMAT*NB]: mua, mus, g, mut (um^-1), inclusions */
                      __global const uint* ray_start,        /* [nrays+1] first point of each ray */
                      __global const float4* pt_pos,         /* xyz, tw */
                      __global const float4* pt_dir,         /* toward the eye, layer */
@@ -226,7 +290,7 @@ __kernel void gather(const GridParams gp,
             uint M = 0;
             if (R > 0.0f)
                 M = gather_sphere(gp, cell_start, spos_w, sdir_b, sextra, hgtab + L * NB, layer_z, x, R,
-                                  L, pd.xyz, acc);
+                                  L, pd.xyz, acc INC_ARGS(hgtab, optics));
             /* path weight integral of T over the point's interval, per band */
             const float V = estimator_volume(x.z, R, pt_slab[i]);
             const float f = (R > 0.0f) ? pp.w / V * INV_FIX : 0.0f;
@@ -465,12 +529,16 @@ HOT void class_od_advance(ClassOd* od, __global const float4* optics, __global c
 #ifdef BAND16
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __global const float16* hgc,
                          __global const float16* sw16, uint j, int bl, int g, float cw, float wax,
-                         const BeamHit* h) {
+                         const BeamHit* h INC_ARGS(float16 wsc)) {
     const float wl = h->wl, wwin = h->wwin, ts = h->ts;
     /* the photon's weights in class order (sw16: lane k holds member c = k - kh (mod 9), c = 0
      * the hero's p.w; lanes 9-15: 0) */
+#if NINC > 0
+    const float16 w = sw16[j] * wsc * wax * wl * wwin;     /* wsc: mu_s(piece's) / mu_s(photon's) */
+#else
     const float16 w = sw16[j] * wax * wl * wwin;
-    __global const float16* hh = hgc + ((bl >> 8) * GCLASS + g) * 3;
+#endif
+    __global const float16* hh = hgc + ((bl >> 8) * GCLASS + g) * 3;    /* its material (gather_piece) */
     const float16 q = hh[0] + hh[1] * cw;
 #ifdef EXACT_RSQRT                      /* tests on implementations whose native_rsqrt differs
                                          * between vector widths (Intel's: up to 0.9 % per pixel) */
@@ -489,8 +557,13 @@ HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __glob
 /* the term of band b (class member k, the photon's band c: c = 0 the hero) */
 HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
                         __global const float4* hg, __global const float* sextra, uint j, int c,
-                        int k, int b, float wk, float cw, float wax, float wl, float wwin, float ts) {
+                        int k, int b, float wk, float cw, float wax, float wl, float wwin, float ts
+                        INC_ARGS(float wsc)) {
+#if NINC > 0
+    const float w = (c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin) * wsc;
+#else
     const float w = c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin;
+#endif
     const float4 hq = hg[b];
     const float q = hq.x + hq.y * cw;
 #ifdef EXACT_RSQRT
@@ -504,20 +577,27 @@ HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4*
 
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
                          __global const float4* hgtab, __global const float* sextra, uint j,
-                         float4 p, int bl, int g, float cw, float wax, const BeamHit* h) {
+                         float4 p, int bl, int g, float cw, float wax, const BeamHit* h
+                         INC_ARGS(__global const float4* optics, int mp)) {
     const float wl = h->wl, wwin = h->wwin, ts = h->ts;
     const float wk = p.w * wax * wl * wwin;
-    __global const float4* hg = hgtab + (bl >> 8) * NB;
+    __global const float4* hg = hgtab + (bl >> 8) * NB;           /* its material (gather_piece) */
 #if HERO_C == NBC                       /* the photon carries every band of the class */
     const int kh = (bl & 255) / GCLASS;         /* its hero's place */
     for (int k = 0; k < NBC; ++k) {
         const int c = k >= kh ? k - kh : k - kh + NBC;
-        beam_band_term(acc, od, mut_k, hg, sextra, j, c, k, g + GCLASS * k, wk, cw, wax, wl, wwin, ts);
+#if NINC > 0
+        const float wsc = mp != (bl >> 8) ? mus_ratio(optics, bl >> 8, mp, g + GCLASS * k) : 1.0f;
+#endif
+        beam_band_term(acc, od, mut_k, hg, sextra, j, c, k, g + GCLASS * k, wk, cw, wax, wl, wwin, ts INC_ARGS(wsc));
     }
 #else
     for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
         const int b = sw_band(bl & 255, c);
-        beam_band_term(acc, od, mut_k, hg, sextra, j, c, b / GCLASS, b, wk, cw, wax, wl, wwin, ts);
+#if NINC > 0
+        const float wsc = mp != (bl >> 8) ? mus_ratio(optics, bl >> 8, mp, b) : 1.0f;
+#endif
+        beam_band_term(acc, od, mut_k, hg, sextra, j, c, b / GCLASS, b, wk, cw, wax, wl, wwin, ts INC_ARGS(wsc));
     }
 #endif
 }
@@ -536,7 +616,12 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
                       float Rwin, int g, const ClassOd* od, ClassAcc* acc) {
     uint M = 0;
     const BeamBox bx = beam_box(gp, vlay, iface, pc, R);
-    __global const float4* mut_k = optics + pc->Lk * NB;
+    __global const float4* mut_k = optics + pc->Lk * NB;          /* the piece's material */
+#if NINC > 0
+    const float3 pe = pc->s0 + pc->len * pc->d;
+    const int near = inclusions_near(optics, bx.xa - bx.Rp, bx.xb + bx.Rp, bx.ya - bx.Rp, bx.yb + bx.Rp,
+                                     fmin(pc->s0.z, pe.z) - bx.Rp, fmax(pc->s0.z, pe.z) + bx.Rp);
+#endif
 #ifdef BAND16
     const float16 mut16 = mutc[pc->Lk * GCLASS + g];
 #endif
@@ -562,10 +647,31 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
                 BeamHit h;
                 if (!beam_pair(P, pc, R, R2, Rwin, p, bl, tb_p, &h)) continue;
                 const float cw = dot(dd.xyz, pc->d);                /* w_eye = -d */
+#if NINC > 0
+                /* the phase function and mu_s of the piece's material where the photon's is
+                 * another and either is an inclusion's (see photon_material); the material
+                 * rides in bl's layer bits, its band bits unread here */
+                const int mp = photon_material(optics, p.xyz, bl >> 8, near);
+                const int mat = material_swap(pc->Lk, mp) ? pc->Lk : mp;
+#ifdef BAND16
+                float16 wsc = (float16)(1.0f);
+                if (mat != mp) {
+                    float sc[16];
+                    for (int k = 0; k < 16; ++k)
+                        sc[k] = k < NBC ? mus_ratio(optics, mat, mp, g + GCLASS * k) : 0.0f;
+                    wsc = vload16(0, sc);
+                }
+                beam_pair_bands(acc, od, mut16, hgc, sw16, j, (mat << 8) | (bl & 255), g, cw, pc->wax, &h, wsc);
+#else
+                beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, (mat << 8) | (bl & 255), g, cw, pc->wax, &h,
+                                optics, mp);
+#endif
+#else
 #ifdef BAND16
                 beam_pair_bands(acc, od, mut16, hgc, sw16, j, bl, g, cw, pc->wax, &h);
 #else
                 beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, g, cw, pc->wax, &h);
+#endif
 #endif
                 ++M;
             }
@@ -628,10 +734,10 @@ __kernel void gather_beam(const GridParams gp,
                           __global const float2* sslab,     /* photon_slabs: its layer at its column */
                           __constant const float4* vlay,    /* [NL+1] depth keys (photon_keys) */
                           __global const float* sextra,     /* HERO_C-1 band weights per photon */
-                          __global const float4* hgtab,     /* [NL*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
-                          __global const float4* optics,    /* [NL*NB]: ..., mut (um^-1) in .w */
-                          __global const float16* hgc,      /* [NL][GCLASS][3]: hgtab's x, y, z by class */
-                          __global const float16* mutc,     /* [NL][GCLASS]: mu_t by class (band g + GCLASS k) */
+                          __global const float4* hgtab,     /* [NMAT*NB]: 1+g^2, 2g, (1-g^2)/(4 pi) */
+                          __global const float4* optics,    /* [NMAT*NB]: ..., mut (um^-1) in .w; inclusions */
+                          __global const float16* hgc,      /* [NMAT][GCLASS][3]: hgtab's x, y, z by class */
+                          __global const float16* mutc,     /* [NMAT][GCLASS]: mu_t by class (band g + GCLASS k) */
                           __global const float16* sw16,     /* photon_weights16: band weights in class order */
                           __global const float4* pslab,     /* piece_slabs */
                           __global const uint* ray_start,

@@ -56,6 +56,15 @@ HOT int inclusion_mask(__global const float4* optics, float3 p) {
     return m;
 }
 
+/* The inclusions among bits `near` that contain p (the gathers: a stored photon's material,
+ * testing only the inclusions whose box meets the query's) */
+HOT int inclusion_mask_of(__global const float4* optics, float3 p, int near) {
+    int m = 0;
+    for (int i = 0; i < NINC; ++i)
+        if (((near >> i) & 1) && inclusion_poly(optics, i, p, (float3)(0.0f, 0.0f, 1.0f)).z < 0.0f) m |= 1 << i;
+    return m;
+}
+
 /* the material at a point of layer L with inclusion bits `inside` */
 HOT int material_of(int L, int inside) {
     return inside ? NL + (31 - clz(inside & -inside)) : L;

@@ -87,7 +87,7 @@ def _pass(sc, cal, p=0, count=False):
         prg = sc.dev.build("gather.cl", kernel_defines(sc.vol, hero=sc.pp.hero, estimator="beam",
                                                        gclass=sc.estimator.gclass, count_candidates=True))
         sc = _with(sc, prg)
-    sc.run_pass(cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
+    sc.run_pass(cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nmat))
     pix, pairs = acc.host()
     return pix, pairs, st.M.get()[:sc.npts]
 

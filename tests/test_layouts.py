@@ -50,7 +50,7 @@ def _passes(dev, cfg, n=2):
     st = sc.point_state(cal)
     acc = ppm.Accumulators.zeros(sc)
     for p in range(n):
-        sc.run_pass(cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
+        sc.run_pass(cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nmat))
     pix, pairs = acc.host()
     return sc, (pix, pairs, st.M.get()[:sc.npts], st.R.get()[:sc.npts], st.N.get()[:sc.npts])
 

@@ -87,7 +87,7 @@ def one_seed(dev, cfg, passes: int) -> dict:
     top = np.zeros(sc.npix, np.float64)
     for p in range(passes):
         spots.fill(0)
-        info = sc.run_pass(cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nl))
+        info = sc.run_pass(cal, st, p, acc, photonpass.Tallies(sc.vol.nb, sc.vol.nmat))
         scale = 1.0 / max(info["emitted"], 1) if sc.global_radius else 1.0
         m = spots.get().view(np.float32).astype(np.float64) * scale
         top = np.maximum(top, m)
@@ -122,7 +122,7 @@ def photon_tail(dev, cfg, passes: int) -> dict:
     NB, C = vol.nb, pp.hero
     parts = []
     for p in range(passes):
-        n = pp.run_pass(p, sc.target, photonpass.Tallies(vol.nb, vol.nl))["stored"]
+        n = pp.run_pass(p, sc.target, photonpass.Tallies(vol.nb, vol.nmat))["stored"]
         pw = np.empty((n, 4), np.float32); db = np.empty((n, 4), np.float32)
         ex = np.empty((n, max(C - 1, 1)), np.float32)
         for a, b in ((pw, pp.pos_w), (db, pp.dir_b), (ex, pp.extra)):

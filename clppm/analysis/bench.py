@@ -130,7 +130,7 @@ def gather_rate(dev, cfg: dict, scene: str, repeats: int = 3) -> GatherResult:
     setup = _now() - t0
     st = sc.point_state(cal)
     acc = ppm.Accumulators.zeros(sc)
-    tal = photonpass.Tallies(sc.vol.nb, sc.vol.nl)
+    tal = photonpass.Tallies(sc.vol.nb, sc.vol.nmat)
     info = sc.run_pass(cal, st, 0, acc, tal)
     photon_s = sc.timing["photon"]
     sc.pp.run_pass = lambda p, n, tallies=None: info        # the same photons again

@@ -42,11 +42,12 @@ def class_tables(vol, gclass: int, hg: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """The gather's per-class tables: hgc[L][g] = three float16 rows (hg's 1 + g^2, 2g,
     (1 - g^2)/(4 pi) of the bands g + gclass k, k < nb / gclass; lanes beyond: 1, 0, 0) and
     mutc[L][g] = mu_t of those bands (lanes beyond: 0); the same float32 values as
-    ``hgtab`` and ``optics``, regrouped."""
-    nl, nb = vol.nl, vol.nb
+    ``hgtab`` and ``optics``, regrouped.  One row per material: the layers, then the
+    inclusions (an eye-ray piece inside an inclusion, a photon stored there)."""
+    nl, nb = vol.nmat, vol.nb
     nbc = nb // gclass
     hg = np.asarray(hg, np.float32).reshape(nl, nb, 4)
-    opt = np.asarray(vol.optics_table(), np.float32).reshape(nl, nb, 4)
+    opt = np.asarray(vol.device_optics()[:nl * nb], np.float32).reshape(nl, nb, 4)
     hgc = np.zeros((nl, gclass, 3, 16), np.float32)
     hgc[:, :, 0, :] = 1.0
     mutc = np.zeros((nl, gclass, 16), np.float32)
@@ -124,13 +125,15 @@ def device_kind(dev) -> str:
     return "other"
 
 
-def choose_layout(layout: str, dev, nb: int, gclass: int, hero: int) -> str:
+def choose_layout(layout: str, dev, nb: int, gclass: int, hero: int, ninc: int = 0) -> str:
     """The layout a scene's passes use: ``render.layout``, "auto" resolved per device type
     (:data:`AUTO`); "scatter" falls back to "gather" where :func:`supports_scatter` says no."""
     if layout == "auto":
         layout = AUTO.get(device_kind(dev), "gather")
     if layout == "scatter" and supports_scatter(dev, nb, gclass, hero) is not None:
         layout = "gather"
+    if layout == "scatter" and ninc:
+        layout = "gather"           # kernels/scatter.cl does not see inclusions
     return layout
 
 
@@ -177,7 +180,7 @@ class BeamGather:
         self.hgc = cl.Buffer(sc.dev.ctx, ro, hostbuf=hgc)
         self.mutc = cl.Buffer(sc.dev.ctx, ro, hostbuf=mutc)
         self.pslab = None
-        name = choose_layout(sc.rs.layout, sc.dev, sc.vol.nb, self.gclass, sc.pp.hero)
+        name = choose_layout(sc.rs.layout, sc.dev, sc.vol.nb, self.gclass, sc.pp.hero, sc.vol.ninc)
         self.layout = ScatterLayout(self) if name == "scatter" else GatherLayout(self)
 
     def defines(self) -> dict:

@@ -64,8 +64,10 @@ def scheme(method: str, spacing_um: float | None = None) -> Scheme:
 
 
 def layer_rates(vol: Volume, stat: str) -> np.ndarray:
-    """Per-layer Poisson rate (um^-1): the layer's extinction statistic over bands."""
-    mut = vol.mua + vol.mus
+    """Per-material Poisson rate (um^-1): the extinction statistic over bands of each layer,
+    then of each inclusion (an eye ray inside one places its points at the inclusion's rate)."""
+    mua, mus, _ = vol.material_optics()
+    mut = mua + mus
     f = {"max": np.max, "mean": np.mean, "min": np.min}[stat]
     return f(mut, axis=1).astype(np.float32)
 
@@ -160,7 +162,7 @@ class EyeTiles:
         """Every ray's sample points and pieces counted (``sch``: default the scene's method)."""
         vol, rc, cam = scene.volume, scene.settings, scene.camera
         sch = sch or scheme(rc.method, rc.spacing_um)
-        rates = layer_rates(vol, sch.stat) if sch.kind == "extinction" else np.zeros(vol.nl, np.float32)
+        rates = layer_rates(vol, sch.stat) if sch.kind == "extinction" else np.zeros(vol.nmat, np.float32)
         eye = _EyeKernel(dev, vol, vbuf, eye_params(scene, sch, max_points), rates, cam)
         counts, pcounts = eye.count()
         npoints, npieces = int(counts.sum(dtype=np.int64)), int(pcounts.sum(dtype=np.int64))

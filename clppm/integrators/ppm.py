@@ -396,7 +396,7 @@ class Pipeline:
         acc = Accumulators.zeros(self, pixels)
         if start is not None:
             acc.pix.set(np.ascontiguousarray(start, np.float64))
-        tallies = photonpass.Tallies(self.vol.nb, self.vol.nl)
+        tallies = photonpass.Tallies(self.vol.nb, self.vol.nmat)
         before = dict(self.timing)
         infos = []
         for p in passes:
@@ -455,7 +455,7 @@ class Pipeline:
         frac = CAL_FRACTION if self.target >= CAL_FRACTION_FROM else 1.0
         n_cal = int(math.ceil(self.target * frac))
         K = float(self.rs.initial_photons) * n_cal / self.target
-        info = self.pp.run_pass(CAL_PASS, n_cal, tallies=photonpass.Tallies(self.vol.nb, self.vol.nl))
+        info = self.pp.run_pass(CAL_PASS, n_cal, tallies=photonpass.Tallies(self.vol.nb, self.vol.nmat))
         n = min(info["stored"], self.capacity)
         R0, sub = self._first_radius(n, K)
         mean_m = self._scale_radius(R0, sub, n, K)
@@ -548,7 +548,7 @@ def tile_points(req: RenderRequest, dev: Device, vol, tiles: eyepass.EyeTiles) -
     rc = req.settings
     beam, hero = rc.estimator == "beam", bands_per_path(req.scene)
     if rc.radius != "global" or (beam and choose_layout(rc.layout, dev, vol.nb, band_classes(vol.nb, hero),
-                                                          hero) == "scatter"):
+                                                          hero, vol.ninc) == "scatter"):
         return None
     npts = int(tiles.counts.sum(dtype=np.int64))
     ppp = tiles.pcounts.sum(dtype=np.int64) / max(npts, 1)

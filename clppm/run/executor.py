@@ -170,7 +170,7 @@ def scene_task(req: RenderRequest, key: str, calibrate: bool) -> dict:
         meta = progressive.run_identity(req, sc)
         timing = {k: v for k, v in sc.timing.items() if k not in ppm.STAGES}
         return {"meta": meta, "cal": cal, "timing": timing, "npix": sc.npix, "nb": sc.vol.nb,
-                "tallies": photonpass.Tallies(sc.vol.nb, sc.vol.nl).counts, "tiles": list(sc.tiles.tiles),
+                "tallies": photonpass.Tallies(sc.vol.nb, sc.vol.nmat).counts, "tiles": list(sc.tiles.tiles),
                 "point_ranges": [sc.tiles.point_range(t) for t in range(sc.ntiles)]}
 
 

@@ -88,7 +88,7 @@ class PPMRun:
         else:
             cal = ppm.Calibration.from_checkpoint(st)
         run = cls(sc=sc, cal=cal, points=sc.point_state(cal), total=None, chunk=None,
-                  tallies=photonpass.Tallies(sc.vol.nb, sc.vol.nl), meta=meta, t_start=t_start,
+                  tallies=photonpass.Tallies(sc.vol.nb, sc.vol.nmat), meta=meta, t_start=t_start,
                   on_pass=on_pass)
         if st is not None:
             run._restore(st)

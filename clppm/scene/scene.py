@@ -153,28 +153,24 @@ def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") ->
 
 def refuse_inclusions(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
     """Refuse to render a scene with ``[[inclusion]]`` tables where the render would not see
-    them: the photon pass and the path tracer on flat layers walk through them; the eye pass and
-    the gathers (PPM) do not yet, nor the path tracer's connections through the relief or across
-    periodic sides, and such an image would be wrong, not merely noisy."""
+    them: every pass sees them on flat layers (the photon pass, PPM's eye pass and gathers, the
+    path tracer); not the relief's layer-conforming gather pieces, nor the path tracer's
+    connections through the relief or across periodic sides, and such an image would be wrong,
+    not merely noisy."""
     refuse_maps(cfg, source, integrator)
     inc = cfg.get("inclusion") or []
     if not inc:
         return
-    if integrator != "pt":
-        raise ConfigError(source, "inclusion[0].kind", inc[0]["kind"],
-                          "inclusions are seen by the photon pass (clppm trace, clppm reflectance) and the "
-                          "path tracer (--integrator pt, flat layers) only so far; PPM's eye pass and "
-                          "gathers do not see them yet: render with --integrator pt or remove the "
-                          "[[inclusion]] tables")
     if cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0:
         raise ConfigError(source, "relief.kind", cfg["relief"]["kind"],
-                          "the path tracer sees inclusions on flat layers only so far (its connections "
-                          "through the relief do not); give relief.kind = 'flat' and "
-                          "papillae.amplitude_um = 0, or remove the [[inclusion]] tables")
-    if cfg["model"]["lateral"] == "periodic":
+                          "renders see inclusions on flat layers only so far (PPM's gather pieces and the "
+                          "path tracer's connections through the relief do not); give relief.kind = 'flat' "
+                          "and papillae.amplitude_um = 0, or remove the [[inclusion]] tables")
+    if integrator == "pt" and cfg["model"]["lateral"] == "periodic":
         raise ConfigError(source, "model.lateral", "periodic",
                           "the path tracer's connections across periodic sides do not see inclusions "
-                          "yet; give model.lateral = 'open' or 'infinite', or remove the [[inclusion]] tables")
+                          "yet; give model.lateral = 'open' or 'infinite', render with PPM, or remove "
+                          "the [[inclusion]] tables")
 
 
 def refuse(cfg: dict, source: str = "<config>") -> None:

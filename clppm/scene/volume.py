@@ -206,9 +206,10 @@ class Volume:
         return np.ascontiguousarray(np.concatenate(rows), np.float32)
 
     def hg_table(self) -> np.ndarray:
-        """(NL*NB, 4) float32, the gathers' ``hgtab``: per layer and band 1 + g^2, 2g,
-        (1 - g^2)/(4 pi), so that HG(cos) = h.z (h.x - h.y cos)^-3/2."""
-        g = self.g.astype(np.float64)
+        """(NMAT*NB, 4) float32, the gathers' ``hgtab``: per material (the layers, then the
+        inclusions) and band 1 + g^2, 2g, (1 - g^2)/(4 pi), so that HG(cos) = h.z (h.x - h.y
+        cos)^-3/2.  Without inclusions the layers' rows alone, the bytes they always were."""
+        g = self.material_optics()[2].astype(np.float64)
         t = np.stack([1 + g * g, 2 * g, (1 - g * g) / (4 * math.pi), np.zeros_like(g)], -1)
         return np.ascontiguousarray(t.reshape(-1, 4), np.float32)
 
