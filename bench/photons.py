@@ -412,7 +412,7 @@ def events_worker(spec: dict) -> dict:
     pp.run_pass(99, min(target, 4096))                     # build + first launches
 
     def one(k):
-        tal = photonpass.Tallies(vol.nb, vol.nmat)
+        tal = photonpass.Tallies(vol.nb, getattr(vol, "nmat", vol.nl))
         t0 = _now()
         r = pp.run_pass(k, target, tal)
         dt = _now() - t0
