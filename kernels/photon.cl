@@ -844,7 +844,7 @@ __kernel void photon_pass(const PhotonLaunch launch,
 #include "photon_lanes.h"
 
 /* photon_pass in lanes: the same arguments, launched with a LANES-th of its work items */
-__kernel __attribute__((vec_type_hint(vf)))
+__kernel
 void photon_pass_lanes(const PhotonLaunch launch,
                        VOLUME_ARGS,
                        __global const float2* store_imp,
