@@ -3,23 +3,26 @@
  *
  * Neither CPU runtime vectorises photon_pass across work items: its loop body has a dozen kinds
  * of event, and a SIMD version of it executes all of them every iteration (Intel's, forced, ran
- * 1.8-5x slower).  But one kind dominates: a collision in the core of a layer, where the region's
- * boundaries are two planes and the domain's sides (the forearm's photons: 236 of 260 events are
- * collisions).  Here one work item carries LANES photons in structure-of-arrays state, and
+ * 1.8-5x slower).  But one kind dominates: a collision in a region bounded by planes, a layer's
+ * core or, on the smooth walk, a tile's box clear of both surfaces (the forearm's photons: 236 of
+ * 260 events are collisions).  Here one work item carries LANES photons in structure-of-arrays
+ * state, and
  *
  *   - the fast phase runs that one kind in vector arithmetic over the lanes (float16 on
- *     AVX-512): the free path against the core's planes and sides, absorption, the storage
- *     bound, Henyey-Greenstein scattering, the bands' phase-function ratios, roulette, the next
- *     optical depth, and Philox for every lane at once.  A lane whose next event is anything
- *     else drops out of the fast phase; the phase ends when fewer than FAST_MIN lanes remain;
+ *     AVX-512): the free path against the region's planes, absorption, the storage bound,
+ *     Henyey-Greenstein scattering, the bands' phase-function ratios, roulette, the next optical
+ *     depth, and Philox for every lane at once (blocks computed one iteration ahead).  A lane
+ *     whose next event is anything else drops out of the fast phase; the phase ends when fewer
+ *     than FAST_MIN lanes remain;
  *   - the slow phase gives each dropped lane photon_event (photon.cl, scalar, the same code as
- *     photon_pass) until it is back in a layer's core, and a lane whose photon ended the next
+ *     photon_pass) until it is back in such a region, and a lane whose photon ended the next
  *     photon of the launch (photon_start).
  *
  * A photon's path draws the same random numbers in the same order as in photon_pass (a lane's
- * Philox block is consumed one uniform at a time, as rng_u01 does), and the arithmetic is the
- * same formulas, so paths agree until float rounding of a vector operation first differs;
- * storage decisions (store_bound, then store_record) are photon_pass's. */
+ * Philox block is consumed one uniform at a time, as rng_u01 does), the arithmetic is the same
+ * formulas, and a fast collision is one photon_event would make (a flight that stays in the
+ * region crosses nothing), so both kernels give the same tallies and photon maps bit for bit
+ * (tests/test_photon_lanes.py, Intel's runtime and PoCL). */
 #ifndef CLPPM_PHOTON_LANES_H
 #define CLPPM_PHOTON_LANES_H
 
