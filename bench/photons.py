@@ -36,7 +36,10 @@ event counters (photon.cl PHOTON_COUNTERS, each tree's own) per entered photon: 
 (events), collisions, stored events, crossings by kind; events/s, cycles per event (the clock
 from /proc/cpuinfo times the compute units), and lane utilisation: sum of loop steps over
 (width x the longest) in groups of 8 and 16 neighbouring work items, what a SIMD compiler that
-runs neighbouring work items in lanes (Intel's) can use at best.  ``--render``: the same
+runs neighbouring work items in lanes (Intel's) can use at best; then the photon pass's lanes
+per work item (W: photon_pass_lanes on a CPU, kernels/photon_lanes.h), the share of events its
+fast phase did in vector arithmetic, and the active lanes: events over 16 x (vector iterations
++ events done lane by lane), 1/16 for a pass that runs every event in one lane.  ``--render``: the same
 alternation for ``clppm render configs/forearm.toml``, each tree its own (seconds.photon and the
 total from the run report).
 
