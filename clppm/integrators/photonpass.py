@@ -385,13 +385,15 @@ class PhotonPass:
         items = min(-(-n // self.lanes), self.items)
         # a lanes work item is a SIMD group already: work groups of one (PoCL would otherwise loop
         # over a group's work items with every one's lane state in memory)
-        self.kernel(q, items, want=1 if self.lanes > 1 else 64, launch=L, **self.vbuf.named(self.pbuf), store_imp=self.store_imp, band_cdf=self.cdf,
+        want = 1 if self.lanes > 1 else 64
+        self.kernel(q, items, want=want, launch=L, **self.vbuf.named(self.pbuf), store_imp=self.store_imp,
+                    band_cdf=self.cdf,
                     band_spi=self.band_spi, logmu=self.logmu, store_pos_w=self.pos_w,
                     store_dir_b=self.dir_b, store_extra=self.extra, store_count=self.count_buf,
                     tallies=self.tally_buf, smooth=self.vbuf.smooth, tile_z=self.tile_z,
                     counters=self.counter_buf, lane_steps=self.lane_buf)
         if self.counters:
-            steps = np.empty((launch(self.kernel.kernel, q, items)[0][0], 2), np.uint32)
+            steps = np.empty((launch(self.kernel.kernel, q, items, want)[0][0], 2), np.uint32)
             cl.enqueue_copy(q, steps, self.lane_buf)
             self.lane_steps.append(steps[:items])
 
