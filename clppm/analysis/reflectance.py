@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -397,6 +398,67 @@ def region_ratio(spectral, white, region) -> tuple[np.ndarray, np.ndarray]:
     Rm = ratio.reshape(n, -1).mean(0)
     se = ratio.reshape(n, -1).std(0, ddof=1) / math.sqrt(n) if n > 1 else np.full(ratio.shape[2], np.nan)
     return Rm, se
+
+
+@dataclass
+class ImageRegion:
+    """The reflectance factor of a region of a rendered image: per band, the region's mean
+    spectral radiance over a white Lambertian plane's under the render's own light and camera
+    (:func:`region_ratio`), with the render's config and the light's angle of incidence at
+    the region's centre: what ``clppm fit --image`` fits."""
+    wl: np.ndarray
+    R: np.ndarray
+    se: np.ndarray
+    cfg: dict                 # the render's config (its report's), maps and inclusions included
+    region: tuple[int, int, int, int]
+    angle_deg: float
+    label: str
+
+
+def image_region(exr_path: str, region, source: str = "--image") -> ImageRegion:
+    """:class:`ImageRegion` of ``region`` (x0, y0, x1, y1 pixels) of the spectral EXR a render
+    wrote at ``exr_path``; its report (``NAME.json`` beside it) gives the config the image was
+    rendered with.  Bad paths and regions raise ConfigError naming them."""
+    import json
+    from .. import image
+    from ..output import paths
+    from ..scene import camera
+    from ..scene.bands import source_spectrum
+    rep_path = paths.render_outputs(exr_path)["report"] if exr_path.lower().endswith(".exr") else None
+    if rep_path is None:
+        raise ConfigError(source, "--image", exr_path, "must be the .exr file a clppm render wrote")
+    try:
+        exr = image.read_exr(exr_path)
+    except ValueError as e:
+        raise ConfigError(source, "--image", exr_path, str(e)) from None
+    if exr["spectral"] is None:
+        raise ConfigError(source, "--image", exr_path, "has no spectral channels (S0.*)")
+    try:
+        with open(rep_path) as f:
+            rep = json.load(f)
+        cfg = C.validate(rep["config"], rep_path)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ConfigError(source, "--image", exr_path,
+                          f"needs the render's report beside it ({rep_path}): {e}") from None
+    cam = camera.from_config(cfg["camera"])
+    h, w = exr["spectral"].shape[:2]
+    if (w, h) != (cam.width, cam.height):
+        raise ConfigError(source, "--image", exr_path,
+                          f"is {w}x{h} but its report's camera is {cam.width}x{cam.height}")
+    wl = np.asarray(exr["wl"], float)
+    if not np.allclose(wl, C.wavelengths(cfg)):
+        raise ConfigError(source, "--image", exr_path, "its bands differ from its report's spectrum")
+    if cfg["light"]["kind"] == "pencil":
+        raise ConfigError(source, "--image", exr_path,
+                          "was lit by a pencil beam, which has no white-reference irradiance")
+    region = _image_region(region, cam, source)
+    white = _white_in_region(cfg, cam, wl, region, source)
+    R, se = region_ratio(exr["spectral"], white, region)
+    x0, y0, x1, y1 = region
+    d = incidence_direction(cfg, _PixelCam(cam, (x0 + x1) / 2, (y0 + y1) / 2))
+    angle = math.degrees(math.acos(min(1.0, -d[2])))
+    label = f"{os.path.basename(exr_path)} region {x0},{y0},{x1},{y1}"
+    return ImageRegion(wl=wl, R=R, se=se, cfg=cfg, region=region, angle_deg=angle, label=label)
 
 
 def against_photon_pass(Rm, tr, wl) -> dict:

@@ -17,6 +17,10 @@ def _bands_arg(s: str):
     return options.numbers(s, ":", 3, float, f"--bands {s!r}: expected START:STOP:STEP nm, e.g. 380:780:20")
 
 
+def _region_arg(s: str):
+    return options.numbers(s, ",", 4, int, f"--region {s!r}: expected x0,y0,x1,y1 pixels")
+
+
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "fit", help="fit melanin, blood, oxygen saturation and scattering to a measured R(λ)",
@@ -29,6 +33,10 @@ def add_parser(subparsers) -> None:
                    help="CSV wavelength_nm,reflectance (or a multi-column file with --subject); "
                         "leave out to fit a subject of the packaged NIST set")
     p.add_argument("--subject", type=int, help="subject N (NIST: 1..100) / column N")
+    p.add_argument("--image", help="instead of MEASURED: a spectral EXR a clppm render wrote (its report "
+                                   "beside it); fit the reflectance factor of --region of it")
+    p.add_argument("--region", type=_region_arg,
+                   help="with --image: x0,y0,x1,y1 pixels (default: the central 50 %% box)")
     p.add_argument("--config", help="model to fit: a config file or shipped name (default: the shipped forearm)")
     p.add_argument("-o", "--output", default="out/fitted.toml", help="fitted config (TOML)")
     p.add_argument("--plot", help="plot file (default: beside --output, .png)")
@@ -36,9 +44,12 @@ def add_parser(subparsers) -> None:
     p.add_argument("--photons", type=int, default=DEFAULT_PHOTONS, help="photons per band per evaluation")
     p.add_argument("--bands", type=_bands_arg, default=DEFAULT_BANDS,
                    help="fit bands START:STOP:STEP nm (default 380:780:20)")
-    p.add_argument("--angle", type=float, default=8.0, help="incidence angle (default 8°)")
-    p.add_argument("--specular", choices=("included", "excluded"), default="included",
-                   help="the measurement's specular component: included (SCI) or excluded (SCE)")
+    p.add_argument("--angle", type=float,
+                   help="incidence angle (default 8°; with --image the light's at the region's centre)")
+    p.add_argument("--specular", choices=("included", "excluded"),
+                   help="the measurement's specular component: included (SCI, the default) or excluded "
+                        "(SCE, the default with --image: an image away from the mirror direction holds "
+                        "no first-surface reflection)")
     p.add_argument("--seed", type=int, default=1, help="the common random numbers' seed")
     p.add_argument("--max-iter", type=int, default=6,
                    help="outer iterations (hybrid: photon-pass evaluations - 1) or least-squares iterations (mc)")
@@ -50,16 +61,47 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=cmd_fit)
 
 
+def _image_measurement(a, bands):
+    """With --image: the model (--config, else the render's own config, its [[map]] and
+    [[inclusion]] tables dropped: the fit's layers are uniform, and their fitted values are the
+    region's), its name, the region's reflectance factor and the light's angle there."""
+    from ..analysis.reflectance import image_region
+    for flag, v in (("MEASURED", a.measured), ("--subject", a.subject)):
+        if v is not None:
+            raise ConfigError("command line", flag, v, "give a measured spectrum or --image, not both")
+    reg = image_region(a.image, a.region)
+    if not (reg.wl[0] <= bands[0] and bands[1] <= reg.wl[-1]):
+        raise ConfigError("command line", "--bands", ":".join(f"{x:g}" for x in bands),
+                          f"must lie within the image's bands {reg.wl[0]:g}-{reg.wl[-1]:g} nm")
+    if a.config:
+        cfg_path = C.find(a.config)
+        cfg, src = C.load(cfg_path), os.path.basename(cfg_path)
+    else:
+        raw = {k: v for k, v in reg.cfg.items() if k not in ("map", "inclusion")}
+        cfg, src = C.validate(raw, a.image), os.path.basename(a.image) + "'s config"
+    return cfg, src, (reg.wl, reg.R, reg.label), reg.angle_deg
+
+
 def cmd_fit(a) -> int:
     from ..output import paths
-    cfg_path = C.find(a.config) if a.config else default_config_path()
-    cfg = C.load(cfg_path)
-    src = os.path.basename(cfg_path)
     bands = a.bands
     if not (bands[2] > 0 and bands[1] >= bands[0]):
         raise ConfigError("command line", "--bands", ":".join(f"{x:g}" for x in bands),
                           "needs START <= STOP and STEP > 0")
-    wl, R, label = load_measured(a.measured, a.subject, bands)
+    if a.image is None:
+        if a.region is not None:
+            raise ConfigError("command line", "--region", ",".join(map(str, a.region)),
+                              "reads a region of --image, which is not given")
+        cfg_path = C.find(a.config) if a.config else default_config_path()
+        cfg = C.load(cfg_path)
+        src = os.path.basename(cfg_path)
+        wl, R, label = load_measured(a.measured, a.subject, bands)
+    else:
+        cfg, src, (wl, R, label), angle = _image_measurement(a, bands)
+        a.angle = angle if a.angle is None else a.angle
+        a.specular = a.specular or "excluded"
+    a.angle = 8.0 if a.angle is None else a.angle
+    a.specular = a.specular or "included"
     for name, v in (("--photons", a.photons), ("--max-iter", a.max_iter)):
         if v <= 0:
             raise ConfigError("command line", name, v, "must be > 0")
