@@ -26,8 +26,11 @@ from clppm import cli
 from clppm import config as C
 from clppm.compute.device import kernel_defines
 from clppm.integrators import photonpass
-from clppm.integrators.photonpass import CATEGORIES, NA, W0
+from clppm.integrators.photonpass import NA, W0
 from clppm.scene import skin, volume
+
+import slab_mc
+from slab_mc import agree, exact_balance, material_of, photon_pass_fractions, raw_toml
 
 SLAB = {
     "model": {"name": "slab with a vessel", "lateral": "infinite", "quantize": False,
@@ -46,7 +49,6 @@ SLAB = {
 }
 PHOTONS = 200_000          # photon pass, per band
 MC_PHOTONS = 40_000        # numpy delta tracking, per band
-BATCHES = 10
 
 
 def slab_cfg(**changes) -> dict:
@@ -56,93 +58,19 @@ def slab_cfg(**changes) -> dict:
 
 
 # ----------------------------------------------------------------------------- the reference
-def _material(vol, p: np.ndarray) -> np.ndarray:
-    """Material index at points p (n, 3): the layer by depth, then the first inclusion holding it."""
-    depth = vol.layer_depths()
-    m = np.clip(np.searchsorted(depth, -p[:, 2], side="right") - 1, 0, vol.nl - 1)
-    for i in reversed(range(vol.ninc)):
-        m = np.where(vol.inclusions[i].contains(p), vol.nl + i, m)
-    return m
-
-
-def _hg_turn(d: np.ndarray, g: np.ndarray, rng) -> np.ndarray:
-    """Directions d (n, 3) turned by Henyey-Greenstein(g) polar angles and uniform azimuths."""
-    u = rng.random(len(d))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (1 - g * g) / (1 - g + 2 * g * u)
-        ct = np.where(np.abs(g) > 1e-6, (1 + g * g - t * t) / (2 * g), 2 * u - 1)
-    ct = np.clip(ct, -1.0, 1.0)
-    st = np.sqrt(1 - ct * ct)
-    phi = 2 * math.pi * rng.random(len(d))
-    # an orthonormal basis around d
-    a = np.where(np.abs(d[:, [2]]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-    b1 = np.cross(d, a)
-    b1 /= np.linalg.norm(b1, axis=1)[:, None]
-    b2 = np.cross(d, b1)
-    out = st[:, None] * (np.cos(phi)[:, None] * b1 + np.sin(phi)[:, None] * b2) + ct[:, None] * d
-    return out / np.linalg.norm(out, axis=1)[:, None]
-
-
 def delta_tracking(vol, band: int, n: int, seed: int, start=(0.0, 0.0)) -> dict:
-    """Brute force: a normal pencil beam at ``start`` (um) into an index-matched slab, each
-    photon flying free paths at the majorant of all materials; at each tentative collision the
-    material at the point decides (mu_t / majorant: real; else a null collision).  Absorption by
-    weight, Russian roulette below 1e-3; periodic sides wrap the position.  Returns per photon
-    fraction means and standard errors."""
-    rng = np.random.default_rng(seed)
+    """slab_mc's brute force with the material at each point: the layer by depth, then the
+    first inclusion holding it; periodic sides wrap the position."""
     mua, mus, g = (a[:, band] for a in vol.material_optics())
-    mut = mua + mus
-    maj = float(mut.max())
-    bottom = float(vol.layer_depths()[-1])
-    pos = np.zeros((n, 3))
-    pos[:, :2] = start
     width = np.array([vol.nx * vol.dx, vol.ny * vol.dy])
-    d = np.tile([0.0, 0.0, -1.0], (n, 1))
-    w = np.ones(n)
-    rd, tt = np.zeros(n), np.zeros(n)
-    ab = np.zeros((n, vol.nmat))
-    alive = np.ones(n, bool)
-    while alive.any():
-        idx = np.flatnonzero(alive)
-        p = pos[idx] + (-np.log(1.0 - rng.random(len(idx))) / maj)[:, None] * d[idx]
-        up, down = p[:, 2] > 0, p[:, 2] < -bottom
-        rd[idx[up]] += w[idx[up]]
-        tt[idx[down]] += w[idx[down]]
-        alive[idx[up | down]] = False
-        keep = ~(up | down)
-        idx, p = idx[keep], p[keep]
-        if vol.lateral == "periodic":
-            p[:, :2] = np.mod(p[:, :2] - [vol.x0, vol.y0], width) + [vol.x0, vol.y0]
-        pos[idx] = p
-        m = _material(vol, p)
-        real = rng.random(len(idx)) * maj < mut[m]
-        r, m = idx[real], m[real]
-        a = mua[m] / mut[m]
-        np.add.at(ab, (r, m), w[r] * a)
-        w[r] *= 1 - a
-        d[r] = _hg_turn(d[r], g[m], rng)
-        low = r[w[r] < 1e-3]
-        win = rng.random(len(low)) < 0.1
-        w[low[win]] *= 10.0
-        rr_lost = low[~win]
-        w[rr_lost] = 0.0
-        alive[rr_lost] = False
-    cols = {"Rd": rd, "Tt": tt, **{f"A{k}": ab[:, k] for k in range(vol.nmat)}}
-    return {k: (float(v.mean()), float(v.std(ddof=1) / math.sqrt(n))) for k, v in cols.items()}
+    origin = np.array([vol.x0, vol.y0])
 
-
-def photon_pass_fractions(dev, vol, cfg, band: int, n: int) -> dict:
-    """The photon pass's tallies for one band: per-batch fractions, their mean and standard error."""
-    pp = photonpass.PhotonPass.of_config(dev, vol, cfg)
-    pp.p["fixed_band"] = band
-    arrs = pp.trace(n, batches=BATCHES)
-    sizes = [n // BATCHES + (1 if i < n % BATCHES else 0) for i in range(BATCHES)]
-    fr = np.array([a[band] / (W0 * s) for a, s in zip(arrs, sizes)])
-    cols = {"Rd": CATEGORIES.index("diffuse"), "Tt": CATEGORIES.index("transmitted"),
-            **{f"A{k}": NA + k for k in range(vol.nmat)}}
-    out = {k: (float(fr[:, c].mean()), float(fr[:, c].std(ddof=1) / math.sqrt(BATCHES))) for k, c in cols.items()}
-    tot = sum(a.astype(object) for a in arrs)[band]
-    return out, tot
+    def medium(p):
+        m = material_of(vol, p)
+        return m, mua[m], mus[m], g[m]
+    wrap = (lambda xy: np.mod(xy - origin, width) + origin) if vol.lateral == "periodic" else None
+    return slab_mc.delta_tracking(medium, float((mua + mus).max()), float(vol.layer_depths()[-1]),
+                                  vol.nmat, n, seed, start=start, wrap=wrap)
 
 
 def compare(dev, cfg, band: int, seed: int, start=(0.0, 0.0)):
@@ -151,10 +79,7 @@ def compare(dev, cfg, band: int, seed: int, start=(0.0, 0.0)):
     vol = volume.build(cfg, "slab")
     got, _ = photon_pass_fractions(dev, vol, cfg, band, PHOTONS)
     ref = delta_tracking(vol, band, MC_PHOTONS, seed=seed, start=start)
-    for k in got:
-        (a, sa), (b, sb) = got[k], ref[k]
-        tol = 4.0 * math.hypot(sa, sb) + 1e-6
-        assert abs(a - b) <= tol, f"band {band} {k}: photon pass {a:.5f} ± {sa:.5f}, delta tracking {b:.5f} ± {sb:.5f}"
+    agree(got, ref, 4.0, band)
     return got, ref
 
 
@@ -312,18 +237,12 @@ def test_trace_report_names_inclusions(dev):
     assert rep["energy_balance_error"] == 0.0
 
 
-def _exact_balance(tot_row, nmat) -> int:
-    """Emitted weight minus what the categories account for (0: exact)."""
-    cats = [i for i, c in enumerate(CATEGORIES) if c != "diffuse_cone"] + list(range(NA, NA + nmat))
-    return sum(int(tot_row[c]) for c in cats) - 2 * int(tot_row[CATEGORIES.index("rr_gain")])
-
-
 def test_energy_exact_flat(dev):
     cfg = slab_cfg()
     vol = volume.build(cfg, "slab")
     n = 30_000
     _, tot = photon_pass_fractions(dev, vol, cfg, 1, n)
-    assert _exact_balance(tot, vol.nmat) == n * W0
+    assert exact_balance(tot, vol.nmat) == n * W0
 
 
 def test_every_photon_build_balances_with_inclusions(dev):
@@ -350,7 +269,7 @@ def test_every_photon_build_balances_with_inclusions(dev):
     _, tot = photon_pass_fractions(dev, vol, cfg, 0, 5_000)
     counted.trace(5_000)
     assert counted.counts()["steps"] > 5_000
-    assert _exact_balance(tot, vol.nmat) == 5_000 * W0
+    assert exact_balance(tot, vol.nmat) == 5_000 * W0
 
 
 def _relief_cfg(surface: str) -> dict:
@@ -374,7 +293,7 @@ def test_energy_exact_and_vessel_absorbs_on_relief(dev, surface):
     pp = photonpass.PhotonPass.of_config(dev, vol, cfg)
     n = 20_000
     tot = sum(a.astype(object) for a in pp.trace(n, batches=2))
-    bal = sum(_exact_balance(tot[b], vol.nmat) for b in range(vol.nb))
+    bal = sum(exact_balance(tot[b], vol.nmat) for b in range(vol.nb))
     assert bal == n * W0
     vessel = sum(int(tot[b][NA + vol.nl]) for b in range(vol.nb)) / (W0 * n)
     mole = sum(int(tot[b][NA + vol.nl + 1]) for b in range(vol.nb)) / (W0 * n)
@@ -459,7 +378,7 @@ def test_bad_inclusion_one_line_exit_2(tmp_path, capsys, change, message):
     raw["model"] = {**raw["model"], "lateral": "open", "size_mm": [10.0, 10.0]}
     raw["inclusion"] = [{**SLAB["inclusion"][0], "center_mm": [5.0, 5.0], **change}]
     p = tmp_path / "bad.toml"
-    p.write_text(_toml(raw))
+    p.write_text(raw_toml(raw))
     rc = cli.main(["trace", str(p), "--photons", "100"])
     err = capsys.readouterr().err.strip()
     assert rc == 2
@@ -471,7 +390,7 @@ def test_missing_required_inclusion_key(tmp_path, capsys):
     raw = {k: (list(v) if isinstance(v, list) else dict(v)) for k, v in SLAB.items()}
     raw["inclusion"] = [{"kind": "vessel", "depth_um": 100.0}]
     p = tmp_path / "bad.toml"
-    p.write_text(_toml(raw))
+    p.write_text(raw_toml(raw))
     assert cli.main(["trace", str(p)]) == 2
     assert "inclusion[0].center_mm = None: missing required key" in capsys.readouterr().err
 
@@ -490,7 +409,7 @@ def test_set_item_reaches_an_inclusion():
 
 def test_trace_prints_each_inclusion(tmp_path, capsys):
     p = tmp_path / "slab.toml"
-    p.write_text(_toml({k: v for k, v in SLAB.items()}))
+    p.write_text(raw_toml({k: v for k, v in SLAB.items()}))
     assert cli.main(["trace", str(p), "--photons", "4000", "--json", str(tmp_path / "t.json")]) == 0
     out = capsys.readouterr().out
     assert "absorbed in inclusion[0] (vessel)" in out and "absorbed in inclusion[1] (ellipsoid)" in out
@@ -514,7 +433,7 @@ def test_render_refused_where_a_pass_does_not_see_inclusions(tmp_path, capsys):
             (raw, ["--integrator", "pt"], ("relief.kind = 'generated'", "flat layers only")),
             (periodic, ["--integrator", "pt"], ("model.lateral = 'periodic'", "periodic sides"))]:
         p = tmp_path / "vessel.toml"
-        p.write_text(_toml(scene_raw))
+        p.write_text(raw_toml(scene_raw))
         rc = cli.main(["render", str(p), "-o", str(out), "-q", *extra])
         err = capsys.readouterr().err.strip()
         assert rc == 2 and len(err.splitlines()) == 1, err
@@ -523,7 +442,7 @@ def test_render_refused_where_a_pass_does_not_see_inclusions(tmp_path, capsys):
     import clppm
     with pytest.raises(C.ConfigError, match=r"relief\.kind"):
         clppm.render(C.validate(raw, "vessel"))
-    p.write_text(_toml(flat))
+    p.write_text(raw_toml(flat))
     for extra in (["--integrator", "pt"], []):
         assert cli.main(["render", str(p), "-o", str(out), "-q", "--passes", "1", "--resolution", "4x3",
                          "--force", *extra]) == 0
@@ -544,18 +463,6 @@ def test_shipped_forearm_vein(tmp_path, capsys):
         assert out.exists()
 
 
-def _toml(raw: dict) -> str:
-    """A raw config dict as TOML (sections, then the [[layer]] and [[inclusion]] tables)."""
-    lines = []
-    for sec, t in raw.items():
-        if isinstance(t, list):
-            for row in t:
-                lines.append(f"[[{sec}]]")
-                lines += [f"{k} = {C.toml_value(v)}" for k, v in row.items() if v is not None]
-        else:
-            lines.append(f"[{sec}]")
-            lines += [f"{k} = {C.toml_value(v)}" for k, v in t.items() if v is not None]
-    return "\n".join(lines) + "\n"
 
 
 # ----------------------------------------------------------------------------- fuzzing the tables

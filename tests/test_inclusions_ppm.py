@@ -2,7 +2,7 @@
 
 * The eye pass: every eye-ray piece of a flat forearm with a vessel lies in one material, the one
   its record names (the layer's, or the vessel's inside it: split at the quadric's crossings),
-  against the numpy material map of tests/test_inclusions.py; a pixel over the vessel's axis has
+  against the numpy material map of tests/slab_mc.py; a pixel over the vessel's axis has
   vessel pieces from the vessel's top down.
 * PPM against the path tracer on that forearm (bench/studies/vessel.py, small): per 50-nm band
   group the image mean and the vessel's contrast (columns over it / columns away) agree within
@@ -23,6 +23,7 @@ sys.path.insert(0, os.path.join(ROOT, "bench", "studies"))
 from vessel import vessel_figures, vessel_scene          # noqa: E402
 
 from clppm.run import entry                               # noqa: E402
+from slab_mc import material_of                           # noqa: E402
 
 # PPM: 4 passes of 400,000 stored photons, K = 200 in the first search (a radius small enough
 # that the vessel, 0.4 mm across, is not blurred away: with the default's K = 2000 the green's
@@ -45,14 +46,6 @@ CONTRAST_LO, CONTRAST_HI = -0.12, 0.30
 RED_BOUND = 0.08
 
 
-def _material(vol, p: np.ndarray) -> np.ndarray:
-    depth = vol.layer_depths()
-    m = np.clip(np.searchsorted(depth, -p[:, 2], side="right") - 1, 0, vol.nl - 1)
-    for i in reversed(range(vol.ninc)):
-        m = np.where(vol.inclusions[i].contains(p), vol.nl + i, m)
-    return m
-
-
 @pytest.mark.parametrize("method", ["a", "e"])
 def test_eye_pieces_lie_in_the_material_they_name(dev, method):
     """Equal spacing (a) and Poisson points at the material's rate (e, the default)."""
@@ -71,7 +64,7 @@ def test_eye_pieces_lie_in_the_material_they_name(dev, method):
     assert np.array_equal(pcs["y"].astype(int), code)
     keep = ln > 0.05                                    # a piece shorter than the rounding: no test
     for f in (0.5, 0.02, 0.98):                         # its middle and near both ends
-        m = _material(vol, s0[keep] + (f * ln[keep])[:, None] * dv[keep])
+        m = material_of(vol, s0[keep] + (f * ln[keep])[:, None] * dv[keep])
         bad = m != code[keep]
         assert bad.mean() < 1e-3, (f, bad.sum(), np.unique(code[keep][bad]), np.unique(m[bad]))
     assert (code == vol.nl).sum() > 50                  # the vessel's pieces

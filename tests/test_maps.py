@@ -29,8 +29,11 @@ from clppm import cli
 from clppm import config as C
 from clppm.compute.device import kernel_defines
 from clppm.integrators import photonpass
-from clppm.integrators.photonpass import CATEGORIES, NA, W0
+from clppm.integrators.photonpass import NA, W0
 from clppm.scene import spectra, volume
+
+import slab_mc
+from slab_mc import agree, exact_balance, layer_of, photon_pass_fractions, raw_toml
 
 SLAB = {
     "model": {"name": "slab with maps", "lateral": "infinite", "quantize": False, "size_mm": [1.0, 1.0],
@@ -46,7 +49,6 @@ FRECKLE = {"layer": "epidermis", "quantity": "melanin", "kind": "spots",
                      {"center_mm": [0.6, 0.45], "radius_um": 30.0, "peak": 0.25}]}
 PHOTONS = 400_000          # photon pass, per band
 MC_PHOTONS = 100_000       # numpy delta tracking, per band
-BATCHES = 10
 TOL_SE = 3.5
 
 
@@ -96,85 +98,33 @@ def _column_fields(cfg: dict) -> dict:
 
 
 def delta_tracking(cfg, vol, band: int, n: int, seed: int) -> dict:
-    """Brute force: a normal pencil beam at light.center_mm into an index-matched slab, free paths
-    at one majorant over every layer and column; at each tentative collision the layer (by depth)
-    and its column's chromophores decide (mu_t / majorant: real, else null).  Absorption by
-    weight, Russian roulette below 1e-3.  Per photon fraction means and standard errors."""
-    from test_inclusions import _hg_turn
-    rng = np.random.default_rng(seed)
+    """slab_mc's brute force at the config's pencil beam, the medium at each point: the layer by
+    depth, mu_a from its column's chromophores (the config's own definitions) and the spectra."""
     wl = vol.wl[band:band + 1]
     fields = _column_fields(cfg)
     mua_tab = []
     for L, lay in enumerate(cfg["layer"]):
         M, B, S, _ = fields[L]
-        a = (M * spectra.mua_melanosome(wl)[0] + B * spectra.mua_blood(wl[0], S)
-             + lay["baseline"] * spectra.mua_baseline(wl)[0]) * 1e-4
-        mua_tab.append(a)
+        mua_tab.append((M * spectra.mua_melanosome(wl)[0] + B * spectra.mua_blood(wl[0], S)
+                        + lay["baseline"] * spectra.mua_baseline(wl)[0]) * 1e-4)
     mus, g = vol.mus[:, band], vol.g[:, band]
-    maj = max(float(mua_tab[L].max()) + mus[L] for L in range(vol.nl))
-    depth = vol.layer_depths()
-    bottom = float(depth[-1])
-    dcol = fields[0][3]
-    ncol = mua_tab[0].shape[0]
-    pos = np.zeros((n, 3))
-    pos[:, :2] = np.array(cfg["light"]["center_mm"]) * 1000.0
-    d = np.tile([0.0, 0.0, -1.0], (n, 1))
-    w = np.ones(n)
-    rd, tt = np.zeros(n), np.zeros(n)
-    ab = np.zeros((n, vol.nl))
-    alive = np.ones(n, bool)
-    while alive.any():
-        idx = np.flatnonzero(alive)
-        p = pos[idx] + (-np.log(1.0 - rng.random(len(idx))) / maj)[:, None] * d[idx]
-        up, down = p[:, 2] > 0, p[:, 2] < -bottom
-        rd[idx[up]] += w[idx[up]]
-        tt[idx[down]] += w[idx[down]]
-        alive[idx[up | down]] = False
-        keep = ~(up | down)
-        idx, p = idx[keep], p[keep]
-        pos[idx] = p
-        L = np.clip(np.searchsorted(depth, -p[:, 2], side="right") - 1, 0, vol.nl - 1)
+    dcol, ncol = fields[0][3], mua_tab[0].shape[0]
+
+    def medium(p):
+        L = layer_of(vol, p)
         ix = np.clip(np.floor(p[:, 0] / dcol).astype(int), 0, ncol - 1)
         iy = np.clip(np.floor(p[:, 1] / dcol).astype(int), 0, ncol - 1)
-        mua = np.choose(L, [t[iy, ix] for t in mua_tab])
-        mut = mua + mus[L]
-        real = rng.random(len(idx)) * maj < mut
-        r, L, mua, mut = idx[real], L[real], mua[real], mut[real]
-        a = mua / mut
-        np.add.at(ab, (r, L), w[r] * a)
-        w[r] *= 1 - a
-        d[r] = _hg_turn(d[r], g[L], rng)
-        low = r[w[r] < 1e-3]
-        win = rng.random(len(low)) < 0.1
-        w[low[win]] *= 10.0
-        w[low[~win]] = 0.0
-        alive[low[~win]] = False
-    cols = {"Rd": rd, "Tt": tt, **{f"A{k}": ab[:, k] for k in range(vol.nl)}}
-    return {k: (float(v.mean()), float(v.std(ddof=1) / math.sqrt(n))) for k, v in cols.items()}
-
-
-def photon_pass_fractions(dev, vol, cfg, band: int, n: int):
-    """The photon pass's tallies for one band: per-batch fractions' mean and standard error, and
-    the summed integer tallies."""
-    pp = photonpass.PhotonPass.of_config(dev, vol, cfg)
-    pp.p["fixed_band"] = band
-    arrs = pp.trace(n, batches=BATCHES)
-    sizes = [n // BATCHES + (1 if i < n % BATCHES else 0) for i in range(BATCHES)]
-    fr = np.array([a[band] / (W0 * s) for a, s in zip(arrs, sizes)])
-    cols = {"Rd": CATEGORIES.index("diffuse"), "Tt": CATEGORIES.index("transmitted"),
-            **{f"A{k}": NA + k for k in range(vol.nmat)}}
-    out = {k: (float(fr[:, c].mean()), float(fr[:, c].std(ddof=1) / math.sqrt(BATCHES))) for k, c in cols.items()}
-    return out, sum(a.astype(object) for a in arrs)[band]
+        return L, np.choose(L, [t[iy, ix] for t in mua_tab]), mus[L], g[L]
+    maj = max(float(mua_tab[L].max()) + mus[L] for L in range(vol.nl))
+    return slab_mc.delta_tracking(medium, maj, float(vol.layer_depths()[-1]), vol.nl, n, seed,
+                                  start=np.array(cfg["light"]["center_mm"]) * 1000.0)
 
 
 def compare(dev, cfg, band: int, seed: int):
     vol = volume.build(cfg, "slab")
     got, _ = photon_pass_fractions(dev, vol, cfg, band, PHOTONS)
     ref = delta_tracking(cfg, vol, band, MC_PHOTONS, seed=seed)
-    for k in got:
-        (a, sa), (b, sb) = got[k], ref[k]
-        tol = TOL_SE * math.hypot(sa, sb) + 1e-6
-        assert abs(a - b) <= tol, f"band {band} {k}: photon pass {a:.5f} ± {sa:.5f}, delta tracking {b:.5f} ± {sb:.5f}"
+    agree(got, ref, TOL_SE, band)
     return got, ref
 
 
@@ -205,12 +155,6 @@ def test_blood_step_and_saturation_spot_match_delta_tracking(dev, tmp_path, band
     assert got["A1"][0] - only_freckle["A1"][0] > 10 * tol, (band, got["A1"], only_freckle["A1"])
 
 
-def _exact_balance(tot_row, nmat) -> int:
-    """Emitted weight minus what the categories account for (0: exact)."""
-    cats = [i for i, c in enumerate(CATEGORIES) if c != "diffuse_cone"] + list(range(NA, NA + nmat))
-    return sum(int(tot_row[c]) for c in cats) - 2 * int(tot_row[CATEGORIES.index("rr_gain")])
-
-
 def _tallies(dev, cfg, n, seed_cfg="slab"):
     vol = volume.build(cfg, seed_cfg)
     pp = photonpass.PhotonPass.of_config(dev, vol, cfg)
@@ -235,7 +179,7 @@ def test_uniform_maps_give_the_same_tallies_bit_for_bit(dev, tmp_path):
 def test_energy_exact_flat(dev, tmp_path):
     cfg = slab_cfg([FRECKLE, {"layer": "dermis", "quantity": "blood", "kind": "file", "file": step_file(tmp_path)}])
     vol, tot = _tallies(dev, cfg, 30_000)
-    assert sum(_exact_balance(tot[b], vol.nmat) for b in range(vol.nb)) == 30_000 * W0
+    assert sum(exact_balance(tot[b], vol.nmat) for b in range(vol.nb)) == 30_000 * W0
 
 
 def _relief_cfg(surface: str) -> dict:
@@ -260,7 +204,7 @@ def test_energy_exact_on_relief_with_an_inclusion(dev, surface):
     cfg = _relief_cfg(surface)
     vol, tot = _tallies(dev, cfg, 20_000, "tiny relief")
     assert not vol.flat and vol.maps is not None
-    assert sum(_exact_balance(tot[b], vol.nmat) for b in range(vol.nb)) == 20_000 * W0
+    assert sum(exact_balance(tot[b], vol.nmat) for b in range(vol.nb)) == 20_000 * W0
     plain = {k: v for k, v in cfg.items() if k != "map"}
     _, tot0 = _tallies(dev, plain, 20_000, "tiny relief")
     basal = [sum(int(t[b][NA + 2]) for b in range(vol.nb)) / (W0 * 20_000) for t in (tot, tot0)]
@@ -337,15 +281,10 @@ def test_trace_with_maps_one_band_per_path(dev):
         photonpass.PhotonPass(dev, Scene.of_config(cfg, volume=vol), bands=Bands.from_config(cfg, hero=3))
 
 
-def _toml(raw: dict) -> str:
-    from test_inclusions import _toml as t
-    return t(raw)
-
-
 def _bad(tmp_path, maps, **model):
     raw = {k: (list(v) if isinstance(v, list) else dict(v)) for k, v in SLAB.items()}
     raw["model"] = {**raw["model"], **model}
-    lines = [_toml(raw)]
+    lines = [raw_toml(raw)]
     for m in maps:
         lines.append("[[map]]")
         lines += [f"{k} = {C.toml_value(v)}" for k, v in m.items()]
@@ -419,7 +358,7 @@ def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
     p = tmp_path / "m.toml"
 
     def write(scene_raw, inclusions=()):
-        lines = [_toml({**scene_raw, **({"inclusion": list(inclusions)} if inclusions else {})}), "[[map]]"]
+        lines = [raw_toml({**scene_raw, **({"inclusion": list(inclusions)} if inclusions else {})}), "[[map]]"]
         lines += [f"{k} = {C.toml_value(v)}" for k, v in the_map.items()]
         p.write_text("\n".join(lines) + "\n")
     for scene_raw, inc, extra, needles in [
