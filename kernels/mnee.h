@@ -186,6 +186,10 @@ typedef struct {
     real tw[MN_WARM];           /* the first MN_WARM events' distances: the next trace's starts */
     real tw1[MN_WARM], tw2[MN_WARM];    /* and their derivatives in u (the starts' first-order
                                            prediction for a trace at a nearby u) */
+#ifdef CHAIN_LEGS
+    float4 pe[MAXE];            /* the events' points, in order (pt.cl mnee_legs_factor: the legs
+                                   through the inclusions and maps) */
+#endif
     float F;                    /* product of Fresnel R or T over the events */
     int why;                    /* where a failed trace stopped: 1 momentum, 2 heading, 3 hit, 4 TIR,
                                    5 side, 6 air (10 x event + code) */
@@ -228,6 +232,9 @@ inline int mnee_trace(const Chain* ch, real4 v, int k0, real ux, real uy, real4 
         real t1, t2;
         if (!hf_hit(P, iface, smooth, i, lam, ch->zref[i], tw, &r, &f, &t, &t1, &t2)) { T->why = 10 * e + 3; return 0; }
         if (e < MN_WARM) { T->tw[e] = t; T->tw1[e] = t1; T->tw2[e] = t2; }
+#ifdef CHAIN_LEGS
+        T->pe[e] = (float4)((float)r.o.x, (float)r.o.y, (float)r.o.z, 0.0f);
+#endif
         T->len[k] += t;
         real len;
         const real4 n = hf_normal(&f, &len);

@@ -85,6 +85,10 @@ typedef struct {
 } PtParams;
 
 #define MAXE (4 * NL + 8)       /* chain events; a longer chain (R^4 smaller) counts as blocked */
+#if NINC > 0 || defined(MAPS)
+#define CHAIN_LEGS              /* relief connections keep their legs' points (mnee.h Trace.pe) to walk
+                                   them through the inclusions and maps (mnee_legs_factor) */
+#endif
 #define NMNEE 10                /* solver counts per pixel (clppm/integrators/pathtracer.py MNEE_STATS) */
 /* Counts of specular manifold sampling over a pixel's connections (relief builds) */
 typedef struct { uint found, other, trials, clamped; } SmsStat;
@@ -122,6 +126,9 @@ typedef struct {
     int ev[MAXE];               /* interface | from layer << 8 | reflected << 16, vertex first */
     float wsel;                 /* probability of having sampled this chain */
     int up;                     /* 1: the light arrives at the vertex travelling down */
+#if NINC > 0
+    int inside;                 /* the vertex's inclusion bits (relief: mnee_legs_factor) */
+#endif
 } Chain;
 
 inline real thick(__constant const float4* iface, int k) { return (real)IF_Z(k) - (real)IF_Z(k + 1); }
@@ -276,13 +283,37 @@ inline float connect(const Chain* ch, float2 v, int Lv, float2 lpos, float2 shif
 }
 
 #if NINC > 0
+/* The optical depth that inclusions add to one straight leg of a light connection in layer k,
+ * band b: from (px, py, pz) along the unit (dx, dy, dz) for len, walked through the quadrics as a
+ * flight is (next_inclusion: an inclusion whose box the leg's misses is skipped), with mu_t of
+ * the inclusion instead of the layer's where the leg is inside one.  *inside: the inclusion bits
+ * at the leg's start, on return at its end (an inclusion can straddle layers: the next leg
+ * starts inside it).  Scalars only across the call (Intel's float3 miscompilation, connect). */
+inline float leg_inclusion_od(float px, float py, float pz, float dx, float dy, float dz, float len, int k,
+                              int* inside, int b, __global const float4* optics) {
+    const float3 pos = (float3)(px, py, pz), d = (float3)(dx, dy, dz);
+    const float3 end = pos + len * d;
+    const int near = inclusions_near(optics, fmin(pos.x, end.x), fmax(pos.x, end.x), fmin(pos.y, end.y),
+                                     fmax(pos.y, end.y), fmin(pos.z, end.z), fmax(pos.z, end.z));
+    const float mut_k = optics[k * NB + b].w;
+    int in = *inside;
+    float od = 0.0f, done = 0.0f;
+    for (int guard = 0; guard < 2 * NINC + 2 && done < len && (near | in); ++guard) {
+        int which = -1;
+        const float s = fmin(next_inclusion(optics, pos + done * d, d, in, near, &which), len - done);
+        if (in) od += (optics[material_of(k, in) * NB + b].w - mut_k) * s;
+        done += s;
+        if (done < len && which >= 0) in ^= 1 << which;
+    }
+    *inside = in;
+    return od;
+}
+
 /* The optical depth that inclusions add to a flat chain's attenuation in band b: the chain's
  * legs from the vertex (x, y, zv; inclusion bits inside) back toward the light, each a straight
  * line in one layer k at horizontal slowness p (sin = p / n_k along (ux, uy), the light's
- * horizontal direction from the vertex) up or down to its event's interface, walked through the
- * quadrics as a flight is (next_inclusion: an inclusion whose box the leg's misses is skipped),
- * with mu_t of the inclusion instead of the layer's where the leg is inside one.  Scalars only
- * across the call (Intel's float3 miscompilation, connect). */
+ * horizontal direction from the vertex) up or down to its event's interface, by
+ * leg_inclusion_od.  Scalars only across the call (connect). */
 inline float chain_inclusion_od(const Chain* ch, float x, float y, float zv, int inside, float ux, float uy,
                                 float p, int b, __constant const float4* iface,
                                 __constant const float* layer_n, __global const float4* optics) {
@@ -294,18 +325,7 @@ inline float chain_inclusion_od(const Chain* ch, float x, float y, float zv, int
         const float sk = p / layer_n[k], ck = sqrt(fmax(0.0f, 1.0f - sk * sk));
         const float3 d = (float3)(sk * ux, sk * uy, up ? ck : -ck);
         const float len = ck > 0.0f ? fabs(IF_Z(i) - pos.z) / ck : 0.0f;
-        const float mut_k = optics[k * NB + b].w;
-        const float3 end = pos + len * d;
-        const int near = inclusions_near(optics, fmin(pos.x, end.x), fmax(pos.x, end.x), fmin(pos.y, end.y),
-                                         fmax(pos.y, end.y), fmin(pos.z, IF_Z(i)), fmax(pos.z, IF_Z(i)));
-        float done = 0.0f;
-        for (int guard = 0; guard < 2 * NINC + 2 && done < len && (near | inside); ++guard) {
-            int which = -1;
-            const float s = fmin(next_inclusion(optics, pos + done * d, d, inside, near, &which), len - done);
-            if (inside) od += (optics[material_of(k, inside) * NB + b].w - mut_k) * s;
-            done += s;
-            if (done < len && which >= 0) inside ^= 1 << which;
-        }
+        od += leg_inclusion_od(pos.x, pos.y, pos.z, d.x, d.y, d.z, len, k, &inside, b, optics);
         pos += len * d;
         pos.z = IF_Z(i);
         if (refl) up = !up;
@@ -405,6 +425,44 @@ inline float mnee_factor(const Trace* T, const Chain* ch, float2 shift, int b,
     return (float)G * T->F * exp(-(float)od) / ch->wsel;
 }
 
+#ifdef CHAIN_LEGS
+/* The factor by which inclusions and maps change the attenuation of a converged connection
+ * through the relief (trace T of chain ch) in band b: its legs from the vertex v (inclusion bits
+ * ch->inside) through the events' points T->pe, each a straight segment in its event's layer
+ * (between two interface points, or from the vertex to the first), by leg_inclusion_od and
+ * map_leg_factor as on flat layers (chain_inclusion_od, chain_map_factor). */
+inline float mnee_legs_factor(const Trace* T, const Chain* ch, real4 v, int b, Rng* rng,
+                              __constant const Params* P, __global const float4* optics) {
+    float px = (float)v.x, py = (float)v.y, pz = (float)v.z;
+    float F = 1.0f;
+#if NINC > 0
+    int inside = ch->inside;
+    float od = 0.0f;
+#endif
+    for (int e = 0; e < ch->ne; ++e) {
+        const int k = (ch->ev[e] >> 8) & 255;
+        const float4 q = T->pe[e];
+        const float ex = q.x - px, ey = q.y - py, ez = q.z - pz;
+        const float len = sqrt(ex * ex + ey * ey + ez * ez);
+        if (len > 0.0f) {
+            const float dx = ex / len, dy = ey / len, dz = ez / len;
+#if NINC > 0
+            od += leg_inclusion_od(px, py, pz, dx, dy, dz, len, k, &inside, b, optics);
+#endif
+#ifdef MAPS
+            const int first = map_first(optics, k);
+            if (first >= 0) F *= map_leg_factor(optics, k, b, first, px, py, dx, dy, len, P, rng);
+#endif
+        }
+        px = q.x; py = q.y; pz = q.z;
+    }
+#if NINC > 0
+    F *= exp(-od);
+#endif
+    return F;
+}
+#endif
+
 /* The connection through the height fields (mnee.h) from the flat seed: as connect(), with the
  * solver's outcome in *st. */
 inline float connect_mnee(Chain* ch, real4 v, int Ls, float4 lpos, float2 shift, int b,
@@ -495,7 +553,12 @@ inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 sh
     real sx = u0x, sy = u0y;
     const int have0 = mnee_solve(ch, v, Ls, &sx, &sy, l, P, iface, layer_n, smooth, &T, st);
     if (have0) {
+#ifdef CHAIN_LEGS
+        float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
+        if (f > 0.0f) f *= mnee_legs_factor(&T, ch, v, b, rng, P, optics);
+#else
         const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
+#endif
         if (f > 0.0f) c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz));
     }
     int ns = have0;
@@ -506,7 +569,12 @@ inline float connect_mnee_sms(Chain* ch, real4 v, int Ls, float4 lpos, float2 sh
         if (!sms_trial(ch, v, Ls, u0x, u0y, l, rng, P, iface, layer_n, smooth, &ax, &ay, &T, st)) continue;
         if (have0 && same_solution(ax, ay, sx, sy)) continue;
         ss->other++; ns++;
+#ifdef CHAIN_LEGS
+        float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
+        if (f > 0.0f) f *= mnee_legs_factor(&T, ch, v, b, rng, P, optics);
+#else
         const float f = mnee_factor(&T, ch, shift, b, P, optics, &dl);
+#endif
         if (!(f > 0.0f)) continue;
         const int n = sms_recurrence(ch, v, Ls, u0x, u0y, l, rng, ax, ay, P, iface, layer_n, smooth, st, ss);
         c += f * hg_eval(g, -dot(dl.xyz, wdir.xyz)) * (float)n / trials;
@@ -587,7 +655,13 @@ inline int pt_boundary(Track* t, int ev, float* beta, Rng* rng, VOLUME_ARGS,
             /* out through the relief: across the air to where the ray meets the skin again (the
              * radiance factors out and back in cancel) */
             t->pos += 1e-3f * t->dir;
+#if NINC > 0
+            if (!pt_enter(t, VOLUME_PASS, smooth, rng)) return 0;
+            t->inside = inclusion_mask(optics, t->pos);     /* back in somewhere else (photon.cl) */
+            return 1;
+#else
             return pt_enter(t, VOLUME_PASS, smooth, rng);
+#endif
         }
         if (L2 >= NL) return 0;
         *beta *= (n1 / n2) * (n1 / n2);
@@ -688,6 +762,9 @@ HOT float connect_light(const Track* t, float g, float3 lpos, int nimg, int b, R
     Chain ch;
     float c = 0.0f;
 #ifndef FLAT
+#if NINC > 0
+    ch.inside = t->inside;
+#endif
     real4 vr = R4((real)t->pos.x, (real)t->pos.y, (real)t->pos.z);
     int Ls = smooth_layer(P, iface, smooth, vr, t->L);
     if (Ls < 0) {
@@ -699,6 +776,9 @@ HOT float connect_light(const Track* t, float g, float3 lpos, int nimg, int b, R
         vr.z = f0.h - (real)1e-3;
         Ls = smooth_layer(P, iface, smooth, vr, 0);
         st->m_mis++;
+#if NINC > 0
+        ch.inside = inclusion_mask(optics, (float3)((float)vr.x, (float)vr.y, (float)vr.z));
+#endif
     }
     if (Ls >= 0 && chain_build(&ch, Ls, (float)vr.z, lpos.z, 1, -1, rng, iface, chain)) {
         for (int ix = -nimg; ix <= nimg; ++ix)
