@@ -11,8 +11,9 @@
   render's identity: tests/test_identity.py); an inclusion's material comes from the layers'
   chromophore spectra.
 * Bad input: one line naming the key and value, exit 2, before any work; a render of a scene
-  with inclusions is refused where a pass does not see them (the relief; the path tracer across
-  periodic sides).  PPM against the path tracer with a vessel: tests/test_inclusions_ppm.py.
+  with inclusions is refused where a pass does not see them (PPM on the relief; the path tracer
+  across periodic sides).  The path tracer through the relief: tests/test_pt_relief_heterogeneous.py;
+  PPM against the path tracer with a vessel: tests/test_inclusions_ppm.py.
 """
 from __future__ import annotations
 
@@ -419,9 +420,9 @@ def test_trace_prints_each_inclusion(tmp_path, capsys):
 
 
 def test_render_refused_where_a_pass_does_not_see_inclusions(tmp_path, capsys):
-    """PPM's gather pieces and the path tracer through the relief, and the path tracer across
-    periodic sides, do not see inclusions: one line naming the key, exit 2, no output; both
-    integrators render on flat layers."""
+    """PPM's gather pieces on the relief, and the path tracer across periodic sides, do not see
+    inclusions: one line naming the key, exit 2, no output; both integrators render on flat
+    layers, the path tracer through the relief too."""
     from clppm.checks.tiny import tiny_config
     raw = tomllib.loads(C.to_toml(tiny_config(size_mm=1.0)))
     raw["inclusion"] = [{"kind": "vessel", "center_mm": [0.5, 0.5], "depth_um": 150.0}]
@@ -429,8 +430,7 @@ def test_render_refused_where_a_pass_does_not_see_inclusions(tmp_path, capsys):
     periodic = {**flat, "model": {**flat["model"], "lateral": "periodic"}}
     out = tmp_path / "x.png"
     for scene_raw, extra, needles in [
-            (raw, [], ("relief.kind = 'generated'", "flat layers only")),
-            (raw, ["--integrator", "pt"], ("relief.kind = 'generated'", "flat layers only")),
+            (raw, [], ("relief.kind = 'generated'", "flat layers only", "--integrator pt")),
             (periodic, ["--integrator", "pt"], ("model.lateral = 'periodic'", "periodic sides"))]:
         p = tmp_path / "vessel.toml"
         p.write_text(raw_toml(scene_raw))
@@ -442,11 +442,12 @@ def test_render_refused_where_a_pass_does_not_see_inclusions(tmp_path, capsys):
     import clppm
     with pytest.raises(C.ConfigError, match=r"relief\.kind"):
         clppm.render(C.validate(raw, "vessel"))
-    p.write_text(raw_toml(flat))
-    for extra in (["--integrator", "pt"], []):
-        assert cli.main(["render", str(p), "-o", str(out), "-q", "--passes", "1", "--resolution", "4x3",
-                         "--force", *extra]) == 0
-        assert out.exists()
+    for scene_raw, integrators in ((flat, (["--integrator", "pt"], [])), (raw, (["--integrator", "pt"],))):
+        p.write_text(raw_toml(scene_raw))
+        for extra in integrators:
+            assert cli.main(["render", str(p), "-o", str(out), "-q", "--passes", "1", "--resolution", "4x3",
+                             "--force", *extra]) == 0
+            assert out.exists()
 
 
 def test_shipped_forearm_vein(tmp_path, capsys):

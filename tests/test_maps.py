@@ -14,8 +14,8 @@
 * The path tracer on flat layers (delta tracking on its walk, ratio tracking on its light
   connections' legs) against the photon pass's exit tally, through random maps in two layers.
 * Bad input: one line naming the key and value, exit 2, before any tracing; a render with maps is
-  refused where its passes do not see them (PPM; the path tracer on relief, periodic sides or
-  with inclusions).
+  refused where its passes do not see them (PPM; the path tracer across periodic sides or with
+  inclusions).  The path tracer through the relief: tests/test_pt_relief_heterogeneous.py.
 """
 from __future__ import annotations
 
@@ -345,9 +345,9 @@ def test_bad_map_one_line_exit_2(tmp_path, capsys, monkeypatch, maps, message):
 
 
 def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
-    """PPM (its eye pass and gathers) and the path tracer through the relief, across periodic
-    sides or with inclusions do not see maps: one line naming the key, exit 2, no output; the path
-    tracer on flat layers renders."""
+    """PPM (its eye pass and gathers), and the path tracer across periodic sides or with
+    inclusions, do not see maps: one line naming the key, exit 2, no output (PPM on the relief
+    too); the path tracer on flat layers and through the relief renders."""
     from clppm.checks.tiny import tiny_config
     raw = tomllib.loads(C.to_toml(tiny_config(size_mm=1.0)))
     the_map = {"layer": "basal", "quantity": "melanin", "kind": "constant", "value": 0.2}
@@ -363,7 +363,7 @@ def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
         p.write_text("\n".join(lines) + "\n")
     for scene_raw, inc, extra, needles in [
             (flat, (), [], ("map[0].layer = 'basal'", "--integrator pt")),
-            (raw, (), ["--integrator", "pt"], ("relief.kind = 'generated'", "flat layers only")),
+            (raw, (), [], ("map[0].layer = 'basal'", "--integrator pt")),
             (periodic, (), ["--integrator", "pt"], ("model.lateral = 'periodic'", "periodic sides")),
             (flat, vessel, ["--integrator", "pt"], ("inclusion[0].kind = 'vessel'", "maps and inclusions"))]:
         write(scene_raw, inc)
@@ -372,10 +372,11 @@ def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
         assert rc == 2 and len(err.splitlines()) == 1, err
         assert all(n in err for n in needles), err
         assert not out.exists()
-    write(flat)
-    assert cli.main(["render", str(p), "-o", str(out), "-q", "--integrator", "pt", "--passes", "1",
-                     "--resolution", "4x3"]) == 0
-    assert out.exists()
+    for scene_raw in (flat, raw):
+        write(scene_raw)
+        assert cli.main(["render", str(p), "-o", str(out), "-q", "--integrator", "pt", "--passes", "1",
+                         "--resolution", "4x3", "--force"]) == 0
+        assert out.exists()
 
 
 def test_set_item_and_toml_round_trip():

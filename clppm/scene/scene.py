@@ -125,22 +125,19 @@ def problems(cfg: dict, source: str = "<config>") -> list[ConfigError]:
 
 def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
     """Refuse to render a scene with ``[[map]]`` tables where the render would not see them: the
-    photon pass (clppm trace, clppm reflectance) and the path tracer on flat layers with open or
-    infinite sides and no inclusions trace the maps; PPM's eye pass and gathers do not yet, nor
-    the path tracer's connections through the relief, across periodic sides or through an
-    inclusion inside a mapped layer, and such an image would be wrong, not merely noisy."""
+    photon pass (clppm trace, clppm reflectance) and the path tracer, on flat layers and through
+    the relief (its walk by delta tracking, each leg of its light connections by ratio tracking),
+    with open or infinite sides and no inclusions, trace the maps; PPM's eye pass and gathers do
+    not yet, nor the path tracer's connections across periodic sides or through an inclusion
+    inside a mapped layer, and such an image would be wrong, not merely noisy."""
     maps = cfg.get("map") or []
     if not maps:
         return
     if integrator != "pt":
         raise ConfigError(source, "map[0].layer", maps[0]["layer"],
                           "chromophore maps are seen by the photon pass (clppm trace, clppm reflectance) and "
-                          "the path tracer (--integrator pt, flat layers) only so far; PPM's eye pass and "
-                          "gathers do not see them yet: render with --integrator pt or remove the [[map]] tables")
-    if cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0:
-        raise ConfigError(source, "relief.kind", cfg["relief"]["kind"],
-                          "the path tracer sees chromophore maps on flat layers only so far; give "
-                          "relief.kind = 'flat' and papillae.amplitude_um = 0, or remove the [[map]] tables")
+                          "the path tracer (--integrator pt) only so far; PPM's eye pass and gathers do not "
+                          "see them yet: render with --integrator pt or remove the [[map]] tables")
     if cfg["model"]["lateral"] == "periodic":
         raise ConfigError(source, "model.lateral", "periodic",
                           "the path tracer's connections across periodic sides do not see chromophore maps "
@@ -153,19 +150,20 @@ def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") ->
 
 def refuse_inclusions(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
     """Refuse to render a scene with ``[[inclusion]]`` tables where the render would not see
-    them: every pass sees them on flat layers (the photon pass, PPM's eye pass and gathers, the
-    path tracer); not the relief's layer-conforming gather pieces, nor the path tracer's
-    connections through the relief or across periodic sides, and such an image would be wrong,
-    not merely noisy."""
+    them: the photon pass sees them everywhere, PPM's eye pass and gathers on flat layers, the
+    path tracer (its walk and every leg of its light connections) on flat layers and through the
+    relief; not the relief's layer-conforming gather pieces (PPM on relief), nor the path
+    tracer's connections across periodic sides, and such an image would be wrong, not merely
+    noisy."""
     refuse_maps(cfg, source, integrator)
     inc = cfg.get("inclusion") or []
     if not inc:
         return
-    if cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0:
+    if integrator != "pt" and (cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0):
         raise ConfigError(source, "relief.kind", cfg["relief"]["kind"],
-                          "renders see inclusions on flat layers only so far (PPM's gather pieces and the "
-                          "path tracer's connections through the relief do not); give relief.kind = 'flat' "
-                          "and papillae.amplitude_um = 0, or remove the [[inclusion]] tables")
+                          "PPM sees inclusions on flat layers only so far (its gather pieces on the relief "
+                          "do not); render with --integrator pt, or give relief.kind = 'flat' and "
+                          "papillae.amplitude_um = 0, or remove the [[inclusion]] tables")
     if integrator == "pt" and cfg["model"]["lateral"] == "periodic":
         raise ConfigError(source, "model.lateral", "periodic",
                           "the path tracer's connections across periodic sides do not see inclusions "
