@@ -1089,6 +1089,9 @@ __kernel void t_mnee(VOLUME_ARGS, __constant const float* chain, __global const 
     rng_init(&rng, i, 0u, 6u, 12345u, 0u);
     Chain ch;
     if (!chain_build(&ch, Ls, (float)v.z, light.z, mode < 0, mode > 0 ? mode : -1, &rng, iface, chain)) return;
+#if NINC > 0
+    ch.inside = inclusion_mask(optics, (float3)(verts[i].x, verts[i].y, verts[i].z));
+#endif
     o[14] = 1;
     float4 dl;
     MneeStat ms;
