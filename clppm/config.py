@@ -738,10 +738,13 @@ def paper_mode(cfg: dict, source: str = "--paper") -> dict:
 
 
 def bands_per_path(cfg: dict) -> int:
-    """render.bands_per_path, with 0 resolved to the largest divisor of the band count <= 9."""
+    """render.bands_per_path, with 0 resolved to the largest divisor of the band count <= 9, or
+    to 1 with chromophore maps (kernels/maps.h: their delta tracking carries one band per path)."""
     C = int(cfg["render"]["bands_per_path"])
     if C:
         return C
+    if cfg.get("map"):
+        return 1
     nb = len(wavelengths(cfg))
     return max(d for d in range(1, min(nb, 9) + 1) if nb % d == 0)
 
