@@ -167,7 +167,8 @@ SCHEMA: dict[str, dict[str, F]] = {
                                    "(docs/method.md); 0: off"),
         "bands_per_path": F("int", 0, lo=0, hi=512,
                             doc="wavelength bands a photon path carries (hero wavelength sampling; "
-                                "must divide the number of bands); 0: the largest divisor up to 9"),
+                                "must divide the number of bands); 0: the largest divisor up to 9, 1 with [[map]] "
+                                "tables (maps are traced with one band per path; more is refused)"),
         "band_sampling": F("choice", "power", choices=("power", "visual"),
                            doc="the hero band's pdf: power (the light's spectrum, the paper) or "
                                "visual (light x CIE colour matching functions, with a floor)"),

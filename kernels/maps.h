@@ -25,7 +25,9 @@
  * number is drawn for the null decision: the same path and the same bits as without the map.
  *
  * The path tracer (flat layers) walks a mapped layer the same way, and each straight leg of a
- * light connection through one takes the layer's transmittance times map_leg_factor.
+ * light connection through one takes the layer's transmittance times map_leg_factor.  PPM's eye
+ * pass and beam gather (flat layers) split an eye ray's pieces at the columns' walls and take
+ * each piece's column's mu_t (the functions at the end of this file).
  *
  * One band per path (HERO_C = 1): the bands a path carries (spectral.h) would each need the
  * null-collision ratios of their own mu_a(x) at every tentative collision; the host builds map
