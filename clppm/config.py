@@ -167,7 +167,8 @@ SCHEMA: dict[str, dict[str, F]] = {
                                    "(docs/method.md); 0: off"),
         "bands_per_path": F("int", 0, lo=0, hi=512,
                             doc="wavelength bands a photon path carries (hero wavelength sampling; "
-                                "must divide the number of bands); 0: the largest divisor up to 9"),
+                                "must divide the number of bands); 0: the largest divisor up to 9, 1 with [[map]] "
+                                "tables (maps are traced with one band per path; more is refused)"),
         "band_sampling": F("choice", "power", choices=("power", "visual"),
                            doc="the hero band's pdf: power (the light's spectrum, the paper) or "
                                "visual (light x CIE colour matching functions, with a floor)"),
@@ -738,10 +739,13 @@ def paper_mode(cfg: dict, source: str = "--paper") -> dict:
 
 
 def bands_per_path(cfg: dict) -> int:
-    """render.bands_per_path, with 0 resolved to the largest divisor of the band count <= 9."""
+    """render.bands_per_path, with 0 resolved to the largest divisor of the band count <= 9, or
+    to 1 with chromophore maps (kernels/maps.h: their delta tracking carries one band per path)."""
     C = int(cfg["render"]["bands_per_path"])
     if C:
         return C
+    if cfg.get("map"):
+        return 1
     nb = len(wavelengths(cfg))
     return max(d for d in range(1, min(nb, 9) + 1) if nb % d == 0)
 

@@ -36,6 +36,14 @@
  * surface, so a piece lies in one material, the layer's or the inclusion's it is in, and records
  * that material (its extinction: the transmittance, the cut, scheme 1's rate); a sample point
  * records its layer (the layer estimator's photons and volume).
+ *
+ * Chromophore maps (maps.h, MAPS; flat layers only): in a layer whose map changes its mu_a a region
+ * also ends at the walls between the maps' columns, so a piece lies in one column too (maps.h
+ * says why crossings and not tracking); the transmittance and the cut run at mu_t = the layer's +
+ * delta of the column, the gathers find a piece's column at its midpoint (the beam's geometry).
+ * A wall is no region boundary for the points (mu_s and so S do not jump there): the cells cross
+ * it, an empty visit gets no point at it, and scheme 1 keeps the layer's own rate (the rate only
+ * places the points; their cells' pieces are integrated exactly at the column's extinction).
  */
 #include "common.h"
 #include "camera.h"
@@ -46,6 +54,12 @@
 #endif
 #ifndef FLAT
 #include "surface.h"
+#endif
+#ifdef MAPS
+#ifndef FLAT
+#error "eye.cl: chromophore maps on flat layers only"
+#endif
+#include "maps.h"
 #endif
 
 typedef struct {
@@ -66,7 +80,13 @@ typedef struct {
     float bx0, by0, bx1, by1;   /* wide beam footprint on z = 0 (specular only inside it) */
 } EyeParams;
 
+#ifdef MAPS
+/* pieces also end at the maps' column walls (a few per cell: the rays run near the normal); past
+ * MAXPEND pending pieces the rest joins the last one */
+#define MAXPEND (2 * NL + 4 + 16)
+#else
 #define MAXPEND (2 * NL + 4)
+#endif
 
 typedef struct {
     float pend_total;           /* path length since the last point */
@@ -80,6 +100,10 @@ typedef struct {
     int4 last_vox;
     int have_point;
     int split_ok;               /* the last point is in the current layer visit */
+#ifdef MAPS
+    int col;                    /* the maps' column of the path now added (-1: none) */
+    int pend_col[MAXPEND];      /* each pending piece's: pieces of two columns do not join */
+#endif
 } Emit;
 
 /* A piece of path of length len in layer L, from start along dir.  It joins the last pending
@@ -88,8 +112,18 @@ inline void pend_add(Emit* e, int L, float len, float3 start, float3 dir) {
     if (len <= 0.0f) return;
     e->pend_total += len;
     const int k = e->npend - 1;
+#ifdef MAPS
+    if (k >= 0 && e->pend_layer[k] == L && e->pend_col[k] == e->col && all(e->pend_dir[k] == dir)) {
+        e->pend_len[k] += len;
+        return;
+    }
+#else
     if (k >= 0 && e->pend_layer[k] == L && all(e->pend_dir[k] == dir)) { e->pend_len[k] += len; return; }
+#endif
     if (e->npend == MAXPEND) { e->pend_len[MAXPEND - 1] += len; return; }
+#ifdef MAPS
+    e->pend_col[e->npend] = e->col;
+#endif
     e->pend_len[e->npend] = len; e->pend_layer[e->npend] = L;
     e->pend_start[e->npend] = start; e->pend_dir[e->npend] = dir;
     e->npend++;
@@ -142,6 +176,9 @@ inline void flush_first(Emit* e, float D, __global float2* pieces, __global floa
     for (int j = k; j < e->npend; ++j, ++m) {
         e->pend_len[m] = e->pend_len[j]; e->pend_layer[m] = e->pend_layer[j];
         e->pend_start[m] = e->pend_start[j]; e->pend_dir[m] = e->pend_dir[j];
+#ifdef MAPS
+        e->pend_col[m] = e->pend_col[j];
+#endif
     }
     e->npend = m;
     e->pend_total -= D;
@@ -208,6 +245,9 @@ HOT void emit_init(Emit* e, uint pt_base, uint pc_base) {
     e->npts = 0; e->npcs = 0; e->npend = 0; e->have_point = 0; e->split_ok = 0; e->last_vox = (int4)(0); e->pend_total = 0.0f;
     e->pt_base = pt_base;
     e->pc_base = pc_base;
+#ifdef MAPS
+    e->col = -1;
+#endif
 }
 
 /* The specular highlight of the surface point the eye ray hit (t->pos, geometric normal gn, sn
@@ -270,6 +310,22 @@ HOT float threshold_cut(const float* od, int L, __constant const EyeParams* E, _
     }
     return never ? BIG : smax;
 }
+
+#ifdef MAPS
+/* threshold_cut in material m at the maps' column (ix, iy) (first: map_split_first's) */
+HOT float threshold_cut_map(const float* od, int m, int first, int ix, int iy, __constant const EyeParams* E,
+                            __global const float4* optics) {
+    float smax = 0.0f;
+    int never = 0;
+    for (int b = 0; b < NB; ++b) {
+        float mt = map_mut(optics, m, b, first, ix, iy);
+        float rem = E->od_cut - od[b];
+        if (mt <= 0.0f) { if (rem > 0.0f) never = 1; continue; }
+        smax = fmax(smax, rem / mt);
+    }
+    return never ? BIG : smax;
+}
+#endif
 
 /* Sample points along the eye ray's path seg through a region of layer L and material m (L
  * itself, or the inclusion the ray is in: inclusion.h), from t->pos at path length ell from the
@@ -461,11 +517,37 @@ __kernel void eye_pass(VOLUME_ARGS,
     nfac *= nfac;                       /* radiance n^2 law, (n_outside / n_layer)^2 */
     int visit_pts = 0;
     int guard = 0;
+#ifdef MAPS
+    int mcx = 0, mcy = 0;               /* the maps' column the ray is in */
+    int walled = 0;                     /* the last region ended at a column wall (mcx, mcy tracked) */
+#endif
     while (++guard < 1000000) {
         int ev;
         const int L = t.L;
         float db = next_boundary(&t, P, iface, heights, BIG, &ev);
         if (ev == EV_NONE) db = E->max_len;
+#ifdef MAPS
+        /* a mapped layer (outside the inclusions): the region ends at the next column wall too.
+         * The column is found from the position at a region's start, except just past a wall
+         * (there the position lies on the wall: the crossing's index is kept instead) */
+        if (!walled) {
+            const int2 c = map_column(optics, t.pos.x, t.pos.y, P);
+            mcx = c.x; mcy = c.y;
+        }
+        walled = 0;
+#if NINC > 0
+        const int mfirst = map_split_first(optics, MATERIAL(&t));
+#else
+        const int mfirst = map_split_first(optics, L);
+#endif
+        int at_wall = 0, wall_axis = 0;
+        if (mfirst >= 0) {
+            const float dw = map_wall(optics, t.pos.x, t.pos.y, t.dir.x, t.dir.y, mcx, mcy, &wall_axis, P);
+            if (dw < db) { db = dw; ev = EV_ZONE; at_wall = 1; }
+        }
+        if (at_wall && ell + db > E->max_len) { at_wall = 0; ev = EV_NONE; }      /* the ray ends first */
+        e.col = mfirst >= 0 ? mcy * as_int(optics[MAP_BASE].z) + mcx : -1;
+#endif
 #if NINC > 0
         /* the region ends at an inclusion's surface too (as the photon pass's flights): inside
          * one the ray's pieces and points take its material, its extinction and its rate */
@@ -478,15 +560,36 @@ __kernel void eye_pass(VOLUME_ARGS,
         const int m = L;
 #endif
         /* where the most transparent band falls below the threshold inside this region */
+#ifdef MAPS
+        float s_cut = threshold_cut_map(od, m, mfirst, mcx, mcy, E, optics);
+#else
         float s_cut = threshold_cut(od, m, E, optics);
+#endif
         if (ell + db > E->max_len) { db = fmax(0.0f, E->max_len - ell); s_cut = fmin(s_cut, db); }
         const float seg = fmin(db, fmax(s_cut, 0.0f));
         visit_pts += sample_points(&e, &t, L, m, seg, ell, tw * nfac, &next_eq, &rng, E, rate, P, iface, heights,
                                    pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab, write);
+#ifdef MAPS
+        for (int b = 0; b < NB; ++b) od[b] += map_mut(optics, m, b, mfirst, mcx, mcy) * seg;
+#else
         for (int b = 0; b < NB; ++b) od[b] += optics[m * NB + b].w * seg;
+#endif
         if (seg < db || ev == EV_NONE) break;           /* cut by the threshold */
         t.pos += db * t.dir;
         ell += db;
+#ifdef MAPS
+        if (at_wall
+#if NINC > 0
+            && !at_inc
+#endif
+           ) {
+            /* into the next column: no region boundary for the points (the cells go on) */
+            if (wall_axis == 0) mcx += t.dir.x > 0.0f ? 1 : -1;
+            else mcy += t.dir.y > 0.0f ? 1 : -1;
+            walled = 1;
+            continue;
+        }
+#endif
 #if NINC > 0
         if (at_inc) {
             /* into or out of inclusion inc: a region boundary like a layer's (S jumps with mu_s

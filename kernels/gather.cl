@@ -67,6 +67,23 @@
 #define INC_ARGS(...)
 #endif
 
+/* Chromophore maps (maps.h, MAPS; flat layers, the beam estimator).  An eye-ray piece in a mapped
+ * layer lies in one of the maps' columns (eye.cl ends it at their walls), so its extinction is
+ * mu_t = the layer's + delta of its column (found at the piece's midpoint) in every band:
+ * the transmittance to each photon's depth and the optical depth on past the piece.  A stored
+ * photon of a mapped layer needs nothing more: the maps change mu_a only, and the photon pass's
+ * delta tracking stores a real scattering event with the weight left after the absorbed fractions
+ * mu_a(x)/mu_maj of its tentative collisions, whose density is the medium's own mu_s L (maps.h),
+ * as a uniform layer's events are; the estimate reads mu_s(x) int f L, and mu_s is the layer's.
+ * The photons carry one band each (HERO_C = 1): the band math runs lane by lane (no BAND16).
+ * The sphere estimators' pieces have no geometry to find a column by: the beam's only. */
+#ifdef MAPS
+#if !defined(FLAT) || ESTIMATOR != 3
+#error "gather.cl: chromophore maps with the beam estimator on flat layers only"
+#endif
+#include "maps.h"
+#endif
+
 #if NINC > 0
 HOT int photon_material(__global const float4* optics, float3 p, int L, int near) {
     const int in = near ? inclusion_mask_of(optics, p, near) : 0;
@@ -558,7 +575,11 @@ HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __glob
 HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
                         __global const float4* hg, __global const float* sextra, uint j, int c,
                         int k, int b, float wk, float cw, float wax, float wl, float wwin, float ts
+#ifdef MAPS
+                        INC_ARGS(float wsc), const float* mtk) {
+#else
                         INC_ARGS(float wsc)) {
+#endif
 #if NINC > 0
     const float w = (c == 0 ? wk : sextra[(size_t)j * (HERO_C - 1) + c - 1] * wax * wl * wwin) * wsc;
 #else
@@ -571,14 +592,22 @@ HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4*
 #else
     const float rq = native_rsqrt(q);
 #endif
+#ifdef MAPS
+    const float T = exp_neg(od->v[k] + mtk[k] * ts);      /* the piece's column's mu_t (gather_point) */
+#else
     const float T = exp_neg(od->v[k] + mut_k[b].w * ts);
+#endif
     acc->v[k] = add_sat(acc->v[k], (long)fmin(hq.z * rq * rq * rq * w * T * FIX, 9.0e18f));
 }
 
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
                          __global const float4* hgtab, __global const float* sextra, uint j,
                          float4 p, int bl, int g, float cw, float wax, const BeamHit* h
+#ifdef MAPS
+                         INC_ARGS(__global const float4* optics, int mp), const float* mtk) {
+#else
                          INC_ARGS(__global const float4* optics, int mp)) {
+#endif
     const float wl = h->wl, wwin = h->wwin, ts = h->ts;
     const float wk = p.w * wax * wl * wwin;
     __global const float4* hg = hgtab + (bl >> 8) * NB;           /* its material (gather_piece) */
@@ -589,7 +618,11 @@ HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, __global const float4
 #if NINC > 0
         const float wsc = mp != (bl >> 8) ? mus_ratio(optics, bl >> 8, mp, g + GCLASS * k) : 1.0f;
 #endif
+#ifdef MAPS
+        beam_band_term(acc, od, mut_k, hg, sextra, j, c, k, g + GCLASS * k, wk, cw, wax, wl, wwin, ts INC_ARGS(wsc), mtk);
+#else
         beam_band_term(acc, od, mut_k, hg, sextra, j, c, k, g + GCLASS * k, wk, cw, wax, wl, wwin, ts INC_ARGS(wsc));
+#endif
     }
 #else
     for (int c = 0; c < HERO_C; ++c) {     /* the bands the photon carries */
@@ -597,7 +630,11 @@ HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, __global const float4
 #if NINC > 0
         const float wsc = mp != (bl >> 8) ? mus_ratio(optics, bl >> 8, mp, b) : 1.0f;
 #endif
+#ifdef MAPS
+        beam_band_term(acc, od, mut_k, hg, sextra, j, c, b / GCLASS, b, wk, cw, wax, wl, wwin, ts INC_ARGS(wsc), mtk);
+#else
         beam_band_term(acc, od, mut_k, hg, sextra, j, c, b / GCLASS, b, wk, cw, wax, wl, wwin, ts INC_ARGS(wsc));
+#endif
     }
 #endif
 }
@@ -613,7 +650,11 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
                       __global const float4* hgtab, __global const float4* optics,
                       __global const float16* hgc, __global const float16* mutc,
                       __global const float16* sw16, const BeamPiece* pc, float R, float R2,
+#ifdef MAPS
+                      float Rwin, int g, const ClassOd* od, ClassAcc* acc, const float* mtk) {
+#else
                       float Rwin, int g, const ClassOd* od, ClassAcc* acc) {
+#endif
     uint M = 0;
     const BeamBox bx = beam_box(gp, vlay, iface, pc, R);
     __global const float4* mut_k = optics + pc->Lk * NB;          /* the piece's material */
@@ -664,13 +705,21 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
                 beam_pair_bands(acc, od, mut16, hgc, sw16, j, (mat << 8) | (bl & 255), g, cw, pc->wax, &h, wsc);
 #else
                 beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, (mat << 8) | (bl & 255), g, cw, pc->wax, &h,
+#ifdef MAPS
+                                optics, mp, mtk);
+#else
                                 optics, mp);
+#endif
 #endif
 #else
 #ifdef BAND16
                 beam_pair_bands(acc, od, mut16, hgc, sw16, j, bl, g, cw, pc->wax, &h);
 #else
+#ifdef MAPS
+                beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, g, cw, pc->wax, &h, mtk);
+#else
                 beam_pair_bands(acc, od, mut_k, hgtab, sextra, j, p, bl, g, cw, pc->wax, &h);
+#endif
 #endif
 #endif
                 ++M;
@@ -679,6 +728,20 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
     }
     return M;
 }
+
+#ifdef MAPS
+/* mtk[k]: mu_t of band g + GCLASS k of the piece's material at its column (its midpoint's; the
+ * layer's own outside the mapped layers and where the map leaves its mu_a: + 0) */
+HOT void map_piece_mut(float* mtk, __global const float4* optics, const BeamPiece* pc, int g,
+                       __constant const Params* P) {
+    const int first = map_first(optics, pc->Lk);
+    const float x = pc->s0.x + 0.5f * pc->len * pc->d.x, y = pc->s0.y + 0.5f * pc->len * pc->d.y;
+    for (int k = 0; k < NBC; ++k) {
+        const int b = g + GCLASS * k;
+        mtk[k] = optics[pc->Lk * NB + b].w + (first >= 0 ? map_delta(optics, pc->Lk, b, first, x, y, P) : 0.0f);
+    }
+}
+#endif
 
 /* A point's pieces, each gathered over (gather_piece) with the ray's optical depth at its start;
  * the depth runs on through them.  Returns the pairs found. */
@@ -698,14 +761,26 @@ HOT uint gather_point(const GridParams gp, __constant const Params* P, __constan
     uint M = 0;
     for (uint k = k0; k < k1; ++k) {
         BeamPiece pc = beam_piece_at(geo, k);
+#ifdef MAPS
+        float mtk[NBC];
+        map_piece_mut(mtk, optics, &pc, g, P);
+#endif
         if (R > 0.0f && pc.len > 0.0f) {
             const float4 pslab_k = pslab[k];
             beam_axis(&pc);
             beam_frame(&pc, pslab_k);
             M += gather_piece(gp, P, iface, vlay, cell_start, cls0, spos_w, sdir_b, sslab, sextra,
+#ifdef MAPS
+                              hgtab, optics, hgc, mutc, sw16, &pc, R, R2, Rwin, g, od, acc, mtk);
+#else
                               hgtab, optics, hgc, mutc, sw16, &pc, R, R2, Rwin, g, od, acc);
+#endif
         }
+#ifdef MAPS
+        for (int kk = 0; kk < NBC; ++kk) od->v[kk] += mtk[kk] * pc.len;
+#else
         class_od_advance(od, optics, mutc, pc.Lk, g, pc.len);
+#endif
     }
     return M;
 }

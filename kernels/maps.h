@@ -25,7 +25,9 @@
  * number is drawn for the null decision: the same path and the same bits as without the map.
  *
  * The path tracer (flat layers) walks a mapped layer the same way, and each straight leg of a
- * light connection through one takes the layer's transmittance times map_leg_factor.
+ * light connection through one takes the layer's transmittance times map_leg_factor.  PPM's eye
+ * pass and beam gather (flat layers) split an eye ray's pieces at the columns' walls and take
+ * each piece's column's mu_t (the functions at the end of this file).
  *
  * One band per path (HERO_C = 1): the bands a path carries (spectral.h) would each need the
  * null-collision ratios of their own mu_a(x) at every tentative collision; the host builds map
@@ -103,6 +105,63 @@ HOT float map_leg_factor(__global const float4* optics, int L, int b, int first,
     for (float s = neg_log_u01(rng_u01(rng)) / R; s < len && T > 0.0f; s += neg_log_u01(rng_u01(rng)) / R)
         T *= fmax(0.0f, 1.0f - (map_delta(optics, L, b, first, x + s * dx, y + s * dy, P) - dmin) / R);
     return T;
+}
+
+/* ---- PPM's eye pass and gathers (flat layers; eye.cl, gather.cl).  The columns are piecewise
+ * constant (map_delta's floor), so an eye-ray piece in a mapped layer ends at the walls between
+ * columns (exact crossings, as at an inclusion's surface) and lies in one column; the gathers
+ * find its column at its midpoint and take mu_t = the layer's + delta there in every band the
+ * eye path carries.  Why crossings here and delta tracking in the photon pass: an eye ray in
+ * the skin runs within a few degrees of the normal (refracted at the surface), so it crosses a
+ * wall every ~50 um of path and a layer visit a few at most, and each piece's transmittance stays
+ * one exponential per band: the gathers' exact integral of T over a point's cell needs no
+ * estimate of it (ratio tracking would make T noisy in all 81 bands of every point). */
+
+/* the first column row of material m's map where its columns change its mu_a in some band, -1
+ * if m is not a mapped layer or its map is uniform at its own values (dmin = dmax = 0 in every
+ * band: delta is 0, the eye pass splits nothing and a piece's mu_t is the layer's, bit for bit) */
+HOT int map_split_first(__global const float4* optics, int m) {
+    const int first = map_first(optics, m);
+    if (first < 0) return -1;
+    for (int b = 0; b < NB; ++b)
+        if (optics[MAP_BAND(m, b)].w != 0.0f || optics[MAP_BAND(m, b) + 2].x != 0.0f) return first;
+    return -1;
+}
+
+/* the column (ix, iy) of (x, y), as map_delta finds it (beyond the footprint: the edge column) */
+HOT int2 map_column(__global const float4* optics, float x, float y, __constant const Params* P) {
+    const float4 g = optics[MAP_BASE];
+    const int nx = as_int(g.z), ny = as_int(g.w);
+    return (int2)(clamp((int)floor((x - P->x0) / g.x), 0, nx - 1), clamp((int)floor((y - P->y0) / g.y), 0, ny - 1));
+}
+
+/* delta (map_delta's) at column (ix, iy) of mapped layer L (columns from row first), band b */
+HOT float map_delta_col(__global const float4* optics, int L, int b, int first, int ix, int iy) {
+    const int nx = as_int(optics[MAP_BASE].z);
+    const float4 c = optics[MAP_COLS + first + iy * nx + ix];
+    const float4 own = optics[MAP_BASE + 1 + L];
+    const float4 r1 = optics[MAP_BAND(L, b) + 1];
+    return (c.x - own.x) * r1.y + (c.y - own.y) * r1.z + (c.z - own.z) * r1.w;
+}
+
+/* The path length from (x, y) in column (ix, iy) along (dx, dy) to the next wall between two
+ * columns (BIG where none is ahead: an edge column extends outwards), *axis its axis (0: x). */
+HOT float map_wall(__global const float4* optics, float x, float y, float dx, float dy, int ix, int iy, int* axis,
+                   __constant const Params* P) {
+    const float4 g = optics[MAP_BASE];
+    const int nx = as_int(g.z), ny = as_int(g.w);
+    float sx = BIG, sy = BIG;
+    if (dx > 0.0f && ix + 1 < nx) sx = (P->x0 + (float)(ix + 1) * g.x - x) / dx;
+    else if (dx < 0.0f && ix > 0) sx = (P->x0 + (float)ix * g.x - x) / dx;
+    if (dy > 0.0f && iy + 1 < ny) sy = (P->y0 + (float)(iy + 1) * g.y - y) / dy;
+    else if (dy < 0.0f && iy > 0) sy = (P->y0 + (float)iy * g.y - y) / dy;
+    *axis = sy < sx;
+    return fmax(fmin(sx, sy), 0.0f);
+}
+
+/* mu_t of material m in band b at column (ix, iy) (first: map_split_first's, -1: m's own) */
+HOT float map_mut(__global const float4* optics, int m, int b, int first, int ix, int iy) {
+    return optics[m * NB + b].w + (first >= 0 ? map_delta_col(optics, m, b, first, ix, iy) : 0.0f);
 }
 #endif
 

@@ -14,8 +14,9 @@
 * The path tracer on flat layers (delta tracking on its walk, ratio tracking on its light
   connections' legs) against the photon pass's exit tally, through random maps in two layers.
 * Bad input: one line naming the key and value, exit 2, before any tracing; a render with maps is
-  refused where its passes do not see them (PPM; the path tracer across periodic sides or with
-  inclusions).  The path tracer through the relief: tests/test_pt_relief_heterogeneous.py.
+  refused where its passes do not see them (PPM on the relief, periodic sides; the path tracer
+  with inclusions; PPM's cases: tests/test_maps_ppm.py).  The path tracer through the relief:
+  tests/test_pt_relief_heterogeneous.py.
 """
 from __future__ import annotations
 
@@ -345,9 +346,10 @@ def test_bad_map_one_line_exit_2(tmp_path, capsys, monkeypatch, maps, message):
 
 
 def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
-    """PPM (its eye pass and gathers), and the path tracer across periodic sides or with
-    inclusions, do not see maps: one line naming the key, exit 2, no output (PPM on the relief
-    too); the path tracer on flat layers and through the relief renders."""
+    """PPM on the relief, and the path tracer across periodic sides or with inclusions, do not
+    see maps: one line naming the key, exit 2, no output; the path tracer on flat layers and
+    through the relief, and PPM on flat layers, render (PPM's other refusals:
+    tests/test_maps_ppm.py)."""
     from clppm.checks.tiny import tiny_config
     raw = tomllib.loads(C.to_toml(tiny_config(size_mm=1.0)))
     the_map = {"layer": "basal", "quantity": "melanin", "kind": "constant", "value": 0.2}
@@ -362,8 +364,7 @@ def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
         lines += [f"{k} = {C.toml_value(v)}" for k, v in the_map.items()]
         p.write_text("\n".join(lines) + "\n")
     for scene_raw, inc, extra, needles in [
-            (flat, (), [], ("map[0].layer = 'basal'", "--integrator pt")),
-            (raw, (), [], ("map[0].layer = 'basal'", "--integrator pt")),
+            (raw, (), [], ("relief.kind = 'generated'", "--integrator pt")),
             (periodic, (), ["--integrator", "pt"], ("model.lateral = 'periodic'", "periodic sides")),
             (flat, vessel, ["--integrator", "pt"], ("inclusion[0].kind = 'vessel'", "maps and inclusions"))]:
         write(scene_raw, inc)
@@ -372,10 +373,11 @@ def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
         assert rc == 2 and len(err.splitlines()) == 1, err
         assert all(n in err for n in needles), err
         assert not out.exists()
-    for scene_raw in (flat, raw):
+    for scene_raw, extra in ((flat, ["--integrator", "pt"]), (raw, ["--integrator", "pt"]),
+                             (flat, ["--photons", "20000"])):
         write(scene_raw)
-        assert cli.main(["render", str(p), "-o", str(out), "-q", "--integrator", "pt", "--passes", "1",
-                         "--resolution", "4x3", "--force"]) == 0
+        assert cli.main(["render", str(p), "-o", str(out), "-q", "--passes", "1", "--resolution", "4x3",
+                         "--force", *extra]) == 0
         assert out.exists()
 
 
@@ -387,7 +389,8 @@ def test_set_item_and_toml_round_trip():
 def test_shipped_forearm_freckles(tmp_path, capsys):
     """configs/forearm_freckles.toml is configs/forearm_vein.toml with its three ellipsoid
     freckles made a melanin map of the basal layer (five spots), the vein kept; clppm trace
-    traces it (energy balanced), a render refuses it in one line."""
+    traces it (energy balanced); PPM renders it (tests/test_maps_ppm.py), the path tracer (maps
+    and inclusions) and clppm reflectance --methods refuse it in one line."""
     fr, vein = C.load("forearm_freckles"), C.load("forearm_vein")
     assert [i["kind"] for i in fr["inclusion"]] == ["vessel"] and fr["inclusion"][0] == vein["inclusion"][0]
     assert [(m["layer"], m["quantity"], m["kind"], len(m["spots"])) for m in fr["map"]] == [("basal", "melanin", "spots", 5)]
@@ -399,11 +402,10 @@ def test_shipped_forearm_freckles(tmp_path, capsys):
     rep = json.loads(js.read_text())
     assert rep["energy_balance_error"] == 0.0 and rep["absorbed_per_inclusion"]["inclusion[0]"] > 0
     capsys.readouterr()
-    assert cli.main(["render", "forearm_freckles", "-o", str(tmp_path / "f.png"), "-q"]) == 2
-    assert "map[0].layer = 'basal'" in capsys.readouterr().err
     assert cli.main(["render", "forearm_freckles", "-o", str(tmp_path / "f.png"), "-q", "--integrator", "pt"]) == 2
     assert "maps and inclusions" in capsys.readouterr().err
-    # clppm reflectance's photon pass sees the maps; its --methods renders (PPM) are refused first
+    # clppm reflectance's photon pass sees the maps; its --methods renders (PPM) are refused first:
+    # not validated with maps
     assert cli.main(["reflectance", "forearm_freckles", "--methods", "e", "--no-nist"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "map[0].layer = 'basal'" in err, err

@@ -124,28 +124,45 @@ def problems(cfg: dict, source: str = "<config>") -> list[ConfigError]:
 
 
 def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
-    """Refuse to render a scene with ``[[map]]`` tables where the render would not see them: the
-    photon pass (clppm trace, clppm reflectance) and the path tracer, on flat layers and through
-    the relief (its walk by delta tracking, each leg of its light connections by ratio tracking),
-    with open or infinite sides and no inclusions, trace the maps; PPM's eye pass and gathers do
-    not yet, nor the path tracer's connections across periodic sides or through an inclusion
-    inside a mapped layer, and such an image would be wrong, not merely noisy."""
+    """Refuse to render a scene with ``[[map]]`` tables where the render would not see them, and
+    such an image would be wrong, not merely noisy.  The photon pass (clppm trace, clppm
+    reflectance) traces maps on every model.  The path tracer renders them on flat layers and
+    through the relief (its walk by delta tracking, each leg of its light connections by ratio
+    tracking), without inclusions.  PPM renders them on flat layers, with or without inclusions,
+    with the beam estimator (its eye pieces end at the maps' column walls and its gathers take
+    each piece's column's extinction, kernels/maps.h) and one band per photon path.  Refused: PPM
+    on the relief, its sphere estimators (their pieces have no geometry to find a column by) and
+    more than one band per path; periodic sides (both); the path tracer's light connections
+    through an inclusion inside a mapped layer."""
     maps = cfg.get("map") or []
     if not maps:
         return
-    if integrator != "pt":
-        raise ConfigError(source, "map[0].layer", maps[0]["layer"],
-                          "chromophore maps are seen by the photon pass (clppm trace, clppm reflectance) and "
-                          "the path tracer (--integrator pt) only so far; PPM's eye pass and gathers do not "
-                          "see them yet: render with --integrator pt or remove the [[map]] tables")
+    if integrator != "pt" and (cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0):
+        raise ConfigError(source, "relief.kind", cfg["relief"]["kind"],
+                          "PPM sees chromophore maps on flat layers only so far; give relief.kind = 'flat' "
+                          "and papillae.amplitude_um = 0, render with --integrator pt, or remove the [[map]] "
+                          "tables")
     if cfg["model"]["lateral"] == "periodic":
         raise ConfigError(source, "model.lateral", "periodic",
-                          "the path tracer's connections across periodic sides do not see chromophore maps "
-                          "yet; give model.lateral = 'open' or 'infinite', or remove the [[map]] tables")
+                          "renders across periodic sides do not see chromophore maps yet (not validated); give "
+                          "model.lateral = 'open' or 'infinite', or remove the [[map]] tables")
+    if integrator != "pt":
+        rs = cfg["render"]
+        if rs["estimator"] != "beam":
+            raise ConfigError(source, "render.estimator", rs["estimator"],
+                              "PPM sees chromophore maps with the beam estimator only (the sphere estimators' "
+                              "eye pieces have no geometry to find a map column by); give render.estimator = "
+                              "'beam' (not --paper), render with --integrator pt, or remove the [[map]] tables")
+        if int(rs["bands_per_path"]) > 1:
+            raise ConfigError(source, "render.bands_per_path", rs["bands_per_path"],
+                              "chromophore maps are traced with one band per photon path; give "
+                              "render.bands_per_path = 1 or 0 (auto), or remove the [[map]] tables")
+        return
     if cfg.get("inclusion"):
         raise ConfigError(source, "inclusion[0].kind", cfg["inclusion"][0]["kind"],
                           "the path tracer's light connections do not yet see chromophore maps and inclusions "
-                          "together; trace the scene (clppm trace) or remove the [[inclusion]] or [[map]] tables")
+                          "together; render with PPM, trace the scene (clppm trace), or remove the "
+                          "[[inclusion]] or [[map]] tables")
 
 
 def refuse_inclusions(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
