@@ -180,7 +180,7 @@ def test_render_refused_where_ppm_does_not_see_maps(tmp_path, capsys):
     infinite sides: the relief, the sphere estimators (--paper), bands_per_path > 1 and periodic
     sides are refused in one line naming the key, exit 2, no output."""
     from clppm.checks.tiny import tiny_config
-    from test_inclusions import _toml
+    from slab_mc import raw_toml
     raw = tomllib.loads(C.to_toml(tiny_config(size_mm=1.0)))
     flat = {**raw, "relief": {"kind": "flat"}, "papillae": {"amplitude_um": 0.0}}
     periodic = {**flat, "model": {**flat["model"], "lateral": "periodic"}}
@@ -192,7 +192,7 @@ def test_render_refused_where_ppm_does_not_see_maps(tmp_path, capsys):
             (flat, ["--estimator", "layer"], ("render.estimator = 'layer'", "beam estimator")),
             (flat, ["--paper"], ("render.estimator = 'sphere'", "beam estimator")),
             (flat, ["--bands-per-path", "11"], ("render.bands_per_path = 11", "one band per photon path"))]:
-        p.write_text(_toml(scene_raw) + '\n[[map]]\nlayer = "basal"\nquantity = "melanin"\nkind = "constant"\n'
+        p.write_text(raw_toml(scene_raw) + '\n[[map]]\nlayer = "basal"\nquantity = "melanin"\nkind = "constant"\n'
                      'value = 0.2\n')
         rc = cli.main(["render", str(p), "-o", str(out), "-q", *extra])
         err = capsys.readouterr().err.strip()
