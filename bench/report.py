@@ -276,6 +276,23 @@ def job_scenes(ctx: Context, run: Runner) -> Result:
                   images={run.path("scenes.png"): "docs/img/scenes.png"})
 
 
+def job_freckles(ctx: Context, run: Runner) -> Result:
+    """The shipped example of chromophore maps and inclusions (configs/forearm_freckles.toml: a
+    vein and five freckles) beside the same flat forearm without them, at the README render's
+    size and budget."""
+    pngs = []
+    for scene in ("forearm_flat", "forearm_freckles"):
+        rep, _ = run.render(scene, os.path.join(ROOT, "configs", f"{scene}.toml"), *readme_args(ctx))
+        pngs.append(run.path(f"{scene}.png"))
+    side_by_side(pngs, ["forearm_flat", "forearm_freckles: a vein, five freckles"], run.path("freckles.png"))
+    res = "x".join(str(v) for v in rep["config"]["camera"]["resolution"])
+    note = (f"Both {res}, default mode, {rep['passes_done']} passes; the maps' render traces one band "
+            f"per photon path ({rep['stored_per_pass']:,} stored photons per pass), the plain one carries 9.")
+    return Result(blocks={"freckles": img_md("the flat forearm, and with a vein and five freckles",
+                                             "docs/img/freckles.png") + "\n\n" + note},
+                  images={run.path("freckles.png"): "docs/img/freckles.png"})
+
+
 def ref_paths(ctx: Context) -> str:
     """Path-tracer reference paths per 10x10-pixel square and half, shared by speed and bias
     (computed once into out/cache: the full run's takes about half an hour on 2 cores)."""
@@ -613,6 +630,7 @@ def job_surface(ctx: Context, run: Runner) -> Result:
 JOBS = [
     Job("readme", "the README's picture and its first command's time; the render's time split", job_readme),
     Job("scenes", "forearm and cheek side by side", job_scenes),
+    Job("freckles", "the shipped example of maps and inclusions beside the plain flat forearm", job_freckles),
     Job("methods", "the six methods a-f at equal render time", job_methods),
     Job("modes", "the default against paper mode at equal time, and the path tracer", job_modes),
     Job("speed", "error against render seconds on the relief forearm at 80x60", job_speed),
