@@ -40,11 +40,6 @@
 #include "beam.h"
 #include "inclusion.h"
 
-#if NINC > 0 && !defined(FLAT)
-/* an eye-ray piece's record holds its material (the layer's or an inclusion's), which the
- * layer-conforming depth of a relief's pieces would read as its layer */
-#error "gather.cl: inclusions on flat layers only"
-#endif
 
 /* Inclusions (inclusion.h).  A photon stored in material m' estimates there the in-scattered
  * radiance mu_s(m') int f_m'(w . w') L(w') dw' (its weight carries m''s albedo, spectral.h; the

@@ -167,20 +167,16 @@ def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") ->
 
 def refuse_inclusions(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
     """Refuse to render a scene with ``[[inclusion]]`` tables where the render would not see
-    them: the photon pass sees them everywhere, PPM's eye pass and gathers on flat layers, the
-    path tracer (its walk and every leg of its light connections) on flat layers and through the
-    relief; not the relief's layer-conforming gather pieces (PPM on relief), nor the path
-    tracer's connections across periodic sides, and such an image would be wrong, not merely
-    noisy."""
+    them: the photon pass sees them everywhere; PPM's eye pass and gathers on flat layers and on
+    the relief (its eye pieces end at an inclusion's wall and record their material for the
+    extinction and the mu_s ratio beside their layer for the layer-conforming depth: kernels/eye.cl,
+    beam.h); the path tracer (its walk and every leg of its light connections) on flat layers
+    and through the relief.  Refused: the path tracer's connections across periodic sides, where
+    such an image would be wrong, not merely noisy."""
     refuse_maps(cfg, source, integrator)
     inc = cfg.get("inclusion") or []
     if not inc:
         return
-    if integrator != "pt" and (cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0):
-        raise ConfigError(source, "relief.kind", cfg["relief"]["kind"],
-                          "PPM sees inclusions on flat layers only so far (its gather pieces on the relief "
-                          "do not); render with --integrator pt, or give relief.kind = 'flat' and "
-                          "papillae.amplitude_um = 0, or remove the [[inclusion]] tables")
     if integrator == "pt" and cfg["model"]["lateral"] == "periodic":
         raise ConfigError(source, "model.lateral", "periodic",
                           "the path tracer's connections across periodic sides do not see inclusions "
