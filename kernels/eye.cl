@@ -32,12 +32,14 @@
  * fallback point no weight).  The cell is stored as pieces (length, material) so the gather kernel
  * evaluates the integral per band exactly (no 81 floats per point).
  *
- * Inclusions (inclusion.h, NINC > 0; flat layers only): a region also ends at an inclusion's
- * surface, so a piece lies in one material, the layer's or the inclusion's it is in, and records
- * that material (its extinction: the transmittance, the cut, scheme 1's rate); a sample point
- * records its layer (the layer estimator's photons and volume).
+ * Inclusions (inclusion.h, NINC > 0; flat layers and the relief): a region also ends at an
+ * inclusion's surface, so a piece lies in one material, the layer's or the inclusion's it is in,
+ * and records that material (its extinction: the transmittance, the cut, scheme 1's rate); a
+ * sample point records its layer (the layer estimator's photons and volume).  On the relief a
+ * piece's record is material + 256 layer (geo; pieces keep the material): the beam gather
+ * measures its depth in its layer's own coordinates, which an inclusion's index would misread.
  *
- * Chromophore maps (maps.h, MAPS; flat layers only): in a layer whose map changes its mu_a a region
+ * Chromophore maps (maps.h, MAPS; flat layers and the relief): in a layer whose map changes its mu_a a region
  * also ends at the walls between the maps' columns, so a piece lies in one column too (maps.h
  * says why crossings and not tracking); the transmittance and the cut run at mu_t = the layer's +
  * delta of the column, the gathers find a piece's column at its midpoint (the beam's geometry).
@@ -52,9 +54,6 @@
 #include "surface.h"
 #endif
 #ifdef MAPS
-#ifndef FLAT
-#error "eye.cl: chromophore maps on flat layers only"
-#endif
 #include "maps.h"
 #endif
 
