@@ -80,6 +80,9 @@ typedef struct {
     float3 s0, d;
     float len;
     int Lk;
+#if NINC > 0 && !defined(FLAT)
+    int Ll;                     /* its layer (Lk: its material, an inclusion's inside one) */
+#endif
     int vert;
     float inv_dz, wax;
     int conform;
@@ -98,7 +101,14 @@ HOT BeamPiece beam_piece_at(__global const float4* geo, uint k) {
     BeamPiece pc;
     pc.s0 = g0.xyz; pc.d = g1.xyz;
     pc.len = g0.w;
+#if NINC > 0 && !defined(FLAT)
+    /* inclusions on the relief: the record is material + 256 layer (eye.cl write_piece) */
+    const int code = (int)g1.w;
+    pc.Lk = code & 255;
+    pc.Ll = code >> 8;
+#else
     pc.Lk = (int)g1.w;
+#endif
     return pc;
 }
 
@@ -129,8 +139,13 @@ HOT float2 beam_piece_ends(__constant const Params* P, __constant const float4* 
                            __global const float* heights, const BeamPiece* pc, float2 tb_mid) {
     if (!(tb_mid.y > -1e29f)) return tb_mid;
     const float3 e = pc->s0 + pc->len * pc->d;
+#if NINC > 0
+    const float2 t0 = layer_slab(P, iface, heights, pc->s0, pc->Ll);
+    const float2 t1 = layer_slab(P, iface, heights, e, pc->Ll);
+#else
     const float2 t0 = layer_slab(P, iface, heights, pc->s0, pc->Lk);
     const float2 t1 = layer_slab(P, iface, heights, e, pc->Lk);
+#endif
     const float phi0 = (t0.x - pc->s0.z) / fmax(t0.x - t0.y, 1e-3f);
     const float phi1 = (t1.x - e.z) / fmax(t1.x - t1.y, 1e-3f);
     const float Tm = tb_mid.x - tb_mid.y;
@@ -151,7 +166,11 @@ HOT float4 beam_piece_slab(__constant const Params* P, __constant const float4* 
     int conform = 0;
     float2 tb_r = (float2)(0.0f);
 #ifndef FLAT
+#if NINC > 0
+    const int Lk = pc->Ll;          /* the layer's depth, whatever the material */
+#else
     const int Lk = pc->Lk;
+#endif
     if (vert && (IF_VAR(Lk) >= 0 || (Lk + 1 <= NL && IF_VAR(Lk + 1) >= 0))) {
         conform = 1;
         tb_r = layer_slab(P, iface, heights, pc->s0 + 0.5f * pc->len * pc->d, Lk);
@@ -166,7 +185,11 @@ HOT float4 beam_piece_slab(__constant const Params* P, __constant const float4* 
 /* the depth padding of a conforming piece's query: its layer's interfaces' amplitude */
 HOT float beam_zpad(__constant const float4* iface, const BeamPiece* pc) {
 #ifndef FLAT
+#if NINC > 0
+    const int Lk = pc->Ll;
+#else
     const int Lk = pc->Lk;
+#endif
     return pc->conform ? fmax(IF_ZMAX(Lk) - IF_ZMIN(Lk), IF_ZMAX(Lk + 1) - IF_ZMIN(Lk + 1)) + 1.0f : 0.0f;
 #else
     return 0.0f;
@@ -190,7 +213,11 @@ HOT BeamBox beam_box(const GridParams gp, __constant const float4* vlay, __const
     const float Rp = R * (1.0f + GRID_R_PAD);
     const float zp = pc->vert ? 1e-3f + 1e-6f * fabs(s0.z) + zpad : Rp;
     float zlo = fmin(s0.z, e.z) - zp, zhi = fmax(s0.z, e.z) + zp;
+#if NINC > 0 && !defined(FLAT)
+    query_depth_keys(vlay, pc->conform ? pc->Ll : -1, pc->tb_r, s0.z, e.z, &zlo, &zhi);
+#else
     query_depth_keys(vlay, pc->conform ? pc->Lk : -1, pc->tb_r, s0.z, e.z, &zlo, &zhi);
+#endif
     const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, zlo);
     const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, zhi);
     BeamBox bx;
@@ -208,7 +235,11 @@ HOT int beam_pair_depth(const BeamPiece* pc, float4 p, int bl, float2 tb_p, floa
 #ifndef FLAT
     if (pc->conform) {
         const float2 tb_r = pc->tb_r;
+#if NINC > 0
+        if ((bl >> 8) != pc->Ll) return 0;      /* the photon's layer against the piece's */
+#else
         if ((bl >> 8) != pc->Lk) return 0;
+#endif
         if (tb_p.y > -1e29f && tb_r.y > -1e29f) {
             const float w = (tb_r.x - tb_r.y) / fmax(tb_p.x - tb_p.y, 1e-3f);
             *wl = w;

@@ -32,12 +32,14 @@
  * fallback point no weight).  The cell is stored as pieces (length, material) so the gather kernel
  * evaluates the integral per band exactly (no 81 floats per point).
  *
- * Inclusions (inclusion.h, NINC > 0; flat layers only): a region also ends at an inclusion's
- * surface, so a piece lies in one material, the layer's or the inclusion's it is in, and records
- * that material (its extinction: the transmittance, the cut, scheme 1's rate); a sample point
- * records its layer (the layer estimator's photons and volume).
+ * Inclusions (inclusion.h, NINC > 0; flat layers and the relief): a region also ends at an
+ * inclusion's surface, so a piece lies in one material, the layer's or the inclusion's it is in,
+ * and records that material (its extinction: the transmittance, the cut, scheme 1's rate); a
+ * sample point records its layer (the layer estimator's photons and volume).  On the relief a
+ * piece's record is material + 256 layer (geo; pieces keep the material): the beam gather
+ * measures its depth in its layer's own coordinates, which an inclusion's index would misread.
  *
- * Chromophore maps (maps.h, MAPS; flat layers only): in a layer whose map changes its mu_a a region
+ * Chromophore maps (maps.h, MAPS; flat layers and the relief): in a layer whose map changes its mu_a a region
  * also ends at the walls between the maps' columns, so a piece lies in one column too (maps.h
  * says why crossings and not tracking); the transmittance and the cut run at mu_t = the layer's +
  * delta of the column, the gathers find a piece's column at its midpoint (the beam's geometry).
@@ -48,17 +50,10 @@
 #include "common.h"
 #include "camera.h"
 #include "inclusion.h"
-#if NINC > 0 && !defined(FLAT)
-/* a piece records its material (gather.cl), which a relief's layer-conforming depth reads as its layer */
-#error "eye.cl: inclusions on flat layers only"
-#endif
 #ifndef FLAT
 #include "surface.h"
 #endif
 #ifdef MAPS
-#ifndef FLAT
-#error "eye.cl: chromophore maps on flat layers only"
-#endif
 #include "maps.h"
 #endif
 
@@ -134,7 +129,13 @@ inline void pend_add(Emit* e, int L, float len, float3 start, float3 dir) {
 inline void write_piece(uint j, float len, int L, float3 start, float3 dir, __global float2* pieces,
                         __global float4* geo, int write) {
     if (!write) return;
+#if NINC > 0 && !defined(FLAT)
+    /* inclusions on the relief: L is material + 256 layer (sample_points); pieces keep the
+     * material (the sphere gathers' extinction), geo both (beam.h beam_piece_at) */
+    pieces[j] = (float2)(len, (float)(L & 255));
+#else
     pieces[j] = (float2)(len, (float)L);
+#endif
     if (write == EYE_STORE_GEOMETRY) {
         geo[2 * j] = (float4)(start, len);
         geo[2 * j + 1] = (float4)(dir, (float)L);
@@ -340,12 +341,19 @@ HOT int sample_points(Emit* e, const Track* t, int L, int m, float seg, float el
                       __global uint* pt_piece, __global float2* pieces, __global float4* geo,
                       __global float2* pt_slab, int write) {
     const float3 to_eye = -t->dir;
+#if NINC > 0 && !defined(FLAT)
+    /* the pieces' record on the relief: material + 256 layer (the beam gather's layer-conforming
+     * depth reads the layer, its extinction and mu_s ratio the material: beam.h beam_piece_at) */
+    const int pm = m | (L << 8);
+#else
+#define pm m
+#endif
     int n = 0;
     float x = 0.0f;                 /* position of the last placement in this region */
     if (E->scheme == 0) {
         while (*next_eq <= ell + seg) {
             float xc = *next_eq - ell;
-            pend_add(e, m, xc - x, t->pos + x * t->dir, t->dir); x = xc;
+            pend_add(e, pm, xc - x, t->pos + x * t->dir, t->dir); x = xc;
             n += place(e, t->pos + xc * t->dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab,
                        point_slab(P, iface, heights, t->pos + xc * t->dir, L, write), write);
             *next_eq += E->spacing;
@@ -357,15 +365,16 @@ HOT int sample_points(Emit* e, const Track* t, int L, int m, float seg, float el
             while (1) {
                 xc += neg_log_u01(rng_u01(rng)) / rt;
                 if (xc > seg) break;
-                pend_add(e, m, xc - x, t->pos + x * t->dir, t->dir); x = xc;
+                pend_add(e, pm, xc - x, t->pos + x * t->dir, t->dir); x = xc;
                 n += place(e, t->pos + xc * t->dir, to_eye, L, twp, E, pt_pos, pt_dir, pt_piece, pieces, geo, pt_slab,
                            point_slab(P, iface, heights, t->pos + xc * t->dir, L, write), write);
             }
         }
     }
-    pend_add(e, m, seg - x, t->pos + x * t->dir, t->dir);
+    pend_add(e, pm, seg - x, t->pos + x * t->dir, t->dir);
     return n;
 }
+#undef pm
 
 /* The layer on the other side of a boundary event ev of layer L (L itself for a zone change, a
  * column wall within the layer, or after a wall left the domain: then *out).  Moves t onto the

@@ -40,16 +40,12 @@
 #include "beam.h"
 #include "inclusion.h"
 
-#if NINC > 0 && !defined(FLAT)
-/* an eye-ray piece's record holds its material (the layer's or an inclusion's), which the
- * layer-conforming depth of a relief's pieces would read as its layer */
-#error "gather.cl: inclusions on flat layers only"
-#endif
 
 /* Inclusions (inclusion.h).  A photon stored in material m' estimates there the in-scattered
  * radiance mu_s(m') int f_m'(w . w') L(w') dw' (its weight carries m''s albedo, spectral.h; the
  * photons' density, m''s mu_t).  An eye-ray piece inside an inclusion has the inclusion's
- * material (eye.cl), so its transmittance runs at the inclusion's extinction; what it needs is
+ * material (eye.cl; on the relief its layer too, beam.h BeamPiece.Ll, for the layer-conforming
+ * depth), so its transmittance runs at the inclusion's extinction; what it needs is
  * the in-scattered radiance of its own material m.  Across an inclusion's wall (no change of
  * index) the radiance L is continuous and mu_s and g jump, so a photon of m' != m within the
  * disc (or sphere) of a query of material m counts with m's phase function and its weight times
@@ -67,7 +63,7 @@
 #define INC_ARGS(...)
 #endif
 
-/* Chromophore maps (maps.h, MAPS; flat layers, the beam estimator).  An eye-ray piece in a mapped
+/* Chromophore maps (maps.h, MAPS; flat layers and the relief, the beam estimator).  An eye-ray piece in a mapped
  * layer lies in one of the maps' columns (eye.cl ends it at their walls), so its extinction is
  * mu_t = the layer's + delta of its column (found at the piece's midpoint) in every band:
  * the transmittance to each photon's depth and the optical depth on past the piece.  A stored
@@ -78,8 +74,8 @@
  * The photons carry one band each (HERO_C = 1): the band math runs lane by lane (no BAND16).
  * The sphere estimators' pieces have no geometry to find a column by: the beam's only. */
 #ifdef MAPS
-#if !defined(FLAT) || ESTIMATOR != 3
-#error "gather.cl: chromophore maps with the beam estimator on flat layers only"
+#if ESTIMATOR != 3
+#error "gather.cl: chromophore maps with the beam estimator only"
 #endif
 #include "maps.h"
 #endif

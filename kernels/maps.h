@@ -26,7 +26,7 @@
  *
  * The path tracer (flat layers) walks a mapped layer the same way, and each straight leg of a
  * light connection through one takes the layer's transmittance times map_leg_factor.  PPM's eye
- * pass and beam gather (flat layers) split an eye ray's pieces at the columns' walls and take
+ * pass and beam gather (flat layers, the relief) split an eye ray's pieces at the columns' walls and take
  * each piece's column's mu_t (the functions at the end of this file).
  *
  * One band per path (HERO_C = 1): the bands a path carries (spectral.h) would each need the
@@ -107,7 +107,7 @@ HOT float map_leg_factor(__global const float4* optics, int L, int b, int first,
     return T;
 }
 
-/* ---- PPM's eye pass and gathers (flat layers; eye.cl, gather.cl).  The columns are piecewise
+/* ---- PPM's eye pass and gathers (flat layers and the relief; eye.cl, gather.cl).  The columns are piecewise
  * constant (map_delta's floor), so an eye-ray piece in a mapped layer ends at the walls between
  * columns (exact crossings, as at an inclusion's surface) and lies in one column; the gathers
  * find its column at its midpoint and take mu_t = the layer's + delta there in every band the

@@ -33,6 +33,9 @@
 #define GCLASS 9
 #endif
 #define NBC (NB / GCLASS)
+#if NINC > 0
+#error "scatter.cl: no inclusions (clppm/integrators/beam.py choose_layout: the gather)"
+#endif
 #if NBC != 9 || HERO_C != 9
 #error "scatter.cl: 9 bands per photon, all of one class of 9 (NB / GCLASS == 9)"
 #endif

@@ -346,9 +346,9 @@ def test_bad_map_one_line_exit_2(tmp_path, capsys, monkeypatch, maps, message):
 
 
 def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
-    """PPM on the relief, and the path tracer across periodic sides or with inclusions, do not
-    see maps: one line naming the key, exit 2, no output; the path tracer on flat layers and
-    through the relief, and PPM on flat layers, render (PPM's other refusals:
+    """The path tracer across periodic sides or with inclusions does not see maps: one line
+    naming the key, exit 2, no output; the path tracer and PPM on flat layers and through the
+    relief render (PPM's other refusals:
     tests/test_maps_ppm.py)."""
     from clppm.checks.tiny import tiny_config
     raw = tomllib.loads(C.to_toml(tiny_config(size_mm=1.0)))
@@ -364,7 +364,6 @@ def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
         lines += [f"{k} = {C.toml_value(v)}" for k, v in the_map.items()]
         p.write_text("\n".join(lines) + "\n")
     for scene_raw, inc, extra, needles in [
-            (raw, (), [], ("relief.kind = 'generated'", "--integrator pt")),
             (periodic, (), ["--integrator", "pt"], ("model.lateral = 'periodic'", "periodic sides")),
             (flat, vessel, ["--integrator", "pt"], ("inclusion[0].kind = 'vessel'", "maps and inclusions"))]:
         write(scene_raw, inc)
@@ -374,7 +373,7 @@ def test_render_refused_where_a_pass_does_not_see_maps(tmp_path, capsys):
         assert all(n in err for n in needles), err
         assert not out.exists()
     for scene_raw, extra in ((flat, ["--integrator", "pt"]), (raw, ["--integrator", "pt"]),
-                             (flat, ["--photons", "20000"])):
+                             (flat, ["--photons", "20000"]), (raw, ["--photons", "20000"])):
         write(scene_raw)
         assert cli.main(["render", str(p), "-o", str(out), "-q", "--passes", "1", "--resolution", "4x3",
                          "--force", *extra]) == 0

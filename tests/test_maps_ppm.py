@@ -176,8 +176,8 @@ def test_freckle_and_blood_spot_darker_in_both(freckle_renders):
 
 
 def test_render_refused_where_ppm_does_not_see_maps(tmp_path, capsys):
-    """PPM sees maps with the beam estimator, one band per path, on flat layers with open or
-    infinite sides: the relief, the sphere estimators (--paper), bands_per_path > 1 and periodic
+    """PPM sees maps with the beam estimator, one band per path, on flat layers and the relief
+    with open or infinite sides: the sphere estimators (--paper), bands_per_path > 1 and periodic
     sides are refused in one line naming the key, exit 2, no output."""
     from clppm.checks.tiny import tiny_config
     from slab_mc import raw_toml
@@ -187,7 +187,6 @@ def test_render_refused_where_ppm_does_not_see_maps(tmp_path, capsys):
     out = tmp_path / "x.png"
     p = tmp_path / "m.toml"
     for scene_raw, extra, needles in [
-            (raw, [], ("relief.kind = 'generated'", "flat layers only")),
             (periodic, [], ("model.lateral = 'periodic'", "periodic sides")),
             (flat, ["--estimator", "layer"], ("render.estimator = 'layer'", "beam estimator")),
             (flat, ["--paper"], ("render.estimator = 'sphere'", "beam estimator")),

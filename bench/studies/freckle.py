@@ -44,8 +44,20 @@ BLOOD = {"layer": "subpapillary dermis", "quantity": "blood", "kind": "spots",
 SPOT_MM, AWAY_MM = 0.5, 1.3
 
 
+RELIEF = {"kind": "generated", "depth_um": 20.0, "spacing_um": 350.0, "width_um": 100.0, "seed": 7}
+
+
+def with_relief(raw: dict) -> None:
+    """``relief=True``: configs/forearm.toml's relief on the same layers (generated furrows 20 um
+    deep, a wavy junction of 10 um, the smooth surfaces): PPM and the path tracer on the relief
+    (tests/test_ppm_relief_heterogeneous.py)."""
+    raw["relief"] = dict(RELIEF)
+    raw["papillae"] = {**raw["papillae"], "amplitude_um": 10.0}
+    raw["model"] = {**raw["model"], "surface": "smooth"}
+
+
 def freckle_scene(res=(17, 13), passes=4, photons=200_000, pt_samples=16, seed=1, maps=True,
-                  initial_photons=None, uniform=False) -> dict:
+                  initial_photons=None, uniform=False, relief=False) -> dict:
     """configs/forearm_flat.toml with FRECKLE and BLOOD (``maps``; ``uniform``: each map a
     constant of its layer's own value instead), 10-nm bands, seen from 30 mm above its centre
     over FIELD_MM; specular highlights off (both integrators alike)."""
@@ -63,6 +75,8 @@ def freckle_scene(res=(17, 13), passes=4, photons=200_000, pt_samples=16, seed=1
                      "pt_samples_per_pass": pt_samples}
     if initial_photons:
         raw["render"]["initial_photons"] = initial_photons
+    if relief:
+        with_relief(raw)
     return C.validate(raw, "freckle")
 
 

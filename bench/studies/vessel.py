@@ -40,8 +40,20 @@ VESSEL = {"kind": "vessel", "center_mm": [5.0, 5.0], "depth_um": 300.0, "axis": 
 OVER_MM, AWAY_MM = 0.25, 1.2
 
 
+RELIEF = {"kind": "generated", "depth_um": 20.0, "spacing_um": 350.0, "width_um": 100.0, "seed": 7}
+
+
+def with_relief(raw: dict) -> None:
+    """``relief=True``: configs/forearm.toml's relief on the same layers (generated furrows 20 um
+    deep, a wavy junction of 10 um, the smooth surfaces): PPM and the path tracer on the relief
+    (tests/test_ppm_relief_heterogeneous.py)."""
+    raw["relief"] = dict(RELIEF)
+    raw["papillae"] = {**raw["papillae"], "amplitude_um": 10.0}
+    raw["model"] = {**raw["model"], "surface": "smooth"}
+
+
 def vessel_scene(res=(32, 24), passes=4, photons=200_000, pt_samples=16, seed=1, vessel=True,
-                 initial_photons=None, estimator=None) -> dict:
+                 initial_photons=None, estimator=None, relief=False) -> dict:
     """configs/forearm_vein.toml, its vein replaced by VESSEL and the freckles removed, seen from
     30 mm above its centre over FIELD_MM; specular highlights off (both integrators alike)."""
     raw = C.load("forearm_vein")
@@ -57,6 +69,8 @@ def vessel_scene(res=(32, 24), passes=4, photons=200_000, pt_samples=16, seed=1,
         raw["render"]["initial_photons"] = initial_photons
     if estimator:
         raw["render"]["estimator"] = estimator
+    if relief:
+        with_relief(raw)
     return C.validate(raw, "vessel")
 
 

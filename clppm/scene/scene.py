@@ -128,20 +128,15 @@ def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") ->
     such an image would be wrong, not merely noisy.  The photon pass (clppm trace, clppm
     reflectance) traces maps on every model.  The path tracer renders them on flat layers and
     through the relief (its walk by delta tracking, each leg of its light connections by ratio
-    tracking), without inclusions.  PPM renders them on flat layers, with or without inclusions,
-    with the beam estimator (its eye pieces end at the maps' column walls and its gathers take
-    each piece's column's extinction, kernels/maps.h) and one band per photon path.  Refused: PPM
-    on the relief, its sphere estimators (their pieces have no geometry to find a column by) and
-    more than one band per path; periodic sides (both); the path tracer's light connections
+    tracking), without inclusions.  PPM renders them on flat layers and on the relief, with or
+    without inclusions, with the beam estimator (its eye pieces end at the maps' column walls and
+    its gathers take each piece's column's extinction, found at the piece's midpoint,
+    kernels/maps.h) and one band per photon path.  Refused: PPM's sphere estimators (their pieces
+    have no geometry to find a column by) and more than one band per path; periodic sides (both); the path tracer's light connections
     through an inclusion inside a mapped layer."""
     maps = cfg.get("map") or []
     if not maps:
         return
-    if integrator != "pt" and (cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0):
-        raise ConfigError(source, "relief.kind", cfg["relief"]["kind"],
-                          "PPM sees chromophore maps on flat layers only so far; give relief.kind = 'flat' "
-                          "and papillae.amplitude_um = 0, render with --integrator pt, or remove the [[map]] "
-                          "tables")
     if cfg["model"]["lateral"] == "periodic":
         raise ConfigError(source, "model.lateral", "periodic",
                           "renders across periodic sides do not see chromophore maps yet (not validated); give "
@@ -167,20 +162,16 @@ def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") ->
 
 def refuse_inclusions(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
     """Refuse to render a scene with ``[[inclusion]]`` tables where the render would not see
-    them: the photon pass sees them everywhere, PPM's eye pass and gathers on flat layers, the
-    path tracer (its walk and every leg of its light connections) on flat layers and through the
-    relief; not the relief's layer-conforming gather pieces (PPM on relief), nor the path
-    tracer's connections across periodic sides, and such an image would be wrong, not merely
-    noisy."""
+    them: the photon pass sees them everywhere; PPM's eye pass and gathers on flat layers and on
+    the relief (its eye pieces end at an inclusion's wall and record their material for the
+    extinction and the mu_s ratio beside their layer for the layer-conforming depth: kernels/eye.cl,
+    beam.h); the path tracer (its walk and every leg of its light connections) on flat layers
+    and through the relief.  Refused: the path tracer's connections across periodic sides, where
+    such an image would be wrong, not merely noisy."""
     refuse_maps(cfg, source, integrator)
     inc = cfg.get("inclusion") or []
     if not inc:
         return
-    if integrator != "pt" and (cfg["relief"]["kind"] != "flat" or cfg["papillae"]["amplitude_um"] > 0):
-        raise ConfigError(source, "relief.kind", cfg["relief"]["kind"],
-                          "PPM sees inclusions on flat layers only so far (its gather pieces on the relief "
-                          "do not); render with --integrator pt, or give relief.kind = 'flat' and "
-                          "papillae.amplitude_um = 0, or remove the [[inclusion]] tables")
     if integrator == "pt" and cfg["model"]["lateral"] == "periodic":
         raise ConfigError(source, "model.lateral", "periodic",
                           "the path tracer's connections across periodic sides do not see inclusions "
