@@ -132,8 +132,8 @@ def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") ->
     without inclusions, with the beam estimator (its eye pieces end at the maps' column walls and
     its gathers take each piece's column's extinction, found at the piece's midpoint,
     kernels/maps.h) and one band per photon path.  Refused: PPM's sphere estimators (their pieces
-    have no geometry to find a column by) and more than one band per path; periodic sides (both); the path tracer's light connections
-    through an inclusion inside a mapped layer."""
+    have no geometry to find a column by) and more than one band per path; periodic sides (both);
+    the path tracer's light connections through an inclusion inside a mapped layer."""
     maps = cfg.get("map") or []
     if not maps:
         return
