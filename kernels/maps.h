@@ -94,16 +94,34 @@ HOT float4 map_collision(__global const float4* optics, int L, int b, int first,
 /* The factor exp(-integral of delta) by which a straight leg of length len from p along d in
  * mapped layer L changes the transmittance the layer's own mu_t gives (the path tracer's light
  * connections): exp(-dmin len) times a ratio-tracking estimate of the rest (tentative points at
- * rate dmax - dmin, each multiplying by 1 - (delta - dmin)/(dmax - dmin), in [0, 1]): unbiased,
- * and no walk over the columns the leg crosses. */
-HOT float map_leg_factor(__global const float4* optics, int L, int b, int first, float x, float y, float dx,
-                         float dy, float len, __constant const Params* P, Rng* rng) {
+ * rate dmax - dmin, each multiplying by 1 - (delta - dmin)/(dmax - dmin), in [0, 1] where
+ * dmin <= delta): unbiased, and no walk over the columns the leg crosses.  With inclusions, delta
+ * is 0 at a point inside one (an inclusion has its own material and no map; its extinction
+ * against the layer's is the leg's inclusion optical depth): the factor then exceeds 1 where
+ * dmin > 0, still unbiased (the expectation of the product over the Poisson points is
+ * exp(-integral of (delta - dmin)) whatever the sign). */
+HOT float map_leg_factor(__global const float4* optics, int L, int b, int first, float x, float y, float z,
+                         float dx, float dy, float dz, float len, __constant const Params* P, Rng* rng) {
     const float dmax = optics[MAP_BAND(L, b)].w, dmin = optics[MAP_BAND(L, b) + 2].x;
     const float R = dmax - dmin;
     float T = exp(-dmin * len);
+#if NINC > 0
+    if (!(R > 0.0f) && !(dmin != 0.0f)) return T;
+    const float Rt = R > 0.0f ? R : fabs(dmin);           /* tentative points even for a constant delta */
+#else
     if (!(R > 0.0f)) return T;
-    for (float s = neg_log_u01(rng_u01(rng)) / R; s < len && T > 0.0f; s += neg_log_u01(rng_u01(rng)) / R)
-        T *= fmax(0.0f, 1.0f - (map_delta(optics, L, b, first, x + s * dx, y + s * dy, P) - dmin) / R);
+    const float Rt = R;
+    (void)z; (void)dz;
+#endif
+    for (float s = neg_log_u01(rng_u01(rng)) / Rt; s < len && T > 0.0f; s += neg_log_u01(rng_u01(rng)) / Rt) {
+#if NINC > 0
+        const float delta = inclusion_mask(optics, (float3)(x + s * dx, y + s * dy, z + s * dz)) ? 0.0f
+                          : map_delta(optics, L, b, first, x + s * dx, y + s * dy, P);
+#else
+        const float delta = map_delta(optics, L, b, first, x + s * dx, y + s * dy, P);
+#endif
+        T *= fmax(0.0f, 1.0f - (delta - dmin) / Rt);
+    }
     return T;
 }
 

@@ -351,7 +351,7 @@ inline float chain_map_factor(const Chain* ch, float x, float y, float zv, float
         const float len = ck > 0.0f ? fabs(IF_Z(i) - pz) / ck : 0.0f;
         const int first = map_first(optics, k);
         if (first >= 0 && len > 0.0f)
-            T *= map_leg_factor(optics, k, b, first, px, py, sk * ux, sk * uy, len, P, rng);
+            T *= map_leg_factor(optics, k, b, first, px, py, pz, sk * ux, sk * uy, (IF_Z(i) - pz) / len, len, P, rng);
         px += len * sk * ux;
         py += len * sk * uy;
         pz = IF_Z(i);
@@ -451,7 +451,7 @@ inline float mnee_legs_factor(const Trace* T, const Chain* ch, real4 v, int b, R
 #endif
 #ifdef MAPS
             const int first = map_first(optics, k);
-            if (first >= 0) F *= map_leg_factor(optics, k, b, first, px, py, dx, dy, len, P, rng);
+            if (first >= 0) F *= map_leg_factor(optics, k, b, first, px, py, pz, dx, dy, dz, len, P, rng);
 #endif
         }
         px = q.x; py = q.y; pz = q.z;

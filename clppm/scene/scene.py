@@ -128,12 +128,11 @@ def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") ->
     such an image would be wrong, not merely noisy.  The photon pass (clppm trace, clppm
     reflectance) traces maps on every model.  The path tracer renders them on flat layers and
     through the relief (its walk by delta tracking, each leg of its light connections by ratio
-    tracking), without inclusions.  PPM renders them on flat layers and on the relief, with or
-    without inclusions, with the beam estimator (its eye pieces end at the maps' column walls and
+    tracking, no map inside an inclusion), with or without inclusions.  PPM renders them on flat
+    layers and on the relief, with or without inclusions, with the beam estimator (its eye pieces end at the maps' column walls and
     its gathers take each piece's column's extinction, found at the piece's midpoint,
     kernels/maps.h) and one band per photon path.  Refused: PPM's sphere estimators (their pieces
-    have no geometry to find a column by) and more than one band per path; periodic sides (both);
-    the path tracer's light connections through an inclusion inside a mapped layer."""
+    have no geometry to find a column by) and more than one band per path; periodic sides (both)."""
     maps = cfg.get("map") or []
     if not maps:
         return
@@ -152,12 +151,6 @@ def refuse_maps(cfg: dict, source: str = "<config>", integrator: str = "ppm") ->
             raise ConfigError(source, "render.bands_per_path", rs["bands_per_path"],
                               "chromophore maps are traced with one band per photon path; give "
                               "render.bands_per_path = 1 or 0 (auto), or remove the [[map]] tables")
-        return
-    if cfg.get("inclusion"):
-        raise ConfigError(source, "inclusion[0].kind", cfg["inclusion"][0]["kind"],
-                          "the path tracer's light connections do not yet see chromophore maps and inclusions "
-                          "together; render with PPM, trace the scene (clppm trace), or remove the "
-                          "[[inclusion]] or [[map]] tables")
 
 
 def refuse_inclusions(cfg: dict, source: str = "<config>", integrator: str = "ppm") -> None:
