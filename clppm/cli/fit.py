@@ -82,26 +82,32 @@ def _image_measurement(a, bands):
     return cfg, src, (reg.wl, reg.R, reg.label), reg.angle_deg
 
 
+def _measurement(a, bands):
+    """The model, its name and the measurement (wl, R, label): a CSV or NIST subject, or with
+    --image a region of a rendered image (whose light sets the default --angle and --specular)."""
+    if a.image is None:
+        if a.region is not None:
+            raise ConfigError("command line", "--region", ",".join(map(str, a.region)),
+                              "reads a region of --image, which is not given")
+        cfg_path = C.find(a.config) if a.config else default_config_path()
+        measured = load_measured(a.measured, a.subject, bands)
+        cfg, src = C.load(cfg_path), os.path.basename(cfg_path)
+    else:
+        cfg, src, measured, angle = _image_measurement(a, bands)
+        a.angle = angle if a.angle is None else a.angle
+        a.specular = a.specular or "excluded"
+    a.angle = 8.0 if a.angle is None else a.angle
+    a.specular = a.specular or "included"
+    return cfg, src, measured
+
+
 def cmd_fit(a) -> int:
     from ..output import paths
     bands = a.bands
     if not (bands[2] > 0 and bands[1] >= bands[0]):
         raise ConfigError("command line", "--bands", ":".join(f"{x:g}" for x in bands),
                           "needs START <= STOP and STEP > 0")
-    if a.image is None:
-        if a.region is not None:
-            raise ConfigError("command line", "--region", ",".join(map(str, a.region)),
-                              "reads a region of --image, which is not given")
-        cfg_path = C.find(a.config) if a.config else default_config_path()
-        cfg = C.load(cfg_path)
-        src = os.path.basename(cfg_path)
-        wl, R, label = load_measured(a.measured, a.subject, bands)
-    else:
-        cfg, src, (wl, R, label), angle = _image_measurement(a, bands)
-        a.angle = angle if a.angle is None else a.angle
-        a.specular = a.specular or "excluded"
-    a.angle = 8.0 if a.angle is None else a.angle
-    a.specular = a.specular or "included"
+    cfg, src, (wl, R, label) = _measurement(a, bands)
     for name, v in (("--photons", a.photons), ("--max-iter", a.max_iter)):
         if v <= 0:
             raise ConfigError("command line", name, v, "must be > 0")

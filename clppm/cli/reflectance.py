@@ -63,6 +63,16 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=cmd_reflectance)
 
 
+def _refuse_methods(cfg: dict, src: str) -> None:
+    """The --methods renders (PPM): refused where PPM would be, and with maps (not validated)."""
+    from ..scene.scene import refuse_inclusions
+    refuse_inclusions(cfg, src, "ppm")
+    if cfg.get("map"):
+        raise ConfigError(src, "map[0].layer", cfg["map"][0]["layer"],
+                          "the --methods renders are not validated with chromophore maps; drop --methods "
+                          "(the photon pass's R(λ) sees them) or remove the [[map]] tables")
+
+
 def cmd_reflectance(a) -> int:
     from ..analysis import nist
     from ..output import paths
@@ -78,13 +88,8 @@ def cmd_reflectance(a) -> int:
                     ("--passes", a.passes), ("--batches", a.batches)):
         if v is not None and v <= 0:
             raise ConfigError("command line", name, v, "must be > 0")
-    if a.methods:                       # the schemes' renders (PPM): not validated with maps
-        from ..scene.scene import refuse_inclusions
-        refuse_inclusions(cfg, src, "ppm")
-        if cfg.get("map"):
-            raise ConfigError(src, "map[0].layer", cfg["map"][0]["layer"],
-                              "the --methods renders are not validated with chromophore maps; drop --methods "
-                              "(the photon pass's R(λ) sees them) or remove the [[map]] tables")
+    if a.methods:
+        _refuse_methods(cfg, src)
     paths.check_writable(a.json, "--json")
     paths.check_plot(a.plot, "--plot")
     paths.check_distinct(**{"--json": a.json, "--plot": a.plot})
