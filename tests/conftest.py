@@ -1,9 +1,14 @@
 """Shared fixtures: one OpenCL device for the whole session (PYOPENCL_CTX / the first device).
 Nothing in the tests mutates it; programs it builds are cached on it, so every module after the
-first reuses them."""
+first reuses them.  bench/studies is importable: tests run small versions of its studies' scenes."""
 from __future__ import annotations
 
+import os
+import sys
+
 import pytest
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "bench", "studies"))
 
 
 @pytest.fixture(scope="session")

@@ -11,25 +11,18 @@
 """
 from __future__ import annotations
 
-import os
-import sys
-
 import numpy as np
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "bench", "studies"))
+from heterogeneous import TEST_BUDGET as BUDGET
+from vessel import vessel_figures, vessel_scene
 
-from vessel import vessel_figures, vessel_scene          # noqa: E402
+from clppm.run import entry
+from slab_mc import material_of
 
-from clppm.run import entry                               # noqa: E402
-from slab_mc import material_of                           # noqa: E402
-
-# PPM: 4 passes of 400,000 stored photons, K = 200 in the first search (a radius small enough
-# that the vessel, 0.4 mm across, is not blurred away: with the default's K = 2000 the green's
-# contrast reads 0.78 where the path tracer's is 0.44).  PT: 4 x 256 paths per pixel.
-RES, PASSES, PHOTONS, K = (17, 13), 4, 400_000, 200
-PT_PASSES, PT_SAMPLES = 4, 256
+# The budget: bench/studies/heterogeneous.py TEST_BUDGET (PPM 4 passes of 400,000 stored photons,
+# K = 200 in the first search: a radius small enough that the vessel, 0.4 mm across, is not
+# blurred away; PT 4 x 256 paths per pixel).
 # Bounds, from 3 PPM seeds and 3 PT seeds (PT seeds 101-103, PPM 1-3; PoCL):
 #   image mean, PPM / PT - 1 per group: within -1.2 % .. +3.1 % (the default mode's bias on the
 #     flat forearm and both noises; allowed: 5 %);
@@ -51,7 +44,7 @@ def test_eye_pieces_lie_in_the_material_they_name(dev, method):
     """Equal spacing (a) and Poisson points at the material's rate (e, the default)."""
     from clppm.integrators import ppm
     from clppm.request import RenderRequest
-    cfg = vessel_scene(RES, 1, 20_000, seed=1)
+    cfg = vessel_scene(BUDGET.res, 1, 20_000, seed=1)
     sc = ppm.Pipeline.build(RenderRequest.of(cfg, method=method, dev=dev), dev)
     e, vol = sc.eye, sc.vol
     assert vol.ninc == 1
@@ -70,7 +63,7 @@ def test_eye_pieces_lie_in_the_material_they_name(dev, method):
     assert (code == vol.nl).sum() > 50                  # the vessel's pieces
     # the pixel over the vessel's axis (the middle column: x = 5 mm): its first vessel piece
     # starts at the vessel's top, 100 um down
-    w, h = RES
+    w, h = BUDGET.res
     pix = (h // 2) * w + w // 2
     rs = e.ray_start.get()
     pp = e.pt_piece.get()
@@ -82,8 +75,7 @@ def test_eye_pieces_lie_in_the_material_they_name(dev, method):
 
 @pytest.fixture(scope="module")
 def vessel_renders(dev):
-    pt_cfg = vessel_scene(RES, PT_PASSES, PHOTONS, PT_SAMPLES, seed=101)
-    ppm_cfg = vessel_scene(RES, PASSES, PHOTONS, PT_SAMPLES, seed=1, initial_photons=K)
+    pt_cfg, ppm_cfg = BUDGET.pt(vessel_scene), BUDGET.ppm(vessel_scene)
     pt = vessel_figures(pt_cfg, entry.render_pt(pt_cfg, dev=dev).spectral)
     ppm = vessel_figures(ppm_cfg, entry.render(ppm_cfg, dev=dev).spectral)
     return ppm, pt
@@ -119,7 +111,7 @@ def test_lane_by_lane_band_math_sees_the_vessel_alike(dev, monkeypatch):
     from clppm.integrators import beam, ppm
     if not device.wide_vectors(dev.device):
         pytest.skip(f"{dev.name}: no 16-lane vectors between functions (wide_vectors)")
-    cfg = vessel_scene(RES, 1, 100_000, seed=3, initial_photons=K)
+    cfg = vessel_scene(BUDGET.res, 1, 100_000, seed=3, initial_photons=BUDGET.initial_photons)
     a = entry.render(cfg, dev=dev).spectral
     for mod in (ppm, beam):
         monkeypatch.setattr(mod, "wide_vectors", lambda d: False)

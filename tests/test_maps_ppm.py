@@ -16,28 +16,22 @@ gather.cl, maps.h.
 """
 from __future__ import annotations
 
-import os
-import sys
 import tomllib
 
 import numpy as np
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "bench", "studies"))
-
-from freckle import freckle_figures, freckle_scene       # noqa: E402
+from freckle import freckle_figures, freckle_scene
+from heterogeneous import TEST_BUDGET as BUDGET
 
 from clppm import cli                                     # noqa: E402
 from clppm.analysis.metrics import band_groups            # noqa: E402
 from clppm import config as C                             # noqa: E402
 from clppm.run import entry                               # noqa: E402
 
-# PPM: 4 passes of 400,000 stored photons, K = 200 in the first search (a radius small enough not
-# to blur the spots, 1.2 mm across, away; tests/test_inclusions_ppm.py).  PT: 4 x 256 paths per
-# pixel.  One band per path in both (maps trace one), 10-nm bands.
-RES, PASSES, PHOTONS, K = (17, 13), 4, 400_000, 200
-PT_PASSES, PT_SAMPLES = 4, 256
+# The budget: bench/studies/heterogeneous.py TEST_BUDGET (PPM 4 passes of 400,000 stored photons,
+# K = 200: a radius small enough not to blur the spots, 1.2 mm across, away; PT 4 x 256 paths per
+# pixel).  One band per path in both (maps trace one), 10-nm bands.
 # Bounds, from 3 PPM seeds (1-3) against PT seed 101 at 8 x 256 paths (PoCL; bench/studies/freckle.py):
 #   image mean, PPM / PT - 1 per group: -1.3 % .. +1.8 % over the seeds' means (sd over the
 #     seeds up to 1.7 %); allowed: 5 %;
@@ -71,7 +65,7 @@ def test_eye_pieces_lie_in_one_map_column(dev):
     from clppm.integrators import ppm
     from clppm.request import RenderRequest
     from clppm.scene import maps as M
-    cfg = freckle_scene(RES, 1, 20_000, seed=1)
+    cfg = freckle_scene(BUDGET.res, 1, 20_000, seed=1)
     sc = ppm.Pipeline.build(RenderRequest.of(cfg, dev=dev), dev)
     e, vol = sc.eye, sc.vol
     g = e.geo.get()[:2 * e.npieces]
@@ -138,8 +132,7 @@ def test_constant_map_renders_like_the_layer_with_that_value(dev):
 
 @pytest.fixture(scope="module")
 def freckle_renders(dev):
-    pt_cfg = freckle_scene(RES, PT_PASSES, PHOTONS, PT_SAMPLES, seed=101)
-    ppm_cfg = freckle_scene(RES, PASSES, PHOTONS, PT_SAMPLES, seed=1, initial_photons=K)
+    pt_cfg, ppm_cfg = BUDGET.pt(freckle_scene), BUDGET.ppm(freckle_scene)
     pt = freckle_figures(pt_cfg, entry.render_pt(pt_cfg, dev=dev).spectral)
     ppm = freckle_figures(ppm_cfg, entry.render(ppm_cfg, dev=dev).spectral)
     return ppm, pt

@@ -22,27 +22,21 @@ the inclusions' mu_s ratio from its material.
 """
 from __future__ import annotations
 
-import os
-import sys
 import tomllib
 
 import numpy as np
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "bench", "studies"))
-
-from freckle import freckle_figures, freckle_scene       # noqa: E402
-from vessel import vessel_figures, vessel_scene          # noqa: E402
+from freckle import freckle_figures, freckle_scene
+from heterogeneous import TEST_BUDGET as BUDGET
+from vessel import vessel_figures, vessel_scene
 
 from clppm import config as C                             # noqa: E402
 from clppm.analysis.metrics import band_groups            # noqa: E402
 from clppm.run import entry                               # noqa: E402
 
-# As the flat tests: PPM 4 passes of 400,000 stored photons, K = 200 in the first search; PT
-# 4 x 256 paths per pixel, 17x13 pixels over a 4 mm field.
-RES, PASSES, PHOTONS, K = (17, 13), 4, 400_000, 200
-PT_PASSES, PT_SAMPLES = 4, 256
+# As the flat tests: bench/studies/heterogeneous.py TEST_BUDGET (PPM 4 passes of 400,000 stored
+# photons, K = 200 in the first search; PT 4 x 256 paths per pixel, 17x13 pixels over a 4 mm field).
 
 # Vessel on the relief, bounds.  Measured (Intel's CPU runtime, PT seeds 101-103, PPM seed 1):
 #   image mean, PPM / PT - 1 per group: -1.5 % .. +3.4 %; allowed: 5 % (the flat test's);
@@ -80,7 +74,7 @@ def test_eye_pieces_on_the_relief_record_their_material_and_layer(dev, surface):
     the material."""
     from clppm.integrators import ppm
     from clppm.request import RenderRequest
-    raw = tomllib.loads(C.to_toml(vessel_scene(RES, 1, 20_000, seed=1, relief=True)))
+    raw = tomllib.loads(C.to_toml(vessel_scene(BUDGET.res, 1, 20_000, seed=1, relief=True)))
     raw["model"]["surface"] = surface
     cfg = C.validate(raw, "relief vessel")
     sc = ppm.Pipeline.build(RenderRequest.of(cfg, dev=dev), dev)
@@ -120,7 +114,7 @@ def test_eye_pieces_on_the_relief_lie_in_one_map_column(dev):
     from clppm.integrators import ppm
     from clppm.request import RenderRequest
     from clppm.scene import maps as M
-    cfg = freckle_scene(RES, 1, 20_000, seed=1, relief=True)
+    cfg = freckle_scene(BUDGET.res, 1, 20_000, seed=1, relief=True)
     sc = ppm.Pipeline.build(RenderRequest.of(cfg, dev=dev), dev)
     vol = sc.vol
     assert not vol.flat
@@ -146,8 +140,7 @@ def test_eye_pieces_on_the_relief_lie_in_one_map_column(dev):
 
 @pytest.fixture(scope="module")
 def vessel_renders(dev):
-    pt_cfg = vessel_scene(RES, PT_PASSES, PHOTONS, PT_SAMPLES, seed=101, relief=True)
-    ppm_cfg = vessel_scene(RES, PASSES, PHOTONS, PT_SAMPLES, seed=1, initial_photons=K, relief=True)
+    pt_cfg, ppm_cfg = BUDGET.pt(vessel_scene, relief=True), BUDGET.ppm(vessel_scene, relief=True)
     pt = vessel_figures(pt_cfg, entry.render_pt(pt_cfg, dev=dev).spectral)
     ppm = vessel_figures(ppm_cfg, entry.render(ppm_cfg, dev=dev).spectral)
     return ppm, pt
@@ -188,8 +181,7 @@ def test_vessel_on_relief_darker_and_redder_in_both(vessel_renders):
 
 @pytest.fixture(scope="module")
 def freckle_renders(dev):
-    pt_cfg = freckle_scene(RES, PT_PASSES, PHOTONS, PT_SAMPLES, seed=101, relief=True)
-    ppm_cfg = freckle_scene(RES, PASSES, PHOTONS, PT_SAMPLES, seed=1, initial_photons=K, relief=True)
+    pt_cfg, ppm_cfg = BUDGET.pt(freckle_scene, relief=True), BUDGET.ppm(freckle_scene, relief=True)
     pt = freckle_figures(pt_cfg, entry.render_pt(pt_cfg, dev=dev).spectral)
     ppm = freckle_figures(ppm_cfg, entry.render(ppm_cfg, dev=dev).spectral)
     return ppm, pt

@@ -20,22 +20,17 @@ tests/test_maps_ppm.py runs a small version of this (freckle_scene, freckle_figu
 """
 from __future__ import annotations
 
-import argparse
-import json
-import math
 import os
 import sys
-import time
 
 import numpy as np
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
+from heterogeneous import arguments, compare, overhead, pixel_xy, sd, shipped, write   # noqa: E402
 from clppm import config as C                                        # noqa: E402
 from clppm.analysis.metrics import band_groups                       # noqa: E402
 
-FIELD_MM = 4.0              # the camera's field, rows
 FRECKLE_MM, BLOOD_MM = (4.1, 5.0), (5.9, 5.0)
 FRECKLE = {"layer": "basal", "quantity": "melanin", "kind": "spots",
            "spots": [{"center_mm": list(FRECKLE_MM), "radius_um": 600.0, "peak": 0.5}]}
@@ -44,49 +39,25 @@ BLOOD = {"layer": "subpapillary dermis", "quantity": "blood", "kind": "spots",
 SPOT_MM, AWAY_MM = 0.5, 1.3
 
 
-RELIEF = {"kind": "generated", "depth_um": 20.0, "spacing_um": 350.0, "width_um": 100.0, "seed": 7}
-
-
-def with_relief(raw: dict) -> None:
-    """``relief=True``: configs/forearm.toml's relief on the same layers (generated furrows 20 um
-    deep, a wavy junction of 10 um, the smooth surfaces): PPM and the path tracer on the relief
-    (tests/test_ppm_relief_heterogeneous.py)."""
-    raw["relief"] = dict(RELIEF)
-    raw["papillae"] = {**raw["papillae"], "amplitude_um": 10.0}
-    raw["model"] = {**raw["model"], "surface": "smooth"}
-
-
 def freckle_scene(res=(17, 13), passes=4, photons=200_000, pt_samples=16, seed=1, maps=True,
                   initial_photons=None, uniform=False, relief=False) -> dict:
     """configs/forearm_flat.toml with FRECKLE and BLOOD (``maps``; ``uniform``: each map a
     constant of its layer's own value instead), 10-nm bands, seen from 30 mm above its centre
     over FIELD_MM; specular highlights off (both integrators alike)."""
-    raw = C.load("forearm_flat")
-    raw = {k: (list(v) if isinstance(v, list) else dict(v)) for k, v in raw.items()}
+    raw = shipped("forearm_flat")
     raw["spectrum"] = {**raw["spectrum"], "step_nm": 10.0}
     if maps:
         own = {L["name"]: L for L in raw["layer"]}
         raw["map"] = ([{"layer": m["layer"], "quantity": m["quantity"], "kind": "constant",
                         "value": own[m["layer"]][m["quantity"]]} for m in (FRECKLE, BLOOD)] if uniform
                       else [dict(FRECKLE), dict(BLOOD)])
-    fov = 2 * math.degrees(math.atan(FIELD_MM / 2 / 30.0))
-    raw["camera"] = {**raw["camera"], "fov_deg": fov, "resolution": list(res)}
-    raw["render"] = {**raw["render"], "passes": passes, "photons": photons, "seed": seed, "specular": False,
-                     "pt_samples_per_pass": pt_samples}
-    if initial_photons:
-        raw["render"]["initial_photons"] = initial_photons
-    if relief:
-        with_relief(raw)
-    return C.validate(raw, "freckle")
+    return overhead(raw, res, passes, photons, pt_samples, seed, initial_photons, None, relief, "freckle")
 
 
 def masks(cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixels over the freckle, over the blood spot, and away from both (the camera looks straight
     down at (5, 5) mm; rows run along y downwards in the image)."""
-    w, h = cfg["camera"]["resolution"]
-    x = 5.0 + (np.arange(w) + 0.5 - w / 2) * FIELD_MM / h       # square pixels, FIELD_MM over the rows
-    y = 5.0 + (np.arange(h) + 0.5 - h / 2) * FIELD_MM / h
-    X, Y = np.meshgrid(x, y)
+    X, Y = np.meshgrid(*pixel_xy(cfg))
     df = np.hypot(X - FRECKLE_MM[0], Y - FRECKLE_MM[1])
     db = np.hypot(X - BLOOD_MM[0], Y - BLOOD_MM[1])
     return df < SPOT_MM, db < SPOT_MM, (df > AWAY_MM) & (db > AWAY_MM)
@@ -106,37 +77,11 @@ def freckle_figures(cfg: dict, spectral: np.ndarray) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--resolution", default="17x13")
-    ap.add_argument("--passes", type=int, default=8)
-    ap.add_argument("--photons", type=int, default=400_000)
-    ap.add_argument("--pt-passes", type=int, default=16)
-    ap.add_argument("--pt-samples", type=int, default=256)
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--initial-photons", type=int, default=200, help="K of the first search (default 200)")
-    ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default=os.path.join(ROOT, "out", "bench", "freckle.json"))
-    a = ap.parse_args(argv)
-    from clppm.compute.device import open_device
-    from clppm.run.entry import render, render_pt
-    dev = open_device(a.device)
-    res = tuple(int(v) for v in a.resolution.split("x"))
-    t0 = time.perf_counter()
-    cfg = freckle_scene(res, a.pt_passes, a.photons, a.pt_samples, seed=101)
-    pt = freckle_figures(cfg, render_pt(cfg, dev=dev).spectral)
-    t_pt = time.perf_counter() - t0
-    ppm, t_ppm = [], []
-    for s in range(1, a.seeds + 1):
-        t0 = time.perf_counter()
-        c = freckle_scene(res, a.passes, a.photons, a.pt_samples, seed=s, initial_photons=a.initial_photons)
-        ppm.append(freckle_figures(c, render(c, dev=dev).spectral))
-        t_ppm.append(time.perf_counter() - t0)
-    print(f"{res[0]}x{res[1]}, PPM {a.passes} passes x {a.photons} photons, {a.seeds} seeds "
-          f"({np.median(t_ppm):.1f} s each); PT {a.pt_passes} passes x {a.pt_samples} paths/pixel "
-          f"({t_pt:.1f} s); {dev.device.name.strip()}")
+    a = arguments(__doc__, "17x13", 256, "freckle.json").parse_args(argv)
+    run = compare(a, freckle_scene, freckle_figures)
+    pt, ppm = run["pt"], run["ppm"]
     print("group (nm) | PPM/PT - 1 (mean +- sd) | freckle PT | PPM (mean +- sd) | blood PT | PPM (mean +- sd)")
     rows = {}
-    sd = lambda v: v.std(ddof=1) if len(v) > 1 else float("nan")      # noqa: E731
     for g in pt:
         m = np.array([p[g]["mean"] / pt[g]["mean"] - 1 for p in ppm])
         f = np.array([p[g]["freckle"] for p in ppm])
@@ -145,11 +90,7 @@ def main(argv=None) -> int:
                    "blood_pt": pt[g]["blood"], "blood_ppm": b.tolist()}
         print(f"{g} | {100 * m.mean():+.2f} +- {100 * sd(m):.2f} % | {pt[g]['freckle']:.4f} | "
               f"{f.mean():.4f} +- {sd(f):.4f} | {pt[g]['blood']:.4f} | {b.mean():.4f} +- {sd(b):.4f}")
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    with open(a.out, "w") as f:
-        json.dump({"resolution": res, "passes": a.passes, "photons": a.photons, "pt_passes": a.pt_passes,
-                   "pt_samples": a.pt_samples, "seeds": a.seeds, "t_ppm_s": t_ppm, "t_pt_s": t_pt,
-                   "device": dev.device.name.strip(), "groups": rows}, f, indent=1)
+    write(a.out, run, rows)
     return 0
 
 
