@@ -107,7 +107,7 @@ def optics_rows(mua: np.ndarray, mus: np.ndarray, g: np.ndarray) -> np.ndarray:
     mua/mut (0 where mut = 0), g, 1/(2g) (0 where |g| < 1e-4: isotropic), mut in um^-1.  Per
     collision the photon pass then needs one division (in the HG inversion) instead of three."""
     mut = mua + mus
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):     # both branches are evaluated
         afrac = np.where(mut > 0, mua / np.where(mut > 0, mut, 1.0), 0.0)
         inv2g = np.where(np.abs(g) >= 1e-4, 0.5 / np.where(g == 0, 1.0, g), 0.0)
     t = np.stack([afrac, g, inv2g, mut], axis=-1)
