@@ -39,7 +39,7 @@ inline float16 rsqrt16(float16 q) {
 #define PHI_LO (-0.5f)
 #define PHI_HI 1.5f
 inline float phi_key(float4 vz, float phi) {
-    return vz.x - clamp(phi, PHI_LO, PHI_HI) * (vz.x - vz.y);
+    return vz.x - clamp1(phi, PHI_LO, PHI_HI) * (vz.x - vz.y);
 }
 
 /* The depth-key range of a piece's query (photon_keys).  A conforming piece of a virtual layer
@@ -55,13 +55,13 @@ inline void query_depth_keys(__constant const float4* vlay, int L, float2 tb_r, 
     const float4 vz = L >= 0 ? vlay[L] : (float4)(0.0f);
     if (vz.z != 0.0f) {
         const float H = tb_r.x - tb_r.y;
-        const float pad = 1e-2f + 1e-5f * (fabs(tb_r.x) + fabs(za) + fabs(H));
+        const float pad = 1e-2f + 1e-5f * (fabs1(tb_r.x) + fabs1(za) + fabs1(H));
         float pa = PHI_LO, pb = PHI_HI;
         if (H > 1e-2f) {
-            pa = (tb_r.x - (fmax(za, zb) + pad)) / H;
-            pb = (tb_r.x - (fmin(za, zb) - pad)) / H;
+            pa = (tb_r.x - (fmax1(za, zb) + pad)) / H;
+            pb = (tb_r.x - (fmin1(za, zb) - pad)) / H;
         }
-        const float kpad = 1e-3f + 1e-5f * (fabs(vz.x) + fabs(vz.y));
+        const float kpad = 1e-3f + 1e-5f * (fabs1(vz.x) + fabs1(vz.y));
         *hi = phi_key(vz, pa) + kpad;
         *lo = phi_key(vz, pb) - kpad;
         return;
@@ -114,9 +114,9 @@ HOT BeamPiece beam_piece_at(__global const float4* geo, uint k) {
 
 /* the disc's axis of the piece */
 HOT void beam_axis(BeamPiece* pc) {
-    pc->vert = fabs(pc->d.z) >= 0.5f;
+    pc->vert = fabs1(pc->d.z) >= 0.5f;
     pc->inv_dz = pc->vert ? 1.0f / pc->d.z : 0.0f;
-    pc->wax = pc->vert ? fabs(pc->inv_dz) : 1.0f;       /* 1 / |d . axis| */
+    pc->wax = pc->vert ? fabs1(pc->inv_dz) : 1.0f;       /* 1 / |d . axis| */
 }
 
 /* the piece's layer-conforming depth as piece_slabs stores it: (top, bottom, conform, 0) */
@@ -146,11 +146,11 @@ HOT float2 beam_piece_ends(__constant const Params* P, __constant const float4* 
     const float2 t0 = layer_slab(P, iface, heights, pc->s0, pc->Lk);
     const float2 t1 = layer_slab(P, iface, heights, e, pc->Lk);
 #endif
-    const float phi0 = (t0.x - pc->s0.z) / fmax(t0.x - t0.y, 1e-3f);
-    const float phi1 = (t1.x - e.z) / fmax(t1.x - t1.y, 1e-3f);
+    const float phi0 = (t0.x - pc->s0.z) / fmax1(t0.x - t0.y, 1e-3f);
+    const float phi1 = (t1.x - e.z) / fmax1(t1.x - t1.y, 1e-3f);
     const float Tm = tb_mid.x - tb_mid.y;
     const float T = (pc->s0.z - e.z) / (phi1 - phi0);
-    if (!(fabs(phi1 - phi0) > 1e-3f && T > 0.1f * Tm && T < 10.0f * Tm)) return tb_mid;
+    if (!(fabs1(phi1 - phi0) > 1e-3f && T > 0.1f * Tm && T < 10.0f * Tm)) return tb_mid;
     const float top = pc->s0.z + phi0 * T;
     return (float2)(top, top - T);
 }
@@ -162,7 +162,7 @@ HOT float2 beam_piece_ends(__constant const Params* P, __constant const float4* 
  * (tb_r, conform, 0). */
 HOT float4 beam_piece_slab(__constant const Params* P, __constant const float4* iface,
                            __global const float* heights, const BeamPiece* pc) {
-    const int vert = fabs(pc->d.z) >= 0.5f;
+    const int vert = fabs1(pc->d.z) >= 0.5f;
     int conform = 0;
     float2 tb_r = (float2)(0.0f);
 #ifndef FLAT
@@ -190,7 +190,7 @@ HOT float beam_zpad(__constant const float4* iface, const BeamPiece* pc) {
 #else
     const int Lk = pc->Lk;
 #endif
-    return pc->conform ? fmax(IF_ZMAX(Lk) - IF_ZMIN(Lk), IF_ZMAX(Lk + 1) - IF_ZMIN(Lk + 1)) + 1.0f : 0.0f;
+    return pc->conform ? fmax1(IF_ZMAX(Lk) - IF_ZMIN(Lk), IF_ZMAX(Lk + 1) - IF_ZMIN(Lk + 1)) + 1.0f : 0.0f;
 #else
     return 0.0f;
 #endif
@@ -211,19 +211,19 @@ HOT BeamBox beam_box(const GridParams gp, __constant const float4* vlay, __const
     const float zpad = beam_zpad(iface, pc);
     const float3 e = s0 + len * d;
     const float Rp = R * (1.0f + GRID_R_PAD);
-    const float zp = pc->vert ? 1e-3f + 1e-6f * fabs(s0.z) + zpad : Rp;
-    float zlo = fmin(s0.z, e.z) - zp, zhi = fmax(s0.z, e.z) + zp;
+    const float zp = pc->vert ? 1e-3f + 1e-6f * fabs1(s0.z) + zpad : Rp;
+    float zlo = fmin1(s0.z, e.z) - zp, zhi = fmax1(s0.z, e.z) + zp;
 #if NINC > 0 && !defined(FLAT)
     query_depth_keys(vlay, pc->conform ? pc->Ll : -1, pc->tb_r, s0.z, e.z, &zlo, &zhi);
 #else
     query_depth_keys(vlay, pc->conform ? pc->Lk : -1, pc->tb_r, s0.z, e.z, &zlo, &zhi);
 #endif
-    const float3 lo = (float3)(fmin(s0.x, e.x) - Rp, fmin(s0.y, e.y) - Rp, zlo);
-    const float3 hi = (float3)(fmax(s0.x, e.x) + Rp, fmax(s0.y, e.y) + Rp, zhi);
+    const float3 lo = (float3)(fmin1(s0.x, e.x) - Rp, fmin1(s0.y, e.y) - Rp, zlo);
+    const float3 hi = (float3)(fmax1(s0.x, e.x) + Rp, fmax1(s0.y, e.y) + Rp, zhi);
     BeamBox bx;
     bx.c0 = grid_coords(gp, lo); bx.c1 = grid_coords(gp, hi);
-    bx.xa = fmin(s0.x, e.x); bx.xb = fmax(s0.x, e.x);
-    bx.ya = fmin(s0.y, e.y); bx.yb = fmax(s0.y, e.y);
+    bx.xa = fmin1(s0.x, e.x); bx.xb = fmax1(s0.x, e.x);
+    bx.ya = fmin1(s0.y, e.y); bx.yb = fmax1(s0.y, e.y);
     bx.Rp = Rp;
     return bx;
 }
@@ -241,7 +241,7 @@ HOT int beam_pair_depth(const BeamPiece* pc, float4 p, int bl, float2 tb_p, floa
         if ((bl >> 8) != pc->Lk) return 0;
 #endif
         if (tb_p.y > -1e29f && tb_r.y > -1e29f) {
-            const float w = (tb_r.x - tb_r.y) / fmax(tb_p.x - tb_p.y, 1e-3f);
+            const float w = (tb_r.x - tb_r.y) / fmax1(tb_p.x - tb_p.y, 1e-3f);
             *wl = w;
             *pz = tb_r.x - (tb_p.x - p.z) * w;
         } else {
@@ -282,10 +282,10 @@ HOT int beam_pair(__constant const Params* P, const BeamPiece* pc, float R, floa
     float wwin = 1.0f;                  /* pi R^2 / the window's area */
     if (beam_lateral(P)) {
         const float2 sd = side_distances(P, s0.xy + ts * d.xy);
-        if (fmin(sd.x, sd.y) < Rwin) {
+        if (fmin1(sd.x, sd.y) < Rwin) {
             /* window_at, its area only for a photon inside the window */
             const float hx = side_half_width(sd.x, R), hy = side_half_width(sd.y, R);
-            if (fabs(qx) >= hx || fabs(qy) >= hy) return 0;
+            if (fabs1(qx) >= hx || fabs1(qy) >= hy) return 0;
             wwin = PI_F * R2 / window_area(hx, hy, R);
         }
     }
@@ -302,13 +302,13 @@ HOT int beam_pair(__constant const Params* P, const BeamPiece* pc, float R, floa
 inline int2 beam_row_x(const GridParams gp, int iy, int cx0, int cx1, float xa, float xb, float ya,
                        float yb, float Rp)
 {
-    const float pad = 1e-2f + 1e-5f * (fabs(xa) + fabs(xb) + fabs(ya) + fabs(yb) + Rp);
+    const float pad = 1e-2f + 1e-5f * (fabs1(xa) + fabs1(xb) + fabs1(ya) + fabs1(yb) + Rp);
     const float rlo = iy <= 0 ? -INFINITY : gp.lo_y + (float)iy * gp.h;
     const float rhi = iy >= gp.ny - 1 ? INFINITY : gp.lo_y + (float)(iy + 1) * gp.h;
-    const float dy = fmax(fmax(rlo - yb, ya - rhi) - pad, 0.0f);
-    const float hw = sqrt(fmax(Rp * Rp - dy * dy, 0.0f)) + pad;
-    return (int2)(max(cx0, grid_axis(xa - hw, gp.lo_x, gp.inv_h, gp.nx)),
-                  min(cx1, grid_axis(xb + hw, gp.lo_x, gp.inv_h, gp.nx)));
+    const float dy = fmax1(fmax1(rlo - yb, ya - rhi) - pad, 0.0f);
+    const float hw = sqrt1(fmax1(Rp * Rp - dy * dy, 0.0f)) + pad;
+    return (int2)(max1(cx0, grid_axis(xa - hw, gp.lo_x, gp.inv_h, gp.nx)),
+                  min1(cx1, grid_axis(xb + hw, gp.lo_x, gp.inv_h, gp.nx)));
 }
 
 /* beam_row_x of the piece's query box */

@@ -22,8 +22,8 @@ HOT float2 layer_slab(__constant const Params* P, __constant const float4* iface
 #elif defined(SMOOTH_SURFACE)
     return (float2)(smooth_z(P, iface, heights, L, p.x, p.y), smooth_z(P, iface, heights, L + 1, p.x, p.y));
 #else
-    int ix = clamp((int)floor((p.x - P->x0) / P->dx), 0, P->nx - 1);
-    int iy = clamp((int)floor((p.y - P->y0) / P->dy), 0, P->ny - 1);
+    int ix = clamp1((int)floor1((p.x - P->x0) / P->dx), 0, P->nx - 1);
+    int iy = clamp1((int)floor1((p.y - P->y0) / P->dy), 0, P->ny - 1);
     int col = col_index(P, ix, iy);
     return (float2)(iface_z(iface, heights, P, L, col), iface_z(iface, heights, P, L + 1, col));
 #endif
@@ -112,7 +112,7 @@ inline int hit_surface(Track* t, __constant const Params* P, __constant const fl
             for (int a = 0; a < 2; ++a) {
                 if (dd[a] == 0.0f) { if (o[a] < lo[a] || o[a] > hi[a]) return 0; continue; }
                 float t1 = (lo[a] - o[a]) / dd[a], t2 = (hi[a] - o[a]) / dd[a];
-                tmin = fmax(tmin, fmin(t1, t2)); tmax = fmin(tmax, fmax(t1, t2));
+                tmin = fmax1(tmin, fmin1(t1, t2)); tmax = fmin1(tmax, fmax1(t1, t2));
             }
             if (tmin > tmax || d.z >= 0.0f) return 0;
 #ifdef FLAT
@@ -147,7 +147,7 @@ inline int hit_surface(Track* t, __constant const Params* P, __constant const fl
         float sx = BIG, sy = BIG;
         if (d.x != 0.0f) sx = (P->x0 + P->dx * (float)(t->ix + (d.x > 0.0f)) - t->pos.x) / d.x;
         if (d.y != 0.0f) sy = (P->y0 + P->dy * (float)(t->iy + (d.y > 0.0f)) - t->pos.y) / d.y;
-        float sw = fmin(sx, sy);
+        float sw = fmin1(sx, sy);
         float sz = (d.z < 0.0f) ? (zs - t->pos.z) / d.z : BIG;
         if (sz <= sw) {
             t->pos += sz * d; t->pos.z = zs;

@@ -41,24 +41,24 @@
  * is that of the disc within the window; cut = 0 for a whole disc. */
 typedef struct { float hx, hy, area; int cut; } DiscWindow;
 
-inline float circ_prim(float y) {                 /* integral of sqrt(1 - y^2) dy from 0 */
-    y = clamp(y, 0.0f, 1.0f);
-    return 0.5f * (y * sqrt(fmax(1.0f - y * y, 0.0f)) + asin(y));
+inline float circ_prim(float y) {                 /* integral of sqrt1(1 - y^2) dy from 0 */
+    y = clamp1(y, 0.0f, 1.0f);
+    return 0.5f * (y * sqrt1(fmax1(1.0f - y * y, 0.0f)) + asin(y));
 }
 
 /* Area of {0 < x < ex, 0 < y < ey, x^2 + y^2 < 1}: a quarter of the unit disc within the window. */
 inline float quarter_area(float ex, float ey) {
-    ex = clamp(ex, 0.0f, 1.0f);
-    ey = clamp(ey, 0.0f, 1.0f);
-    const float yk = sqrt(fmax(1.0f - ex * ex, 0.0f));      /* the circle meets x = ex */
-    float a = ex * fmin(ey, yk);
+    ex = clamp1(ex, 0.0f, 1.0f);
+    ey = clamp1(ey, 0.0f, 1.0f);
+    const float yk = sqrt1(fmax1(1.0f - ex * ex, 0.0f));      /* the circle meets x = ex */
+    float a = ex * fmin1(ey, yk);
     if (ey > yk) a += circ_prim(ey) - circ_prim(yk);
     return a;
 }
 
 /* Distances from c to the nearest x side and the nearest y side. */
 inline float2 side_distances(__constant const Params* P, float2 c) {
-    return (float2)(fmin(c.x - P->x0, P->x0 + P->xw - c.x), fmin(c.y - P->y0, P->y0 + P->yw - c.y));
+    return (float2)(fmin1(c.x - P->x0, P->x0 + P->xw - c.x), fmin1(c.y - P->y0, P->y0 + P->yw - c.y));
 }
 
 /* The window's half-width across a side at distance d (see above): DISC_KAPPA d (1 + 2 DISC_KAPPA d / R), not below
@@ -67,7 +67,7 @@ inline float2 side_distances(__constant const Params* P, float2 c) {
  * and R where the side is far. */
 inline float side_half_width(float d, float R) {
     const float u = DISC_KAPPA * d;
-    return clamp(fmin(fmax(u + 2.0f * u * u / R, DISC_FLOOR * R), d), 1e-3f * R, R);
+    return clamp1(fmin1(fmax1(u + 2.0f * u * u / R, DISC_FLOOR * R), d), 1e-3f * R, R);
 }
 
 /* Beyond this distance from a side the window is the whole disc (side_half_width reaches R). */

@@ -128,15 +128,15 @@ inline float estimator_volume(float z, float R, float2 slab) {
 #if ESTIMATOR == 0
     return full;
 #else
-    float hi = fmin(R, slab.x - z);
+    float hi = fmin1(R, slab.x - z);
 #if ESTIMATOR == 2
-    float lo = fmax(-R, slab.y - z);
+    float lo = fmax1(-R, slab.y - z);
 #else
     float lo = -R;
 #endif
-    hi = fmax(hi, lo);
+    hi = fmax1(hi, lo);
     const float v = PI_F * ((R * R * hi - hi * hi * hi / 3.0f) - (R * R * lo - lo * lo * lo / 3.0f));
-    return fmax(v, 1e-3f * full);
+    return fmax1(v, 1e-3f * full);
 #endif
 }
 
@@ -146,7 +146,7 @@ inline float estimator_volume(float z, float R, float2 slab) {
  * [lowest point of its bottom interface, highest point of its top interface]. */
 inline int query_z0(const GridParams gp, int z0, int L, __constant const float2* layer_z) {
 #if ESTIMATOR == 2
-    return max(z0, grid_axis(layer_z[L].x - 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
+    return max1(z0, grid_axis(layer_z[L].x - 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
 #else
     return z0;
 #endif
@@ -154,7 +154,7 @@ inline int query_z0(const GridParams gp, int z0, int L, __constant const float2*
 
 inline int query_z1(const GridParams gp, int z1, int L, __constant const float2* layer_z) {
 #if ESTIMATOR == 2
-    return min(z1, grid_axis(layer_z[L].y + 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
+    return min1(z1, grid_axis(layer_z[L].y + 1.0f, gp.lo_z, gp.inv_hz, gp.nz));
 #else
     return z1;
 #endif
@@ -222,7 +222,7 @@ HOT uint gather_sphere(const GridParams gp, __global const uint* cell_start, __g
                         const float4 h = hg[b];
                         const float q = h.x - h.y * cw;
                         const float rq = rsqrt(q);
-                        acc[b] = add_sat(acc[b], (long)fmin(h.z * rq * rq * rq * w * FIX, 9.0e18f));
+                        acc[b] = add_sat(acc[b], (long)fmin1(h.z * rq * rq * rq * w * FIX, 9.0e18f));
                     }
                     ++M;
                 }
@@ -352,8 +352,8 @@ __kernel void init_radius(const GridParams gp,
         float Rn;
         if (n == 0) Rn = 2.0f * R;
         else Rn = cbrt(3.0f * K * vol / (4.0f * PI_F * (float)n));
-        R = clamp(Rn, 0.25f * R, 4.0f * R);
-        R = fmin(R, Rmax);
+        R = clamp1(Rn, 0.25f * R, 4.0f * R);
+        R = fmin1(R, Rmax);
     }
     pt_R[i] = R;
 }
@@ -457,11 +457,11 @@ __kernel void photon_keys(__constant const Params* P, __constant const float4* i
     const float4 p = pos_w[j];
     float z = p.z;
 #ifndef FLAT
-    const int L = clamp((int)dir_b[j].w >> 8, 0, NL - 1);
+    const int L = clamp1((int)dir_b[j].w >> 8, 0, NL - 1);
     const float4 vz = vlay[L];
     if (vz.z != 0.0f) {
         const float2 tb = layer_slab(P, iface, heights, p.xyz, L);
-        z = phi_key(vz, (tb.x - p.z) / fmax(tb.x - tb.y, 1e-3f));
+        z = phi_key(vz, (tb.x - p.z) / fmax1(tb.x - tb.y, 1e-3f));
     }
 #endif
     kpos[j] = (float4)(p.x, p.y, z, (float)((((int)dir_b[j].w) & 255) % GCLASS));
@@ -593,7 +593,7 @@ HOT void beam_band_term(ClassAcc* acc, const ClassOd* od, __global const float4*
 #else
     const float T = exp_neg(od->v[k] + mut_k[b].w * ts);
 #endif
-    acc->v[k] = add_sat(acc->v[k], (long)fmin(hq.z * rq * rq * rq * w * T * FIX, 9.0e18f));
+    acc->v[k] = add_sat(acc->v[k], (long)fmin1(hq.z * rq * rq * rq * w * T * FIX, 9.0e18f));
 }
 
 HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, __global const float4* mut_k,
@@ -657,7 +657,7 @@ HOT uint gather_piece(const GridParams gp, __constant const Params* P, __constan
 #if NINC > 0
     const float3 pe = pc->s0 + pc->len * pc->d;
     const int near = inclusions_near(optics, bx.xa - bx.Rp, bx.xb + bx.Rp, bx.ya - bx.Rp, bx.yb + bx.Rp,
-                                     fmin(pc->s0.z, pe.z) - bx.Rp, fmax(pc->s0.z, pe.z) + bx.Rp);
+                                     fmin1(pc->s0.z, pe.z) - bx.Rp, fmax1(pc->s0.z, pe.z) + bx.Rp);
 #endif
 #ifdef BAND16
     const float16 mut16 = mutc[pc->Lk * GCLASS + g];
@@ -869,7 +869,7 @@ __kernel void gather_beam_points(__global const uint* ray_start, __global float*
             const float N = pt_N[i];
             const float Nn = N + alpha * (float)M;
             pt_N[i] = Nn;
-            pt_R[i] = R * sqrt(Nn / (N + (float)M));
+            pt_R[i] = R * sqrt1(Nn / (N + (float)M));
         }
         pairs += M;
     }

@@ -65,6 +65,8 @@
 #ifndef CLPPM_GRID_H
 #define CLPPM_GRID_H
 
+#include "scalar.h"
+
 typedef struct {
     float lo_x, lo_y, lo_z;   /* box corner (µm) */
     float h;                  /* cell edge (µm) */
@@ -83,8 +85,8 @@ typedef struct {
 inline int grid_axis(const float v, const float lo, const float inv_h, const int n)
 {
 #pragma OPENCL FP_CONTRACT OFF
-    float t = floor((v - lo) * inv_h);
-    t = fmin(fmax(t, 0.0f), (float)(n - 1));
+    float t = floor1((v - lo) * inv_h);
+    t = fmin1(fmax1(t, 0.0f), (float)(n - 1));
     return (int)t;
 }
 
@@ -118,7 +120,7 @@ inline uint grid_cells_xyz(const GridParams gp)
 inline uint grid_key_of(const GridParams gp, const float4 p)
 {
     const uint c = grid_cell_of(gp, p.xyz);
-    return gp.nclass > 1u ? c + grid_cells_xyz(gp) * min((uint)p.w, gp.nclass - 1u) : c;
+    return gp.nclass > 1u ? c + grid_cells_xyz(gp) * min1((uint)p.w, gp.nclass - 1u) : c;
 }
 
 inline void grid_query_range(const GridParams gp, const float3 x, const float R,

@@ -131,14 +131,14 @@ inline int cross_face(float4* dir, float4 gn, int k, int L, int L2, float x, flo
 /* the cosine within the eye cone closest to d (the most favourable eye direction) */
 inline float cone_cos(__constant const Params* P, float3 d) {
     const float c = d.z;
-    return c >= P->store_cos ? 1.0f : c * P->store_cos + sqrt(fmax(0.0f, 1.0f - c * c)) * P->store_sin;
+    return c >= P->store_cos ? 1.0f : c * P->store_cos + sqrt1(fmax1(0.0f, 1.0f - c * c)) * P->store_sin;
 }
 
 /* HG(g, ce) / max HG(g, .) */
 inline float hg_rel(float g, float ce) {
     const float a = 1.0f + g * g - 2.0f * g * ce;
     const float omg = 1.0f - fabs(g);
-    return omg * omg * omg / (a * sqrt(a));
+    return omg * omg * omg / (a * sqrt1(a));
 }
 
 /* An upper bound of I for the event's layer, from per-layer extremes over all bands
@@ -151,7 +151,7 @@ inline float hg_rel(float g, float ce) {
 inline float store_bound(__global const float2* store_imp, int L, float ce, float amax, float z) {
     const float2 m = store_imp[NL * NB + 2 * L], zg = store_imp[NL * NB + 2 * L + 1];
     const float hrel = zg.y >= 0.0f ? hg_rel(zg.y, ce) : 1.0f;
-    return 1.001f * hrel * exp_neg(m.x + m.y * fmax(0.0f, zg.x - z)) * amax;
+    return 1.001f * hrel * exp_neg(m.x + m.y * fmax1(0.0f, zg.x - z)) * amax;
 }
 
 inline float store_probability(__constant const Params* P, float ce, int L, int h, const float* F,
@@ -163,10 +163,10 @@ inline float store_probability(__constant const Params* P, float ce, int L, int 
         const float4 op = optics[L * NB + bj];
         const float2 imp = store_imp[L * NB + bj];
         const float2 spi = band_spi[bj];
-        const float T = exp_neg(imp.x + op.w * fmax(0.0f, imp.y - z));
+        const float T = exp_neg(imp.x + op.w * fmax1(0.0f, imp.y - z));
         I += spi.x > 0.0f ? F[j] * (spi.y / spi.x) * hg_rel(op.y, ce) * T : 0.0f;
     }
-    return clamp(P->store_scale * I, P->store_qmin, 1.0f);
+    return clamp1(P->store_scale * I, P->store_qmin, 1.0f);
 }
 
 
@@ -285,8 +285,8 @@ HOT float photon_boundary(const Track* t, VOLUME_ARGS, __global const float2* ti
  * direction, and tile mode would then meet that wall again at distance 0). */
 HOT int column_ahead(float c, float c0, float dc, int n, float dd) {
     const float g = (c - c0) / dc;
-    const float f = floor(g);
-    return clamp((int)f - (g == f && dd < 0.0f), 0, n - 1);
+    const float f = floor1(g);
+    return clamp1((int)f - (g == f && dd < 0.0f), 0, n - 1);
 }
 
 HOT void locate_column_ahead(Track* t, __constant const Params* P) {
@@ -340,7 +340,7 @@ HOT void fates_flush(const Fates* f, __global long* tal) {
 HOT float3 cone_dir(__constant const Params* P, float u1, float u2) {
     const float s = u1 * P->cone_omc;      /* 1 - cos(theta): exact for a narrow cone */
     const float2 cs = azimuth_cs(u2);
-    return rotate_dir_cst((float3)(P->cax, P->cay, P->caz), 1.0f - s, sqrt(fmax(s * (2.0f - s), 0.0f)), cs.x, cs.y);
+    return rotate_dir_cst((float3)(P->cax, P->cay, P->caz), 1.0f - s, sqrt1(fmax1(s * (2.0f - s), 0.0f)), cs.x, cs.y);
 }
 
 /* Whether the ray from the point light along d crosses the plane of the highest surface point
@@ -429,7 +429,7 @@ HOT long emit_photon(uint id, const PhotonLaunch* L, VOLUME_ARGS, __global const
     float ct;
     const float R = fresnel_R(P->n_above, layer_n[0], ci, &ct);
     long ws = convert_long_rte((float)W * R);
-    ws = clamp(ws, 0L, W);
+    ws = clamp1(ws, 0L, W);
     f->spec += ws; W -= ws;
     if (W > 0) {
         float3 d = refract3(t->dir, sn, P->n_above / layer_n[0], ci, ct);
@@ -490,7 +490,7 @@ HOT void store_event(__constant const Params* P, const Track* t, Spectral* sw, l
         u = rng_u01(srng);
 #ifndef STORE_EXACT                     /* tests: q for every event (the same decisions) */
         const float a_h = (float)W * (1.0f / W0F);
-        if (!(u <= clamp(P->store_scale * store_bound(store_imp, t->L, cone_cos(P, t->dir), sw_amax(sw, a_h),
+        if (!(u <= clamp1(P->store_scale * store_bound(store_imp, t->L, cone_cos(P, t->dir), sw_amax(sw, a_h),
                                                       t->pos.z), P->store_qmin, 1.0f))) return;
 #endif
     }

@@ -81,7 +81,7 @@ HOT float smooth_march(__constant const Params* P, __global const float* heights
     const real dxy2 = ddx * ddx + ddy * ddy;
     const real Kd = (real)b.z * dxy2;
     /* the steepest descent of g along the ray (G bounds |grad h|): g(s + t) >= g - gmax t too */
-    const real gmax = (real)b.w * sqrt(dxy2) + sg * ddz;
+    const real gmax = (real)b.w * sqrt1(dxy2) + sg * ddz;
     /* the ray in grid coordinates, and the gradient's dot with d from grid units */
     const real idx = 1 / (real)P->dx, idy = 1 / (real)P->dy;
     const real gx0 = ((real)p.x - (real)P->x0) * idx - (real)0.5, gy0 = ((real)p.y - (real)P->y0) * idy - (real)0.5;
@@ -93,12 +93,12 @@ HOT float smooth_march(__constant const Params* P, __global const float* heights
         const real g = sg * (f.x - (pz + s * ddz));
         const real gp = sg * (f.y * ux + f.z * uy - ddz);
         if (g <= SMOOTH_TOL && gp < 0) { *hit = 1; return (float)s; }
-        const real gg = fmax(g, (real)0);
+        const real gg = fmax1(g, (real)0);
         real t;
-        if (gp < 0) t = 2 * gg / (sqrt(gp * gp + 2 * Kd * gg) - gp);
-        else t = Kd > 0 ? (gp + sqrt(gp * gp + 2 * Kd * gg)) / Kd : (real)BIG;
-        if (gmax > 0) t = fmax(t, gg / gmax);
-        s += fmax(t, (real)1e-7);
+        if (gp < 0) t = 2 * gg / (sqrt1(gp * gp + 2 * Kd * gg) - gp);
+        else t = Kd > 0 ? (gp + sqrt1(gp * gp + 2 * Kd * gg)) / Kd : (real)BIG;
+        if (gmax > 0) t = fmax1(t, gg / gmax);
+        s += fmax1(t, (real)1e-7);
         if (s >= (real)smax) return BIG;
     }
     return (float)s;
@@ -150,10 +150,10 @@ HOT void smooth_face(float3 p, float3 d, int k, int j, int tx, int ty, float s_s
         }
         return;
     }
-    const float lim = fmin(*best, smax);
+    const float lim = fmin1(*best, smax);
     const float4 b = smooth_tile(P, iface, heights, k, tx, ty);
-    const float zs = p.z + s_start * d.z, z1 = p.z + fmin(lim, 1e6f) * d.z;
-    if (j == 0 ? fmax(zs, z1) < b.x : fmin(zs, z1) > b.y) return;     /* clear of the tile's patches */
+    const float zs = p.z + s_start * d.z, z1 = p.z + fmin1(lim, 1e6f) * d.z;
+    if (j == 0 ? fmax1(zs, z1) < b.x : fmin1(zs, z1) > b.y) return;     /* clear of the tile's patches */
     if ((j == 0 ? d.z < 0.0f : d.z > 0.0f) && d.z * d.z * (1.0f + b.w * b.w) >= b.w * b.w)
         return;                                                       /* away, steeper than the surface */
     /* no crossing before the ray enters the tile's height range */
@@ -201,9 +201,9 @@ inline int smooth_hit(Track* t, __constant const Params* P, __constant const flo
         int e = EV_NONE;
         tile_walls(t, P, &best, &e);
         domain_sides(t->pos, d, P, &best, &e);
-        const float lim = d.z > 0.0f ? fmin(best, (P->z_top - t->pos.z) / d.z) : best;
+        const float lim = d.z > 0.0f ? fmin1(best, (P->z_top - t->pos.z) / d.z) : best;
         const float4 b = smooth_tile(P, iface, heights, 0, t->ix / SMOOTH_CELL, t->iy / SMOOTH_CELL);
-        if (fmin(t->pos.z, t->pos.z + fmin(lim, 1e6f) * d.z) <= b.y) {
+        if (fmin1(t->pos.z, t->pos.z + fmin1(lim, 1e6f) * d.z) <= b.y) {
             int hit;
             const float s0 = t->pos.z > b.y ? (b.y - t->pos.z) / d.z : 0.0f;
             const float s = smooth_march(P, heights, IF_VAR(0), (real)IF_Z(0), t->pos, d, s0, lim, b, (real)-1, &hit);

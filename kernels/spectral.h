@@ -156,8 +156,8 @@ inline void sw_scatter(Spectral* w, __global const float* tab, int L, float cos_
     for (int j = 1; j < HERO_C; ++j) {
         const float2 ab = TAB_HG(L, sw_band(w->h, j));
         w->hq[j] *= (ab.x - ab.y * cos_t) * inv;
-        lo = fmin(lo, w->hq[j]);
-        hi = fmax(hi, w->hq[j]);
+        lo = fmin1(lo, w->hq[j]);
+        hi = fmax1(hi, w->hq[j]);
     }
     if (lo < 0x1p-40f || hi > 0x1p40f)
         for (int j = 1; j < HERO_C; ++j) sw_fold_hq(w, j);
@@ -193,13 +193,13 @@ inline void sw_weights(const Spectral* w, float a_h, __global const float2* band
         la[j] = w->la[j] + (float)w->pn * TAB_LOGALB(w->pL, b);
     }
     float lm = lr[0];
-    for (int j = 1; j < HERO_C; ++j) lm = fmax(lm, lr[j]);
+    for (int j = 1; j < HERO_C; ++j) lm = fmax1(lm, lr[j]);
     float rho[HERO_C];
     float den = 0.0f;
     for (int j = 0; j < HERO_C; ++j) {
         /* hq^(-3/2) lies within 2^-60 .. 2^60 (sw_scatter), so rho neither overflows nor, for the
          * band of the largest lr, underflows */
-        rho[j] = exp_neg(lm - lr[j]) / (w->hq[j] * sqrt(w->hq[j]));
+        rho[j] = exp_neg(lm - lr[j]) / (w->hq[j] * sqrt1(w->hq[j]));
         den += band_spi[sw_band(w->h, j)].y * rho[j];
     }
     const float inv = den > 0.0f ? w->scale / den : 0.0f;

@@ -68,7 +68,7 @@ typedef struct { real h, hx, hy, hxx, hxy, hyy; } HF;
 
 inline int hf_index(int i, int n, int periodic) {
     if (periodic) { i %= n; return i < 0 ? i + n : i; }
-    return clamp(i, 0, n - 1);
+    return clamp1(i, 0, n - 1);
 }
 
 /* (x, y) in the samples' grid coordinates: sample i lies at i + 1/2 (the patch of (x, y) is

@@ -100,3 +100,36 @@ __kernel void t_window_at(uint n, __global const float2* s, const float R, __glo
     const DiscWindow w = window_at(s[i], R);
     out[i] = (float4)(w.hx, w.hy, w.area, (float)w.cut);
 }
+
+/* The scalar forms of volume.h (fmax1 ... sqrt1: clang's builtins inline where INLINE_MATH is
+ * set) and the OpenCL builtins on the same inputs, as bits: out[10 i + k], k = fmax, fmin,
+ * sqrt, floor, clamp to (b, c) in pairs (the scalar form first); iout[2 i + k]: int clamp. */
+__kernel void t_scalar_math(uint n, __global const float* a, __global const float* b, __global const float* c,
+                            __global uint* out, __global int* iout) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    const float x = a[i], y = b[i], lo = fmin(b[i], c[i]), hi = fmax(b[i], c[i]);
+    __global uint* o = out + 10 * i;
+    o[0] = as_uint(fmax1(x, y)); o[1] = as_uint(fmax(x, y));
+    o[2] = as_uint(fmin1(x, y)); o[3] = as_uint(fmin(x, y));
+    o[4] = as_uint(sqrt1(x)); o[5] = as_uint(sqrt(x));
+    o[6] = as_uint(floor1(x)); o[7] = as_uint(floor(x));
+    o[8] = as_uint(clamp1(x, lo, hi)); o[9] = as_uint(clamp(x, lo, hi));
+    const int k = (int)clamp(x, -3e9f, 3e9f), l = (int)clamp(lo, -3e9f, 3e9f), h = (int)clamp(hi, -3e9f, 3e9f);
+    iout[2 * i] = clamp1(k, min(l, h), max(l, h)); iout[2 * i + 1] = clamp(k, min(l, h), max(l, h));
+}
+
+#ifdef cl_khr_fp64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+/* the same in double (the smooth surfaces' march, PT_FP64 builds): out[8 i + k] as above, no clamp */
+__kernel void t_scalar_math_d(uint n, __global const double* a, __global const double* b, __global ulong* out) {
+    const uint i = (uint)get_global_id(0);
+    if (i >= n) return;
+    const double x = a[i], y = b[i];
+    __global ulong* o = out + 8 * i;
+    o[0] = as_ulong(fmax1(x, y)); o[1] = as_ulong(fmax(x, y));
+    o[2] = as_ulong(fmin1(x, y)); o[3] = as_ulong(fmin(x, y));
+    o[4] = as_ulong(sqrt1(x)); o[5] = as_ulong(sqrt(x));
+    o[6] = as_ulong(floor1(x)); o[7] = as_ulong(floor(x));
+}
+#endif

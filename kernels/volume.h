@@ -34,6 +34,8 @@
 #include <pyopencl-random123/philox.cl>
 #include "constants.h"
 
+#include "scalar.h"
+
 #ifndef NB
 #error "NB (number of bands) must be defined"
 #endif
@@ -155,12 +157,12 @@ inline float2 ld2(__global const float* p) { return (float2)(p[0], p[1]); }
 /* ---------------------------------------------------------------- optics */
 /* Unpolarised Fresnel reflectance from n1 into n2 at incidence cosine cos_i (> 0). */
 inline float fresnel_R(float n1, float n2, float cos_i, float* cos_t_out) {
-    cos_i = fmin(fabs(cos_i), 1.0f);
+    cos_i = fmin1(fabs(cos_i), 1.0f);
     if (n1 == n2) { *cos_t_out = cos_i; return 0.0f; }
     float eta = n1 / n2;
-    float sin2_t = eta * eta * fmax(0.0f, 1.0f - cos_i * cos_i);
+    float sin2_t = eta * eta * fmax1(0.0f, 1.0f - cos_i * cos_i);
     if (sin2_t >= 1.0f) { *cos_t_out = 0.0f; return 1.0f; }      /* total internal reflection */
-    float cos_t = sqrt(1.0f - sin2_t);
+    float cos_t = sqrt1(1.0f - sin2_t);
     *cos_t_out = cos_t;
     float rs = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t);
     float rp = (n1 * cos_t - n2 * cos_i) / (n1 * cos_t + n2 * cos_i);
@@ -183,7 +185,7 @@ inline float hg_sample_cos(float g, float u) {
 
 inline float hg_eval(float g, float cos_t) {
     float d = 1.0f + g * g - 2.0f * g * cos_t;
-    return (1.0f - g * g) / (4.0f * PI_F * d * sqrt(d));
+    return (1.0f - g * g) / (4.0f * PI_F * d * sqrt1(d));
 }
 
 /* GGX microfacet specular (Walter et al. 2007) times cos(light): the host multiplies by the
@@ -197,8 +199,8 @@ inline float specular_geo(float3 n, float3 v, float3 l, float alpha, float n1, f
     float a2 = alpha * alpha;
     float den = nh * nh * (a2 - 1.0f) + 1.0f;
     float D = a2 / (PI_F * den * den);
-    float g1l = 2.0f * nl / (nl + sqrt(a2 + (1.0f - a2) * nl * nl));
-    float g1v = 2.0f * nv / (nv + sqrt(a2 + (1.0f - a2) * nv * nv));
+    float g1l = 2.0f * nl / (nl + sqrt1(a2 + (1.0f - a2) * nl * nl));
+    float g1v = 2.0f * nv / (nv + sqrt1(a2 + (1.0f - a2) * nv * nv));
     float ct;
     float F = fresnel_R(n1, n2, dot(h, l), &ct);
     return D * g1l * g1v * F / (4.0f * nl * nv) * nl;
@@ -238,9 +240,9 @@ inline float neg_log_u01(float u) {
  * in [-0.347, 0.347] by its Taylor polynomial to t^6 (truncation < 1.3e-7), 2^-n into the exponent
  * bits.  0 for y >= 126 (and for NaN). */
 inline float exp_neg(float x) {
-    const float y = fmax(x, 0.0f) * 1.44269504088896f;
+    const float y = fmax1(x, 0.0f) * 1.44269504088896f;
     if (!(y < 126.0f)) return 0.0f;
-    const float n = floor(y);
+    const float n = floor1(y);
     const float t = (y - n - 0.5f) * 0.693147180559945f;
     const float p = 1.0f - t * (1.0f - t * (0.5f - t * (1.0f / 6.0f - t * (1.0f / 24.0f
                     - t * (1.0f / 120.0f - t * (1.0f / 720.0f))))));
@@ -276,7 +278,7 @@ inline float3 rotate_dir_cst(float3 d, float ct, float st, float cp, float sp);
 
 inline float3 rotate_dir_cs(float3 d, float ct, float cp, float sp) {
     const float st2 = 1.0f - ct * ct;
-    return rotate_dir_cst(d, ct, st2 > 0.0f ? sqrt(st2) : 0.0f, cp, sp);
+    return rotate_dir_cst(d, ct, st2 > 0.0f ? sqrt1(st2) : 0.0f, cp, sp);
 }
 
 /* The same with sin(theta) given (exact where ct rounds to 1). */
@@ -353,7 +355,7 @@ inline float iface_z(__constant const float4* iface, __global const float* heigh
  * Starts from a guess and walks, since neighbouring columns differ by little. */
 inline int layer_at(__constant const float4* iface, __global const float* heights,
                     __constant const Params* P, int col, float z, int guess) {
-    int L = clamp(guess, -1, NL);
+    int L = clamp1(guess, -1, NL);
     while (L >= 0 && z > iface_z(iface, heights, P, L, col)) L--;
     while (L < NL && z <= iface_z(iface, heights, P, L + 1, col)) L++;
     return L;
@@ -394,8 +396,8 @@ inline void domain_sides(float3 p, float3 d, __constant const Params* P, float* 
 /* Column of a position (clamped into the grid). */
 inline void locate_column(Track* t, __constant const Params* P) {
 #ifndef FLAT
-    t->ix = clamp((int)floor((t->pos.x - P->x0) / P->dx), 0, P->nx - 1);
-    t->iy = clamp((int)floor((t->pos.y - P->y0) / P->dy), 0, P->ny - 1);
+    t->ix = clamp1((int)floor1((t->pos.x - P->x0) / P->dx), 0, P->nx - 1);
+    t->iy = clamp1((int)floor1((t->pos.y - P->y0) / P->dy), 0, P->ny - 1);
 #endif
 }
 

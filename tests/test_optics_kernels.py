@@ -401,3 +401,50 @@ def test_fresnel_matched(dev, prg, n):
     R, ct = fresnel(dev, prg, n, n, ci)
     assert np.all(R == 0.0)
     np.testing.assert_array_equal(ct.astype(np.float32), ci)
+
+
+def _special(dtype):
+    """Edge values (signed zeros, infinities, NaN, subnormals, halves for floor) and a spread of
+    ordinary ones, as the arguments a, b, c of t_scalar_math."""
+    f = np.finfo(dtype)
+    edge = np.array([0.0, -0.0, 1.0, -1.0, 0.5, -0.5, 1.5, -2.5, 2.0, 1e-3, f.tiny, -f.tiny, f.tiny / 4,
+                     f.max, -f.max, np.inf, -np.inf, np.nan, 3.0e9, -3.0e9], dtype)
+    rng = np.random.default_rng(7)
+    spread = (rng.standard_normal(4000) * 10.0 ** rng.integers(-6, 8, 4000)).astype(dtype)
+    vals = np.concatenate([edge, spread])
+    a, b = (v.ravel() for v in np.meshgrid(edge, edge))          # every pair of edge values
+    n = len(vals)
+    a = np.concatenate([a, vals, np.roll(vals, 1)]).astype(dtype)
+    b = np.concatenate([b, np.roll(vals, 7), vals]).astype(dtype)
+    return a, b, np.roll(b, 3) + np.asarray(n, dtype)
+
+
+def test_scalar_math_forms_equal_builtins(dev, prg):
+    """volume.h's fmax1, fmin1, sqrt1, floor1 and clamp1 (on PoCL clang's builtins inline,
+    INLINE_MATH; elsewhere the OpenCL builtins) give the builtins' very bits on every input:
+    the switch must not move a render's bytes.  (Caught on PoCL: fmax1 as a > b ? a : b, by a NaN
+    b; as __builtin_fmaxf, by fmax(-0, +0).)"""
+    with np.errstate(invalid="ignore", over="ignore"):
+        a, b, c = _special(np.float32)
+    n = len(a)
+    out, ob = _out(dev, n * 10, np.uint32)
+    iout, ib = _out(dev, n * 2, np.int32)
+    prg.t_scalar_math(dev.queue, (global_size(n),), None, np.uint32(n), _buf(dev, a), _buf(dev, b),
+                      _buf(dev, c), ob, ib)
+    pairs = _get(dev, out, ob).reshape(n, 5, 2)
+    nan = np.isnan(pairs.view(np.float32))
+    for k, name in enumerate(("fmax", "fmin", "sqrt", "floor", "clamp")):
+        same = (pairs[:, k, 0] == pairs[:, k, 1]) | (nan[:, k, 0] & nan[:, k, 1])
+        assert same.all(), (name, a[~same][:4], b[~same][:4])
+    ints = _get(dev, iout, ib).reshape(n, 2)
+    assert (ints[:, 0] == ints[:, 1]).all()
+    if "cl_khr_fp64" not in dev.device.extensions:
+        return
+    with np.errstate(invalid="ignore", over="ignore"):
+        a, b, _ = _special(np.float64)
+    out, ob = _out(dev, len(a) * 8, np.uint64)
+    prg.t_scalar_math_d(dev.queue, (global_size(len(a)),), None, np.uint32(len(a)), _buf(dev, a), _buf(dev, b), ob)
+    pairs = _get(dev, out, ob).reshape(len(a), 4, 2)
+    nan = np.isnan(pairs.view(np.float64))
+    same = (pairs[..., 0] == pairs[..., 1]) | (nan[..., 0] & nan[..., 1])
+    assert same.all()

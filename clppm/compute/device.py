@@ -438,7 +438,9 @@ def kernel_defines(vol=None, *, nb: int | None = None, hero: int = 1, estimator:
     PHOTON_PLAIN_WALK (photon.cl: the smooth walk of the other passes, tile by tile, for tests),
     DEPTH_ROULETTE (photon.cl: render.depth_roulette_um's roulette below the storage depth),
     LANES (photon.cl: photon_pass_lanes, the photon pass in explicit SIMD lanes of this width),
-    NO_VEC16 (gather.cl: the beam's band math lane by lane, where :func:`wide_vectors` is false)."""
+    NO_VEC16 (gather.cl: the beam's band math lane by lane, where :func:`wide_vectors` is false).
+    One switch depends on the device alone and every build gets it there:
+    :func:`clppm.compute.programs.device_defines` (INLINE_MATH on PoCL)."""
     if vol is None:
         return {"NB": int(nb)} if nb is not None else {}
     d = {"NB": vol.nb, "NL": vol.nl, "FLAT": vol.flat, "FAST_MATH": os.environ.get("CLPPM_FAST_MATH") == "1"}

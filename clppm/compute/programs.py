@@ -42,6 +42,13 @@ def is_pocl(device) -> bool:
     return device.platform.name == "Portable Computing Language"
 
 
+def device_defines(device) -> list[str]:
+    """The ``-D`` switches a device's builds get whatever the program (the program's own:
+    :func:`clppm.compute.device.kernel_defines`): INLINE_MATH on PoCL, whose kernel library
+    calls fmin, fmax, clamp, floor and sqrt out of line even on scalars (kernels/volume.h)."""
+    return ["INLINE_MATH"] if is_pocl(device) else []
+
+
 class BuildError(RuntimeError):
     """A kernel program failed to build or lacks a kernel its source declares."""
 
@@ -224,6 +231,7 @@ def _compile(ctx, src: str, opts: list, filename: str, cache: bool):
     import pyopencl as cl
     quiet_compiler_chatter()
     cache_dir = program_cache_dir() if cache else False
+    opts = list(opts) + [f"-D{k}" for k in device_defines(ctx.devices[0])]
     try:
         return cl.Program(ctx, src).build(options=opts, cache_dir=cache_dir)
     except cl.Error as e:  # build failure (RuntimeError), bad options (LogicError): name + log
