@@ -45,7 +45,7 @@ def is_pocl(device) -> bool:
 def device_defines(device) -> list[str]:
     """The ``-D`` switches a device's builds get whatever the program (the program's own:
     :func:`clppm.compute.device.kernel_defines`): INLINE_MATH on PoCL, whose kernel library
-    calls fmin, fmax, clamp, floor and sqrt out of line even on scalars (kernels/volume.h)."""
+    calls fmin, fmax, clamp, floor and sqrt out of line even on scalars (kernels/scalar.h)."""
     return ["INLINE_MATH"] if is_pocl(device) else []
 
 
