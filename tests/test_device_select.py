@@ -16,6 +16,8 @@ def test_select_by_implementation_name(dev):
 
 def test_local_size_halves_below_the_queried_limit(dev, monkeypatch):
     import pyopencl as cl
+    from clppm.compute.programs import quiet_compiler_chatter
+    quiet_compiler_chatter()                                  # Intel's build log is not a warning
     prg = cl.Program(dev.ctx, "__kernel void k(__global int* a) { a[get_global_id(0)] = 1; }").build()
     knl = cl.Kernel(prg, "k")
     assert D.local_size(knl, dev.device, 64) == 64 or D.kernel_limits(knl, dev.device)["work_group_size"] < 64
