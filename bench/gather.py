@@ -177,7 +177,8 @@ def worker(a) -> dict:
     setup_s = time.perf_counter() - t0
     st = sc.point_state(cal)
     acc = ppm.Accumulators.zeros(sc)
-    tal = photonpass.Tallies(sc.vol.nb, sc.vol.nmat)
+    # the tallies' rows: per material, or per layer in trees before inclusions
+    tal = photonpass.Tallies(sc.vol.nb, sc.vol.nmat if hasattr(sc.vol, "nmat") else sc.vol.nl)
     info = sc.run_pass(cal, st, 0, acc, tal)
     photon_s = sc.timing["photon"]
     first = acc.host()

@@ -51,6 +51,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import glob
+import hashlib
 import json
 import os
 import platform
@@ -525,6 +526,12 @@ def events_ab(base: Path | None, impls: list, rounds: int, photons: dict, out_pa
     return 0
 
 
+def spectral_hash(exr: Path) -> str:
+    """A hash of an EXR's spectral pixels (its header holds the run's times and tree)."""
+    from clppm.image import read_exr
+    return hashlib.sha1(np.ascontiguousarray(read_exr(exr)["spectral"]).tobytes()).hexdigest()[:16]
+
+
 def render_ab(base: Path | None, impls: list, rounds: int, extra: list, out_path: Path) -> int:
     """clppm render configs/forearm.toml in each tree, alternating: the run report's seconds."""
     import subprocess
@@ -541,10 +548,12 @@ def render_ab(base: Path | None, impls: list, rounds: int, extra: list, out_path
                 rep = json.loads(o.with_suffix(".json").read_text())
                 sec = rep["seconds"]
                 row = {"impl": impl, "tree": k, "round": r, "photon": sec["photon"], "gather": sec.get("gather"),
-                       "total": sec["total"], "emitted": rep["photons_emitted"], "stored": rep["photons_stored"]}
+                       "photon+gather": sec["photon"] + (sec.get("gather") or 0.0),
+                       "total": sec["total"], "emitted": rep["photons_emitted"], "stored": rep["photons_stored"],
+                       "spectral_sha1": spectral_hash(o)}
                 res.append(row)
                 print(json.dumps(row), flush=True)
-        for key in ("photon", "total"):
+        for key in ("photon", "gather", "photon+gather", "total"):
             med = {k: float(np.median([x[key] for x in res if x["impl"] == impl and x["tree"] == k])) for k, _ in trees}
             line = f"{impl}: seconds.{key} median " + ", ".join(f"{k} {v:.1f}" for k, v in med.items())
             if "B" in med:

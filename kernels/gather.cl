@@ -562,8 +562,8 @@ HOT void beam_pair_bands(ClassAcc* acc, const ClassOd* od, float16 mut16, __glob
     const float16 T = exp_neg16(od->v + mut16 * ts);
     /* add_sat for the nonnegative terms (fmin maps NaN to 9e18): the sum of two values in
      * [0, 2^63) does not wrap as ulong */
-    acc->v = as_long16(min(as_ulong16(acc->v) + as_ulong16(convert_long16(
-                 fmin(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f))),
+    acc->v = as_long16(min16(as_ulong16(acc->v) + as_ulong16(convert_long16(
+                 fmin16(hh[2] * rq * rq * rq * w * T * FIX, 9.0e18f))),
                  (ulong16)(0x7fffffffffffffffUL)));
 }
 #else

@@ -160,7 +160,7 @@ __kernel void scatter_beam(const GridParams gp, __constant const Params* P,
         const float16 q = hx + hy * cw;
         const float16 rq = native_rsqrt16(q);
         const float16 T = exp_neg16(od16 + mutc[pc.Lk * GCLASS + g] * h.ts);
-        const long16 x = convert_long16(fmin(hz * rq * rq * rq * w * T * FIX, 9.0e18f));
+        const long16 x = convert_long16(fmin16(hz * rq * rq * rq * w * T * FIX, 9.0e18f));
         const uint i = piece_pt[k];
         volatile __global long* ai = acc + (size_t)i * NB + g;
         if (x.s0) atom_add(ai, x.s0);
