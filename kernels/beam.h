@@ -15,8 +15,8 @@
 /* The band math's vector minima and maxima as comparisons and selects (the ternary operator on
  * vectors), which every compiler keeps inline: PoCL calls its kernel library for fmin, fmax,
  * floor, min and select on vectors, spilling the live vector registers around each call (a
- * tenth of the gather's time under PoCL 3.0).  The same bits as the builtins: a NaN loses, and
- * equal arguments give the second. */
+ * tenth of the gather's time under PoCL 3.0; photon_lanes.h's min_v and sel_f are the same for
+ * its lanes).  The same bits as the builtins: a NaN loses, and equal arguments give the second. */
 inline float16 fmin16(float16 x, float c) {
     const float16 cv = (float16)(c);
     return x < cv ? x : cv;

@@ -41,12 +41,8 @@
  * is that of the disc within the window; cut = 0 for a whole disc. */
 typedef struct { float hx, hy, area; int cut; } DiscWindow;
 
-/* The integral of sqrt(1 - y^2) dy from 0.  Its ends 0 and pi/4 without asin: a window cut on
- * one side only has yk = 0 (ex = 1) or ey = 1, and asin is a library call on some devices. */
-inline float circ_prim(float y) {
+inline float circ_prim(float y) {                 /* integral of sqrt1(1 - y^2) dy from 0 */
     y = clamp1(y, 0.0f, 1.0f);
-    if (y == 0.0f) return 0.0f;
-    if (y == 1.0f) return 0.5f * M_PI_2_F;
     return 0.5f * (y * sqrt1(fmax1(1.0f - y * y, 0.0f)) + asin(y));
 }
 
